@@ -1,0 +1,343 @@
+"""The mapping configuration: nested frozen dataclasses, one per stage.
+
+Every field carries, in its metadata, a one-line description with its unit,
+the paper symbol where there is one, where the default comes from, and the
+allowed range. ``MappingConfig()`` validates itself on construction, so a bad
+value fails early with a message that names the field.
+
+>>> cfg = MappingConfig().replace("hgmm.split_threshold", 0.02)
+>>> cfg.hgmm.split_threshold
+0.02
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional
+
+__all__ = [
+    "ConfigError",
+    "PrepareConfig",
+    "HGMMConfig",
+    "GMRConfig",
+    "GPConfig",
+    "SurfaceConfig",
+    "MappingConfig",
+]
+
+
+class ConfigError(ValueError):
+    """A configuration field is unknown or out of range."""
+
+
+def _f(default, doc: str, lo=None, hi=None, *, unit: str = "", symbol: str = "",
+       source: str = "", choices=None, optional: bool = False):
+    """A config field with its documentation and range in the metadata."""
+    return field(
+        default=default,
+        metadata=dict(doc=doc, lo=lo, hi=hi, unit=unit, symbol=symbol, source=source,
+                      choices=choices, optional=optional),
+    )
+
+
+def _validate(obj, prefix: str) -> None:
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        md = f.metadata
+        name = f"{prefix}{f.name}"
+        if dataclasses.is_dataclass(v):
+            continue
+        if v is None:
+            if not md.get("optional"):
+                raise ConfigError(f"Config field '{name}' must be set, found None.")
+            continue
+        if md.get("choices") is not None:
+            if v not in md["choices"]:
+                raise ConfigError(
+                    f"Config field '{name}' must be one of {list(md['choices'])}, found {v!r}."
+                )
+            continue
+        if isinstance(f.default, bool) or isinstance(v, bool):
+            if not isinstance(v, bool):
+                raise ConfigError(f"Config field '{name}' must be true or false, found {v!r}.")
+            continue
+        if isinstance(v, (int, float)):
+            if isinstance(v, float) and not math.isfinite(v):
+                raise ConfigError(f"Config field '{name}' must be finite, found {v!r}.")
+            lo, hi = md.get("lo"), md.get("hi")
+            if (lo is not None and v < lo) or (hi is not None and v > hi):
+                rng = f"[{lo if lo is not None else '-inf'}, {hi if hi is not None else 'inf'}]"
+                unit = f" {md['unit']}" if md.get("unit") else ""
+                raise ConfigError(
+                    f"Config field '{name}' must lie in {rng}{unit}, found {v!r}."
+                )
+
+
+@dataclass(frozen=True)
+class PrepareConfig:
+    """Subsampling, normals and virtual points (paper Sec. III-B, V-B)."""
+
+    subsample_rate: float = _f(
+        0.15, "Fraction of hit points kept for training.", 1e-4, 1.0,
+        source="paper Sec. V-B: about 15 %, robust from 5 % to 80 %")
+    voxel_size: Optional[float] = _f(
+        None, "If set, voxel-grid subsampling with this cell size replaces the rate.",
+        1e-4, 100.0, unit="m", optional=True)
+    normal_radius: float = _f(
+        0.3, "Neighbourhood radius for PCA normals.", 1e-4, 100.0, unit="m",
+        source="chosen: a few point spacings of mobile-mapping scans")
+    normal_max_nn: int = _f(
+        30, "Maximum neighbours for PCA normals.", 3, 1000,
+        source="Open3D's usual hybrid search")
+    virtual_spacing: float = _f(
+        0.25, "Distance s of the virtual points from the hit point along the normal.",
+        1e-4, 10.0, unit="m", symbol="s", source="paper Sec. V-B")
+    drop_inconsistent_virtual: bool = _f(
+        True, "Drop virtual points that land closer than s to another part of the surface "
+        "(their label +-s would be wrong).")
+    seed: int = _f(0, "Seed of the subsampling.", 0, 2**32 - 1)
+
+
+@dataclass(frozen=True)
+class HGMMConfig:
+    """Top-down hierarchical EM in 4D (paper Sec. III-A)."""
+
+    initial_components: int = _f(
+        4, "Components of the first level.", 1, 4096,
+        source="paper Fig. 2: four initial Gaussians")
+    n_children: int = _f(8, "Children per split node.", 2, 64, source="DESIGN.md")
+    split_threshold: float = _f(
+        0.01, "Split a node when c = lambda_min / sum(lambda) exceeds this.", 0.0, 0.25,
+        symbol="c", source="paper Sec. III-A (empirical value of Eckart et al.)")
+    min_rows: int = _f(
+        64, "Do not split nodes with fewer training rows than this.", 2, 10**9,
+        source="chosen: 8 children need enough rows for 4x4 covariances")
+    max_levels: int = _f(8, "Maximum number of levels.", 1, 32)
+    max_iter: int = _f(100, "EM iterations per fit.", 1, 100000)
+    tol: float = _f(1e-4, "EM stops when the mean log-likelihood gains less than this.",
+                    0.0, 1.0)
+    reg_covar: float = _f(
+        1e-6, "Added to covariance diagonals (in the units of the rows, m^2).", 0.0, 1.0,
+        unit="m^2", source="as scikit-learn's GaussianMixture")
+    seed: int = _f(0, "Seed of the k-means++ style initialisation.", 0, 2**32 - 1)
+
+
+@dataclass(frozen=True)
+class GMRConfig:
+    """Gaussian mixture regression of the SDF (paper Sec. III-B)."""
+
+    n_active: int = _f(
+        16, "Active components J mixed per query (the top J by pi_j p_j(x)).", 1, 4096,
+        symbol="J", source="chosen: see scripts/ sweep")
+    mahalanobis_cut: float = _f(
+        6.0, "Components farther than this Mahalanobis distance (in xyz) are inactive.",
+        0.5, 100.0, source="chosen: exp(-18) relative weight at 6 sigma")
+
+
+@dataclass(frozen=True)
+class GPConfig:
+    """Local GPs with derivative observations and HGMM priors (paper Sec. IV)."""
+
+    d_m: float = _f(
+        0.02, "Hit points with |m(x)| > d_m are GP training points.", 0.0, 10.0,
+        unit="m", symbol="d_m", source="chosen (paper leaves it to the required accuracy)")
+    length_scale: float = _f(
+        0.08, "Matern 3/2 length scale.", 1e-4, 100.0, unit="m", symbol="l",
+        source="authors' public GP code")
+    value_noise: float = _f(
+        4e-4, "Noise variance of the distance observations.", 0.0, 10.0, unit="m^2",
+        symbol="sigma_eta^2", source="authors' public GP code")
+    gradient_noise: float = _f(
+        5e-4, "Noise variance of the gradient (normal) observations.", 0.0, 10.0,
+        source="authors' public GP code")
+    block_size: float = _f(
+        0.5, "Edge of an octree leaf block.", 1e-3, 1000.0, unit="m",
+        source="chosen")
+    block_overlap: float = _f(
+        0.5, "Training points are taken within (1 + overlap) * half the block edge.",
+        0.0, 4.0, source="authors' code: twice the half-length (overlap 1.0)")
+    max_block_points: int = _f(
+        300, "Cap on training points per block (subsampled beyond).", 1, 100000)
+    jitter: float = _f(
+        1e-8, "Cholesky jitter added to the block covariance diagonal (relative).", 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class SurfaceConfig:
+    """Marching-cubes surface extraction (paper Sec. V-C)."""
+
+    voxel_size: float = _f(0.05, "Grid cell size.", 1e-4, 100.0, unit="m")
+    max_std: Optional[float] = _f(
+        None, "Cut away surface where the predicted standard deviation exceeds this.",
+        0.0, 1000.0, unit="m", optional=True)
+
+
+@dataclass(frozen=True)
+class MappingConfig:
+    """Every setting of the mapper. ``MappingConfig()`` gives the paper's defaults."""
+
+    prepare: PrepareConfig = field(default_factory=PrepareConfig)
+    hgmm: HGMMConfig = field(default_factory=HGMMConfig)
+    gmr: GMRConfig = field(default_factory=GMRConfig)
+    gp: GPConfig = field(default_factory=GPConfig)
+    surface: SurfaceConfig = field(default_factory=SurfaceConfig)
+    seed: int = _f(0, "Seed for everything random that has no seed of its own.", 0, 2**32 - 1)
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            sub = getattr(self, f.name)
+            if dataclasses.is_dataclass(sub):
+                _validate(sub, f"{f.name}.")
+        _validate(self, "")
+
+    # ---------------------------------------------------------------- overrides
+    def replace(self, dotted: str | dict, value: Any = None) -> "MappingConfig":
+        """Return a copy with one (``"hgmm.split_threshold", 0.02``) or several
+        (``{"hgmm.split_threshold": 0.02, ...}``) dotted fields replaced."""
+        updates = dotted if isinstance(dotted, dict) else {dotted: value}
+        cfg = self
+        for key, val in updates.items():
+            cfg = _replace_one(cfg, key, val)
+        return cfg
+
+    def with_overrides(self, assignments: list[str]) -> "MappingConfig":
+        """Apply CLI style ``section.field=value`` strings (values parsed as TOML)."""
+        updates = {}
+        for a in assignments:
+            if "=" not in a:
+                raise ConfigError(
+                    f"Expected an override like 'hgmm.split_threshold=0.02', found {a!r}."
+                )
+            key, raw = a.split("=", 1)
+            updates[key.strip()] = _parse_value(raw.strip())
+        return self.replace(updates)
+
+    @classmethod
+    def from_toml(cls, path: str | Path) -> "MappingConfig":
+        """Read a TOML file with ``[prepare]``, ``[hgmm]``, ... tables.
+
+        Fields left out keep their defaults; unknown fields are errors.
+        """
+        import tomllib
+
+        path = Path(path)
+        try:
+            data = tomllib.loads(path.read_text())
+        except FileNotFoundError:
+            raise ConfigError(f"Config file '{path}' does not exist; check the path.") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"Config file '{path}' is not valid TOML ({exc}).") from None
+        updates = {}
+        for key, val in data.items():
+            if isinstance(val, dict):
+                for kk, vv in val.items():
+                    updates[f"{key}.{kk}"] = vv
+            else:
+                updates[key] = val
+        return cls().replace(updates)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def to_toml(self) -> str:
+        """The resolved configuration as TOML (fields set to None are omitted)."""
+        lines = []
+        top = {k: v for k, v in self.to_dict().items() if not isinstance(v, dict)}
+        for k, v in top.items():
+            lines.append(f"{k} = {_toml_value(v)}")
+        for k, v in self.to_dict().items():
+            if isinstance(v, dict):
+                lines.append(f"\n[{k}]")
+                for kk, vv in v.items():
+                    if vv is not None:
+                        lines.append(f"{kk} = {_toml_value(vv)}")
+        return "\n".join(lines) + "\n"
+
+    @classmethod
+    def describe(cls) -> list[tuple[str, Any, str]]:
+        """(dotted name, default, documentation) for every field."""
+        out = []
+        cfg = cls()
+        for f in dataclasses.fields(cfg):
+            sub = getattr(cfg, f.name)
+            if dataclasses.is_dataclass(sub):
+                for g in dataclasses.fields(sub):
+                    out.append((f"{f.name}.{g.name}", getattr(sub, g.name), _doc(g)))
+            else:
+                out.append((f.name, sub, _doc(f)))
+        return out
+
+
+def _doc(f) -> str:
+    md = f.metadata
+    parts = [md.get("doc", "")]
+    if md.get("unit"):
+        parts.append(f"[{md['unit']}]")
+    if md.get("symbol"):
+        parts.append(f"(paper: {md['symbol']})")
+    if md.get("source"):
+        parts.append(f"Source: {md['source']}.")
+    return " ".join(p for p in parts if p)
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return f'"{v}"'
+    return repr(v)
+
+
+def _parse_value(raw: str):
+    import tomllib
+
+    try:
+        return tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        return raw  # a bare word: keep it as a string, validation judges it
+
+
+def _coerce(f, value, name: str):
+    """Coerce TOML/CLI values to the field's type (int given for a float is fine)."""
+    default = f.default
+    if value is None:
+        return None
+    if isinstance(default, bool):
+        return value
+    if isinstance(default, float) or (default is None and isinstance(value, int)
+                                      and not isinstance(value, bool)):
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        raise ConfigError(f"Config field '{name}' must be a number, found {value!r}.")
+    if isinstance(default, int):
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        raise ConfigError(f"Config field '{name}' must be an integer, found {value!r}.")
+    return value
+
+
+def _replace_one(cfg: MappingConfig, key: str, value) -> MappingConfig:
+    parts = key.split(".")
+    sections = {f.name: f for f in dataclasses.fields(cfg)}
+    if len(parts) == 1 and parts[0] in sections and not dataclasses.is_dataclass(
+            getattr(cfg, parts[0])):
+        f = sections[parts[0]]
+        return dataclasses.replace(cfg, **{parts[0]: _coerce(f, value, key)})
+    if len(parts) != 2 or parts[0] not in sections:
+        raise ConfigError(
+            f"Unknown config field '{key}'; expected 'section.field' with section one of "
+            f"{sorted(sections)} (see 'gmmgp run --help-config')."
+        )
+    sub = getattr(cfg, parts[0])
+    fields = {f.name: f for f in dataclasses.fields(sub)}
+    if parts[1] not in fields:
+        raise ConfigError(
+            f"Unknown config field '{key}'; '{parts[0]}' has {sorted(fields)}."
+        )
+    new_sub = dataclasses.replace(sub, **{parts[1]: _coerce(fields[parts[1]], value, key)})
+    return dataclasses.replace(cfg, **{parts[0]: new_sub})
