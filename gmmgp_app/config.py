@@ -230,6 +230,11 @@ class MappingConfig:
             raise ConfigError(f"Config file '{path}' does not exist; check the path.") from None
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"Config file '{path}' is not valid TOML ({exc}).") from None
+        return cls.from_dict(data)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "MappingConfig":
+        """Build from nested dicts (``{"hgmm": {"split_threshold": 0.02}}``)."""
         updates = {}
         for key, val in data.items():
             if isinstance(val, dict):

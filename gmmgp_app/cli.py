@@ -1,0 +1,332 @@
+"""The ``gmmgp`` command line.
+
+Only this module turns exceptions into exit codes: bad input ends in one line
+on stderr naming the problem and the fix, with exit code 2 and no traceback
+(``--debug`` shows it). Exit code 130 after Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+EXIT_OK, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 2, 130
+
+_EXAMPLES = {
+    "info": """examples:
+  gmmgp info assets/demo_street.npz
+  gmmgp info ../shared/data/kitti_odometry_seq00/velodyne/000000.bin
+  gmmgp info ../shared/data/airborne/autzen_trim.laz --units ft""",
+    "synth": """examples:
+  gmmgp synth street --out out/street          # scan.npz + mesh.ply + scene.json
+  gmmgp synth sphere --out out/sphere --seed 3
+  gmmgp synth street --out out/big --density 4  # about 4x the points""",
+    "run": """examples:
+  gmmgp run assets/demo_street.npz --out out/demo
+  gmmgp run scan.laz --out out/scan --set hgmm.split_threshold=0.02 --set gp.d_m=0.03
+  gmmgp run scan.ply --out out/scan --method hgmm          # GMR-only baseline
+  gmmgp run assets/demo_street.npz --out out/demo --stage hgmm   # print the HGMM levels
+  gmmgp run scan.npz --out out/scan --config my.toml""",
+    "view": """examples:
+  gmmgp view assets/demo_street.npz
+  gmmgp view out/demo/map""",
+    "eval": """examples:
+  gmmgp eval out/demo --reference assets/demo_street_mesh.ply""",
+    "sweep": """examples:
+  gmmgp sweep assets/demo_street.npz --param hgmm.split_threshold --values 0.005,0.01,0.02""",
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that exits with code 2 and a one-line message (it already does),
+    keeping examples in the help text verbatim."""
+
+    def __init__(self, *a, **kw):
+        kw.setdefault("formatter_class", argparse.RawDescriptionHelpFormatter)
+        super().__init__(*a, **kw)
+
+
+def _add_reader_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("reading the scan")
+    g.add_argument("--units", help="input units when the file does not say, or to override "
+                   "it: m, ft, us-ft, or a factor to metres")
+    g.add_argument("--classes", help="keep only these label classes, e.g. 50,51 (KITTI)")
+    g.add_argument("--poses", help="pose file (KITTI 3x4 rows) for a folder of scans")
+    g.add_argument("--max-scans", type=int, help="use at most this many scans of a folder")
+
+
+def _reader_kwargs(args) -> dict:
+    kw = {}
+    if getattr(args, "units", None):
+        try:
+            kw["units"] = float(args.units)
+        except ValueError:
+            kw["units"] = args.units
+    if getattr(args, "classes", None):
+        try:
+            kw["classes"] = [int(c) for c in args.classes.split(",") if c.strip()]
+        except ValueError:
+            raise ValueError(f"Expected --classes as integers like 50,51, found "
+                             f"{args.classes!r}.") from None
+    if getattr(args, "poses", None):
+        kw["poses"] = args.poses
+    if getattr(args, "max_scans", None):
+        kw["max_scans"] = args.max_scans
+    return kw
+
+
+def _add_config_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("configuration")
+    g.add_argument("--config", help="TOML file with [prepare], [hgmm], [gmr], [gp], [surface]")
+    g.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                   help="override one field, e.g. --set hgmm.split_threshold=0.02 "
+                        "(repeatable; see --help-config)")
+    g.add_argument("--help-config", action="store_true",
+                   help="list every config field with its default and meaning, then exit")
+
+
+def _load_config(args):
+    from .config import MappingConfig
+
+    cfg = MappingConfig.from_toml(args.config) if args.config else MappingConfig()
+    return cfg.with_overrides(args.set) if args.set else cfg
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(
+        prog="gmmgp",
+        description="Uncertain implicit surface mapping from LiDAR scans: a hierarchical GMM "
+                    "prior refined by local Gaussian processes, inspected stage by stage.",
+        epilog="examples:\n  gmmgp info assets/demo_street.npz\n"
+               "  gmmgp run assets/demo_street.npz --out out/demo\n"
+               "  gmmgp synth street --out out/street\n\n"
+               "Run 'gmmgp COMMAND --help' for each command's options and examples.",
+    )
+    parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = sub.add_parser("info", help="summarise a scan (points, extent, spacing, units, classes)",
+                       epilog=_EXAMPLES["info"])
+    p.add_argument("scan", nargs="+", help="scan file(s) or folder")
+    _add_reader_options(p)
+    p.add_argument("--json", action="store_true", help="print JSON instead of text")
+
+    p = sub.add_parser("synth", help="make a synthetic scene with exact ground truth",
+                       epilog=_EXAMPLES["synth"])
+    p.add_argument("name", help="scene: plane, sphere, box, street, street2")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--density", type=float, default=1.0, help="scan density multiplier")
+
+    p = sub.add_parser("run", help="map a scan: prepare, HGMM, GMR, GP; save the map",
+                       epilog=_EXAMPLES["run"])
+    p.add_argument("scan", nargs="*", help="scan file(s) or folder")
+    p.add_argument("--out", help="output folder (map/, summary.json, ...); required")
+    p.add_argument("--method", default="gmmgp", choices=["gmmgp", "hgmm", "gpis"],
+                   help="gmmgp (default, the paper's method), hgmm (GMR only), gpis")
+    p.add_argument("--stage", default="all", choices=["prepare", "hgmm", "gmr", "all"],
+                   help="stop after this stage (hgmm prints the level history)")
+    p.add_argument("--rrd", help="record every stage to this rerun .rrd file")
+    p.add_argument("--no-mesh", action="store_true", help="skip surface extraction")
+    _add_reader_options(p)
+    _add_config_options(p)
+
+    p = sub.add_parser("view", help="open the interactive desktop app", epilog=_EXAMPLES["view"])
+    p.add_argument("target", help="scan file or saved map folder")
+
+    p = sub.add_parser("eval", help="evaluate maps against a reference", epilog=_EXAMPLES["eval"])
+    p.add_argument("directory")
+    p.add_argument("--reference", required=True)
+
+    p = sub.add_parser("sweep", help="sweep a config field", epilog=_EXAMPLES["sweep"])
+    p.add_argument("scan")
+    p.add_argument("--param", required=True)
+    p.add_argument("--values", required=True)
+    return parser
+
+
+# --------------------------------------------------------------------------- commands
+def cmd_info(args) -> int:
+    from .datasets import read_scan, scan_summary
+
+    scan = read_scan(args.scan[0] if len(args.scan) == 1 else args.scan, **_reader_kwargs(args))
+    s = scan_summary(scan)
+    if args.json:
+        print(json.dumps(s, indent=2, default=float))
+        return EXIT_OK
+    ext = s["extent"]
+    print(f"scan      {scan.source}")
+    print(f"points    {s['n_points']:,}")
+    print(f"extent    {ext[0]:.2f} x {ext[1]:.2f} x {ext[2]:.2f} m")
+    print(f"bbox      min {_fmt3(s['bbox_min'])}  max {_fmt3(s['bbox_max'])}")
+    print(f"spacing   {s['median_spacing']:.4f} m (median nearest neighbour)")
+    print(f"units     {s['units']} (converted to metres)")
+    off = s.get("offset")
+    if off is not None and any(abs(v) > 0 for v in off):
+        print(f"offset    {_fmt3(off)} (subtracted; outputs are shifted back)")
+    print(f"origins   {'yes' if s['has_origins'] else 'no'}")
+    if s.get("classes"):
+        cls = ", ".join(f"{k}: {v:,}" for k, v in sorted(s["classes"].items(),
+                                                          key=lambda kv: int(kv[0])))
+        print(f"classes   {cls}")
+    return EXIT_OK
+
+
+def _fmt3(v) -> str:
+    return "(" + ", ".join(f"{x:.3f}" for x in v) + ")"
+
+
+def cmd_synth(args) -> int:
+    from .synth import write_scene
+
+    paths = write_scene(args.name, args.out, seed=args.seed, density=args.density)
+    for k, v in paths.items():
+        print(f"{k:6s} {v}")
+    return EXIT_OK
+
+
+def cmd_run(args) -> int:
+    if args.help_config:
+        return _print_config_help()
+    if not args.scan or not args.out:
+        raise ValueError("Expected a scan and --out DIR, e.g. "
+                         "'gmmgp run assets/demo_street.npz --out out/demo'.")
+    cfg = _load_config(args)  # validate settings before the (slow) read
+
+    from .datasets import read_scan
+    from .pipeline import build_map
+    from .progress import ConsoleObserver
+
+    out = Path(args.out)
+    _check_writable(out)
+    console = ConsoleObserver(enabled=not args.quiet)
+    observers = [console]
+    if args.rrd:
+        raise NotImplementedError("--rrd (rerun recording) arrives with issue 6; "
+                                  "run without --rrd for now.")
+    t0 = time.perf_counter()
+    scan = read_scan(args.scan[0] if len(args.scan) == 1 else args.scan, **_reader_kwargs(args))
+    read_s = time.perf_counter() - t0
+    stop = None if args.stage == "all" else args.stage
+    smap = build_map(scan, cfg, method=args.method, observer=_Fanout(observers), stop_after=stop)
+    smap.summary["seconds"] = {"read": read_s, **smap.summary["seconds"]}
+    if args.stage == "hgmm" and smap.hgmm is not None:
+        from .stages.hgmm import format_level_history
+
+        print(format_level_history(smap.hgmm))
+    out.mkdir(parents=True, exist_ok=True)
+    smap.save(out / "map")
+    _write_text_atomic(out / "config.toml", cfg.to_toml())
+    smap.summary["seconds"]["total"] = time.perf_counter() - t0
+    _write_text_atomic(out / "summary.json", json.dumps(_jsonable(smap.summary), indent=2))
+    if not args.quiet:
+        print(f"map written to {out / 'map'}; summary in {out / 'summary.json'}",
+              file=sys.stderr)
+    return EXIT_OK
+
+
+def _print_config_help() -> int:
+    from .config import MappingConfig
+
+    for name, default, doc in MappingConfig.describe():
+        print(f"{name:32s} {default!s:>10s}  {doc}")
+    return EXIT_OK
+
+
+def cmd_not_yet(args) -> int:
+    issue = {"view": 7, "eval": 5, "sweep": 6}[args.command]
+    raise NotImplementedError(
+        f"'gmmgp {args.command}' is not available yet (planned in issue {issue}); "
+        "use 'gmmgp run' to build and save a map.")
+
+
+class _Fanout:
+    """Forward stage events to several observers."""
+
+    def __init__(self, observers):
+        self.observers = observers
+
+    def on_stage_start(self, name):
+        for o in self.observers:
+            f = getattr(o, "on_stage_start", None)
+            if f:
+                f(name)
+
+    def on_stage(self, name, payload):
+        for o in self.observers:
+            o.on_stage(name, payload)
+
+
+def _check_writable(out: Path) -> None:
+    probe = out
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
+        raise PermissionError(f"Cannot write to output folder '{out}' ('{probe}' is not a "
+                              "writable folder); choose another --out.")
+
+
+def _write_text_atomic(path: Path, text: str) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _jsonable(obj):
+    from .pipeline import _jsonable as j
+
+    return j(obj)
+
+
+# --------------------------------------------------------------------------- entry point
+_COMMANDS = {"info": cmd_info, "synth": cmd_synth, "run": cmd_run,
+             "view": cmd_not_yet, "eval": cmd_not_yet, "sweep": cmd_not_yet}
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not args.command:
+        parser.print_help()
+        return EXIT_BAD_INPUT
+    try:
+        return _COMMANDS[args.command](args)
+    except KeyboardInterrupt:
+        print("gmmgp: interrupted; nothing half-written was left behind.", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except (ValueError, OSError, NotImplementedError, KeyError, MemoryError) as exc:
+        if args.debug:
+            raise
+        print(f"gmmgp {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except Exception as exc:  # a bug, not bad input: still one line, with a hint
+        if args.debug:
+            raise
+        print(f"gmmgp {args.command}: internal error: {type(exc).__name__}: {_one_line(exc)} "
+              "(rerun with --debug for the traceback and report it)", file=sys.stderr)
+        return 1
+
+
+def _one_line(exc: BaseException) -> str:
+    if isinstance(exc, OSError) and exc.strerror and exc.filename:
+        msg = f"{exc.strerror}: '{exc.filename}'"
+        if exc.errno == 28:
+            msg += "; free some disk space or choose another --out"
+        return msg
+    text = str(exc) or type(exc).__name__
+    return " ".join(text.split())
+
+
+if __name__ == "__main__":
+    sys.exit(main())

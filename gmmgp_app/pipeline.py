@@ -1,0 +1,372 @@
+"""build_map(): the mapping recipe, one line per stage.
+
+    scan ──prepare──> TrainingSet ──fit_hgmm──> HierarchicalGMM ──GMRField──> prior m(x), sigma_p(x)
+         ──select |m(x)| > d_m──> GP points ──fit_local_gps──> LocalGPField ──> SurfaceMap
+
+Each stage reports to an observer (``observer.on_stage(name, payload)``) as soon
+as it finishes; the rerun logger and the GUI are such observers.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+from .config import MappingConfig
+from .types import GaussianMixture, HGMMLevel, HierarchicalGMM, Scan, SurfaceMesh
+
+__all__ = ["build_map", "SurfaceMap", "load_map", "NullObserver", "METHODS", "MapFormatError"]
+
+METHODS = ("gmmgp", "hgmm", "gpis")
+MAP_FORMAT_VERSION = 1
+
+
+class MapFormatError(ValueError):
+    """A saved map folder is missing, incomplete or from an incompatible version."""
+
+
+class NullObserver:
+    """Observer that ignores every stage (the default; costs nothing)."""
+
+    def on_stage(self, name: str, payload: Any) -> None:  # noqa: D401
+        pass
+
+
+@dataclass(frozen=True)
+class StagePayload:
+    """What a stage hands to observers besides its result object.
+
+    Attributes
+    ----------
+    result : object
+        The stage's typed result (TrainingSet, HierarchicalGMM, ...).
+    seconds : float
+        Wall time of the stage.
+    extra : dict
+        Arrays or counts an observer may want (e.g. GMR error at the hit points).
+    """
+
+    result: Any
+    seconds: float
+    extra: dict = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------- the map
+class SurfaceMap:
+    """A probabilistic signed distance field of a scene.
+
+    Coordinates are in the scan's local frame (``Scan.points``); add ``offset``
+    to return to the original (e.g. georeferenced) frame.
+
+    Attributes
+    ----------
+    method : str
+        "gmmgp" (HGMM prior + local GPs), "hgmm" (GMR alone) or "gpis".
+    hgmm : HierarchicalGMM or None
+        The fitted hierarchy (None for gpis).
+    gp_points : (P, 3) float64
+        Points the GP was trained on (empty for "hgmm").
+    offset : (3,) float64
+    config : MappingConfig
+    summary : dict
+        Timings (s) and counts per stage.
+    """
+
+    def __init__(self, method, config, offset, prior, hgmm=None, gp=None,
+                 gp_points=None, gp_normals=None, seed_points=None, summary=None):
+        self.method = method
+        self.config = config
+        self.offset = np.asarray(offset, dtype=np.float64).reshape(3)
+        self.prior = prior
+        self.hgmm = hgmm
+        self.gp = gp
+        self.gp_points = np.zeros((0, 3)) if gp_points is None else gp_points
+        self.gp_normals = np.zeros((0, 3)) if gp_normals is None else gp_normals
+        self.seed_points = np.zeros((0, 3)) if seed_points is None else seed_points
+        self.summary = dict(summary or {})
+
+    # ------------------------------------------------------------------ predict
+    def predict(self, xyz, return_grad: bool = False):
+        """Signed distance mean and variance at query points.
+
+        Parameters
+        ----------
+        xyz : (K, 3) array_like
+            Query points in the local frame.
+        return_grad : bool
+            Also return the gradient of the mean.
+
+        Returns
+        -------
+        mean : (K,) float64
+            Signed distance, free space positive.
+        var : (K,) float64
+            Predictive variance (m^2).
+        grad : (K, 3) float64, only if ``return_grad``
+        """
+        xyz = _as_queries(xyz)
+        field_ = self.gp if self.gp is not None else self.prior
+        out = field_.predict(xyz, return_grad=return_grad)
+        return out
+
+    def extract_surface(self, voxel_size: Optional[float] = None, max_std=None,
+                        progress=None) -> SurfaceMesh:
+        """Marching-cubes surface of the zero level set, vertices carrying variance."""
+        from .stages.surface import extract_surface
+
+        cfg = self.config.surface
+        return extract_surface(
+            self.predict,
+            self.seed_points,
+            voxel_size=cfg.voxel_size if voxel_size is None else voxel_size,
+            max_std=cfg.max_std if max_std is None else max_std,
+            progress=progress,
+        )
+
+    # ------------------------------------------------------------------ save/load
+    def save(self, directory) -> Path:
+        """Write the map to ``directory`` (npz + json, no pickle), atomically.
+
+        The folder is written under a temporary name beside the target and renamed
+        when complete, so an interrupted save never leaves a half-written map.
+        """
+        directory = Path(directory)
+        directory.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{directory.name}.tmp-", dir=directory.parent))
+        try:
+            arrays = {"offset": self.offset, "gp_points": self.gp_points,
+                      "gp_normals": self.gp_normals, "seed_points": self.seed_points}
+            if self.hgmm is not None:
+                arrays.update(_hgmm_to_arrays(self.hgmm))
+            if self.gp is not None:
+                arrays.update({f"gp/{k}": v for k, v in self.gp.to_arrays().items()})
+            np.savez_compressed(tmp / "arrays.npz", **arrays)
+            meta = {
+                "format_version": MAP_FORMAT_VERSION,
+                "method": self.method,
+                "prior": type(self.prior).__name__,
+                "prior_params": getattr(self.prior, "params", lambda: {})(),
+                "config_toml": self.config.to_toml(),
+                "summary": _jsonable(self.summary),
+            }
+            (tmp / "map.json").write_text(json.dumps(meta, indent=2))
+            _replace_dir(tmp, directory)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        return directory
+
+
+def load_map(directory) -> SurfaceMap:
+    """Load a map written by :meth:`SurfaceMap.save`; it predicts identically."""
+    import tomllib
+
+    from .stages.gmr import GMRField
+    from .stages.gp import ConstantPrior, LocalGPField
+
+    directory = Path(directory)
+    meta_path, arr_path = directory / "map.json", directory / "arrays.npz"
+    if not meta_path.is_file() or not arr_path.is_file():
+        raise MapFormatError(
+            f"'{directory}' is not a saved map (expected map.json and arrays.npz); "
+            "create one with 'gmmgp run SCAN --out DIR'."
+        )
+    meta = json.loads(meta_path.read_text())
+    if meta.get("format_version") != MAP_FORMAT_VERSION:
+        raise MapFormatError(
+            f"Map format version {meta.get('format_version')} in '{directory}' is not "
+            f"supported (expected {MAP_FORMAT_VERSION}); rebuild the map with this version."
+        )
+    cfg = MappingConfig.from_dict(tomllib.loads(meta["config_toml"]))
+    with np.load(arr_path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    hgmm = _hgmm_from_arrays(arrays) if "hgmm/leaves/weights" in arrays else None
+    if meta["prior"] == "GMRField":
+        prior = GMRField(hgmm.leaves, **_gmr_kwargs(cfg))
+    else:
+        prior = ConstantPrior(**meta["prior_params"])
+    gp_arrays = {k[3:]: v for k, v in arrays.items() if k.startswith("gp/")}
+    gp = LocalGPField.from_arrays(gp_arrays, prior, cfg.gp) if gp_arrays else None
+    smap = SurfaceMap(meta["method"], cfg, arrays["offset"], prior, hgmm=hgmm, gp=gp,
+                      gp_points=arrays["gp_points"], gp_normals=arrays["gp_normals"],
+                      seed_points=arrays["seed_points"], summary=meta.get("summary", {}))
+    return smap
+
+
+# --------------------------------------------------------------------------- recipe
+def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gmmgp",
+              observer=None, *, stop_after: Optional[str] = None) -> SurfaceMap:
+    """Map a scan into a probabilistic signed distance field.
+
+    Parameters
+    ----------
+    scan : Scan
+    cfg : MappingConfig, optional
+        Defaults to ``MappingConfig()`` (the paper's settings).
+    method : {"gmmgp", "hgmm", "gpis"}
+        gmmgp: HGMM prior refined by local GPs (the paper's method);
+        hgmm: Gaussian mixture regression alone; gpis: stationary GP with a
+        constant prior on all points (baseline).
+    observer : object with ``on_stage(name, payload)``, optional
+        Receives a :class:`StagePayload` after each stage.
+    stop_after : {"prepare", "hgmm", "gmr"}, optional
+        Return early (used by ``gmmgp run --stage``); the map then has no GP.
+
+    Returns
+    -------
+    SurfaceMap
+    """
+    from .stages.gmr import GMRField
+    from .stages.gp import ConstantPrior, fit_local_gps, select_gp_points
+    from .stages.hgmm import fit_hgmm
+    from .stages.prepare import prepare
+
+    cfg = MappingConfig() if cfg is None else cfg
+    if method not in METHODS:
+        raise ValueError(f"Unknown method {method!r}; expected one of {', '.join(METHODS)}.")
+    observer = observer or NullObserver()
+    summary: dict = {"method": method, "n_scan_points": len(scan), "seconds": {}, "counts": {}}
+    stage = _StageRunner(observer, summary)
+
+    data = stage("prepare", lambda: prepare(scan, cfg),
+                 counts=lambda d: {"hit_points": len(d.points), "rows": len(d.rows),
+                                   "dropped_virtual": d.n_dropped_virtual})
+    hgmm, gp, gp_mask = None, None, np.zeros(len(data.points), dtype=bool)
+    if method == "gpis":
+        prior = ConstantPrior(**_gpis_prior_kwargs(cfg))
+        gp_mask[:] = True
+    else:
+        if stop_after == "prepare":
+            return _early_map(method, cfg, scan, data, None, summary)
+        hgmm = stage("hgmm", lambda: fit_hgmm(data.rows, cfg.hgmm),
+                     counts=lambda h: {"levels": len(h.levels),
+                                       "leaves": h.leaves.n_components})
+        if stop_after == "hgmm":
+            return _early_map(method, cfg, scan, data, hgmm, summary)
+        prior = GMRField(hgmm.leaves, **_gmr_kwargs(cfg))
+        m_hits = stage("gmr", lambda: prior.predict(data.points)[0],
+                       extra=lambda m: {"points": data.points, "error": m})
+        gp_mask = select_gp_points(m_hits, cfg.gp.d_m) if method == "gmmgp" else gp_mask
+        summary["counts"]["gmr"] = {"rms_error_at_hits": float(np.sqrt(np.mean(m_hits ** 2))),
+                                    "gp_points": int(gp_mask.sum())}
+        if stop_after == "gmr" or method == "hgmm":
+            return SurfaceMap(method, cfg, scan.offset, prior, hgmm=hgmm,
+                              seed_points=data.points, summary=summary)
+    pts, nrm = data.points[gp_mask], data.normals[gp_mask]
+    if len(pts):
+        gp = stage("gp", lambda: fit_local_gps(pts, nrm, prior, cfg.gp),
+                   counts=lambda g: dict(g.info.get("counts", {})),
+                   extra=lambda g: {"points": pts, "normals": nrm})
+    return SurfaceMap(method, cfg, scan.offset, prior, hgmm=hgmm, gp=gp, gp_points=pts,
+                      gp_normals=nrm, seed_points=data.points, summary=summary)
+
+
+class _StageRunner:
+    """Times a stage, records its counts, and tells the observer."""
+
+    def __init__(self, observer, summary):
+        self.observer, self.summary = observer, summary
+
+    def __call__(self, name, fn, counts=None, extra=None):
+        start = getattr(self.observer, "on_stage_start", None)
+        if start is not None:
+            start(name)
+        t0 = time.perf_counter()
+        result = fn()
+        seconds = time.perf_counter() - t0
+        self.summary["seconds"][name] = seconds
+        if counts is not None:
+            self.summary["counts"][name] = counts(result)
+        self.observer.on_stage(name, StagePayload(result, seconds,
+                                                  extra(result) if extra else {}))
+        return result
+
+
+def _early_map(method, cfg, scan, data, hgmm, summary):
+    from .stages.gp import ConstantPrior
+
+    return SurfaceMap(method, cfg, scan.offset, ConstantPrior(**_gpis_prior_kwargs(cfg)),
+                      hgmm=hgmm, seed_points=data.points, summary=summary)
+
+
+def _gmr_kwargs(cfg: MappingConfig) -> dict:
+    import dataclasses
+
+    return dataclasses.asdict(cfg.gmr)
+
+
+def _gpis_prior_kwargs(cfg: MappingConfig) -> dict:
+    # The paper's GPIS setup: a constant prior distance of 0.2 m.
+    return {"distance": 0.2, "variance": 0.2 ** 2}
+
+
+def _as_queries(xyz) -> np.ndarray:
+    q = np.asarray(xyz, dtype=np.float64)
+    if q.ndim == 1 and q.shape[0] == 3:
+        q = q[None, :]
+    if q.ndim != 2 or q.shape[1] != 3:
+        raise ValueError(f"Expected query points with shape (K, 3), found {q.shape}.")
+    if not np.all(np.isfinite(q)):
+        raise ValueError(
+            f"Expected finite query coordinates, found {int((~np.isfinite(q)).any(1).sum())} "
+            "rows with NaN or inf; drop them before predicting."
+        )
+    return q
+
+
+# --------------------------------------------------------------------------- (de)serialise
+def _hgmm_to_arrays(h: HierarchicalGMM) -> dict:
+    out = {"hgmm/n_levels": np.array(len(h.levels)), "hgmm/leaf_level": h.leaf_level}
+    for name, gm in [("leaves", h.leaves)]:
+        out.update({f"hgmm/{name}/weights": gm.weights, f"hgmm/{name}/means": gm.means,
+                    f"hgmm/{name}/covariances": gm.covariances})
+    for i, lv in enumerate(h.levels):
+        p = f"hgmm/level{i}/"
+        out.update({p + "weights": lv.mixture.weights, p + "means": lv.mixture.means,
+                    p + "covariances": lv.mixture.covariances, p + "parent": lv.parent,
+                    p + "complexity": lv.complexity, p + "split": lv.split,
+                    p + "n_rows": lv.n_rows})
+    return out
+
+
+def _hgmm_from_arrays(a: dict) -> HierarchicalGMM:
+    levels = []
+    for i in range(int(a["hgmm/n_levels"])):
+        p = f"hgmm/level{i}/"
+        levels.append(HGMMLevel(
+            GaussianMixture(a[p + "weights"], a[p + "means"], a[p + "covariances"]),
+            a[p + "parent"], a[p + "complexity"], a[p + "split"], a[p + "n_rows"]))
+    leaves = GaussianMixture(a["hgmm/leaves/weights"], a["hgmm/leaves/means"],
+                             a["hgmm/leaves/covariances"])
+    return HierarchicalGMM(tuple(levels), leaves, a["hgmm/leaf_level"], {})
+
+
+def _replace_dir(tmp: Path, target: Path) -> None:
+    """Move the finished folder ``tmp`` to ``target``, replacing an older one."""
+    if target.exists():
+        old = target.with_name(f".{target.name}.old-{os.getpid()}")
+        os.replace(target, old)
+        os.replace(tmp, target)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, target)
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    return obj
