@@ -1,0 +1,284 @@
+"""Marching-cubes surfaces of the SDF, evaluated on a sparse grid near the data.
+
+The grid is one global lattice ``origin + h * (i, j, k)``; only blocks of
+``block_cells**3`` cells that contain (or touch) data points are evaluated.
+Each block runs scikit-image's marching cubes on its own (B+1)^3 nodes; blocks
+share their boundary nodes, so a vertex on a shared face is computed from the
+same two node values in both blocks and the seams are stitched by merging
+vertices with the same lattice-edge key (no duplicates, no cracks).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+
+from ..types import SurfaceMesh
+
+__all__ = ["extract_surface", "write_mesh_ply", "write_mesh_obj", "read_mesh_ply",
+           "estimate_grid_nodes", "GridTooLargeError"]
+
+# Refuse grids that would need more than this many field evaluations up front.
+MAX_GRID_NODES = 200_000_000
+
+
+class GridTooLargeError(MemoryError):
+    """The requested surface grid would not fit the machine; message has the estimate."""
+
+
+def estimate_grid_nodes(seeds: np.ndarray, voxel_size: float, block_cells: int = 16) -> int:
+    """Number of lattice nodes the sparse grid would evaluate (before running)."""
+    blocks = _active_blocks(seeds, voxel_size, block_cells)
+    return len(blocks) * (block_cells + 1) ** 3
+
+
+def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.05, *,
+                    max_std: Optional[float] = None, block_cells: int = 16,
+                    band: Optional[float] = None, batch: int = 200_000,
+                    progress=None) -> SurfaceMesh:
+    """Zero level set of a field as a triangle mesh with per-vertex variance.
+
+    Parameters
+    ----------
+    predict : callable
+        ``predict(xyz (K,3)) -> (mean (K,), var (K,))``.
+    seeds : (N, 3) float64
+        Points near the surface (training hit points); blocks are kept around them.
+    voxel_size : float
+        Lattice spacing h in metres.
+    max_std : float, optional
+        Drop faces with a vertex whose predicted standard deviation exceeds this.
+    block_cells : int
+        Cells per block edge B.
+    band : float, optional
+        Lattice nodes farther than this from every seed are masked out, so that no
+        surface is invented far from the data. Default ``3 * voxel_size`` or 0.1 m,
+        whichever is larger.
+    progress : callable(total, desc) -> bar with update()/close(), optional
+
+    Returns
+    -------
+    SurfaceMesh
+    """
+    from scipy.spatial import cKDTree
+    from skimage.measure import marching_cubes
+
+    seeds = np.asarray(seeds, dtype=np.float64)
+    if seeds.ndim != 2 or seeds.shape[1] != 3 or len(seeds) == 0:
+        raise ValueError(f"Expected seed points with shape (N, 3), N >= 1, found {seeds.shape}.")
+    if not voxel_size > 0:
+        raise ValueError(f"Expected voxel_size > 0 m, found {voxel_size}.")
+    h = float(voxel_size)
+    band = max(3 * h, 0.1) if band is None else float(band)
+    blocks = _active_blocks(seeds, h, block_cells)
+    n_nodes = len(blocks) * (block_cells + 1) ** 3
+    if n_nodes > MAX_GRID_NODES:
+        raise GridTooLargeError(
+            f"A surface grid at voxel_size={h} m needs about {n_nodes:,} field evaluations "
+            f"(~{n_nodes * 8 * 6 / 2**30:.1f} GiB of temporaries), more than the limit of "
+            f"{MAX_GRID_NODES:,}; use a larger voxel size.")
+    tree = cKDTree(seeds)
+    nb = block_cells + 1
+    local = np.stack(np.meshgrid(*(np.arange(nb),) * 3, indexing="ij"), -1).reshape(-1, 3)
+    bar = progress(len(blocks), "surface blocks") if progress else None
+
+    keys_all, verts_all, faces_all = [], [], []
+    n_verts = 0
+    for b in blocks:
+        node_idx = b * block_cells + local            # global integer lattice indices
+        xyz = node_idx * h
+        near = tree.query(xyz, k=1, distance_upper_bound=band)[0] < np.inf
+        if near.sum() < 8:
+            bar and bar.update(1)
+            continue
+        vals = np.full(len(xyz), np.nan)
+        for s in range(0, int(near.sum()), batch):
+            sel = np.flatnonzero(near)[s:s + batch]
+            vals[sel] = predict(xyz[sel])[0]
+        vol = vals.reshape(nb, nb, nb)
+        finite = np.isfinite(vol)
+        if not finite.any() or np.nanmin(vol) > 0 or np.nanmax(vol) < 0:
+            bar and bar.update(1)
+            continue
+        vol_filled = np.where(finite, vol, 1.0).astype(np.float64)  # masked cells are skipped anyway
+        try:
+            v, f, _, _ = marching_cubes(vol_filled, level=0.0, mask=finite,
+                                        allow_degenerate=False)
+        except (ValueError, RuntimeError):
+            bar and bar.update(1)
+            continue
+        # Faces touching a masked node interpolate a placeholder value: drop them.
+        f = f[_valid_vertices(v, finite)[f].all(1)]
+        if len(f) == 0:
+            bar and bar.update(1)
+            continue
+        lo, axis, v = _refine_on_edges(v, vol_filled)
+        keys_all.append(np.column_stack([lo + b * block_cells, axis]))
+        verts_all.append(v + b * block_cells)           # lattice coordinates
+        faces_all.append(f + n_verts)
+        n_verts += len(v)
+        bar and bar.update(1)
+    bar and bar.close()
+
+    if not verts_all:
+        return SurfaceMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros(0))
+    keys = np.concatenate(keys_all)  # (lower lattice node, axis) of each vertex's edge
+    verts = np.concatenate(verts_all)
+    faces = np.concatenate(faces_all).astype(np.int64)
+    # Stitch: one vertex per lattice-edge key.
+    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    verts = verts[first] * h
+    faces = inverse.reshape(-1)[faces]
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
+                  & (faces[:, 0] != faces[:, 2])]
+    var = np.empty(len(verts))
+    for s in range(0, len(verts), batch):
+        var[s:s + batch] = predict(verts[s:s + batch])[1]
+    if max_std is not None:
+        bad = np.sqrt(np.maximum(var, 0)) > max_std
+        faces = faces[~bad[faces].any(1)]
+    verts, faces, var = _drop_unused(verts, faces, var)
+    return SurfaceMesh(verts, faces, var)
+
+
+def _active_blocks(seeds: np.ndarray, h: float, block_cells: int) -> np.ndarray:
+    """Integer block indices (n, 3) of blocks within one cell of any seed."""
+    cells = np.floor(seeds / h).astype(np.int64)
+    near = np.concatenate([cells + np.array(o) for o in _OFFSETS])
+    blocks = np.unique(np.floor_divide(near, block_cells), axis=0)
+    return blocks
+
+
+_OFFSETS = [(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)]
+
+
+def _refine_on_edges(v: np.ndarray, vol: np.ndarray):
+    """Snap marching-cubes vertices to their lattice edges in float64.
+
+    scikit-image interpolates in float32; we recompute each vertex from the two
+    end-node values of its edge in float64, so that a vertex on a face shared by
+    two blocks is bitwise identical in both and can be keyed by its edge
+    (lower node, axis). A vertex exactly on a node gets axis -1.
+
+    Returns
+    -------
+    lo : (V, 3) int64 lower end node (block-local), axis : (V,) int64, v : (V, 3) float64
+    """
+    lo = np.floor(v + 1e-4).astype(np.int64)
+    fr = v - lo
+    axis = np.argmax(fr, axis=1)
+    on_node = fr.max(1) < 1e-4
+    axis[on_node] = -1
+    out = lo.astype(np.float64)
+    e = np.flatnonzero(~on_node)
+    hi = lo[e].copy()
+    hi[np.arange(len(e)), axis[e]] += 1
+    v0 = vol[lo[e, 0], lo[e, 1], lo[e, 2]]
+    v1 = vol[hi[:, 0], hi[:, 1], hi[:, 2]]
+    t = v0 / (v0 - v1)
+    out[e, axis[e]] += t
+    return lo, axis, out
+
+
+def _valid_vertices(v: np.ndarray, finite: np.ndarray) -> np.ndarray:
+    """True for vertices whose lattice edge has two evaluated (unmasked) end nodes."""
+    lo = np.floor(v + 1e-9).astype(np.int64)
+    hi = np.ceil(v - 1e-9).astype(np.int64)
+    n = finite.shape[0] - 1
+    lo, hi = np.clip(lo, 0, n), np.clip(hi, 0, n)
+    return finite[lo[:, 0], lo[:, 1], lo[:, 2]] & finite[hi[:, 0], hi[:, 1], hi[:, 2]]
+
+
+def _drop_unused(verts, faces, var):
+    used = np.zeros(len(verts), bool)
+    used[faces.reshape(-1)] = True
+    remap = np.cumsum(used) - 1
+    return verts[used], remap[faces].astype(np.int64), var[used]
+
+
+# --------------------------------------------------------------------------- export
+def variance_colors(variance: np.ndarray, vmax: Optional[float] = None,
+                    cmap: str = "viridis") -> np.ndarray:
+    """(V, 3) uint8 colours of the standard deviation on a colour map (0 .. vmax)."""
+    import matplotlib
+
+    std = np.sqrt(np.maximum(variance, 0))
+    vmax = float(np.quantile(std, 0.98)) if vmax is None and len(std) else (vmax or 1.0)
+    t = np.clip(std / max(vmax, 1e-12), 0, 1)
+    rgba = matplotlib.colormaps[cmap](t)
+    return (rgba[:, :3] * 255 + 0.5).astype(np.uint8)
+
+
+def write_mesh_ply(mesh: SurfaceMesh, path, offset=None, vmax: Optional[float] = None) -> Path:
+    """Binary PLY with vertex colours (std on viridis) and a float ``variance`` property.
+
+    Written to a temporary name and renamed, so no half-written file remains.
+    """
+    path = Path(path)
+    v = mesh.vertices + (0 if offset is None else np.asarray(offset))
+    rgb = variance_colors(mesh.vertex_variance, vmax)
+    vdt = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("red", "u1"), ("green", "u1"),
+                    ("blue", "u1"), ("variance", "<f8")])
+    vert = np.empty(len(v), vdt)
+    vert["x"], vert["y"], vert["z"] = v.T
+    vert["red"], vert["green"], vert["blue"] = rgb.T
+    vert["variance"] = mesh.vertex_variance
+    fdt = np.dtype([("n", "u1"), ("i", "<i4", (3,))])
+    face = np.empty(len(mesh.faces), fdt)
+    face["n"] = 3
+    face["i"] = mesh.faces
+    header = ("ply\nformat binary_little_endian 1.0\ncomment gmmgp_app surface, variance in m^2\n"
+              f"element vertex {len(v)}\nproperty double x\nproperty double y\n"
+              "property double z\nproperty uchar red\nproperty uchar green\n"
+              "property uchar blue\nproperty double variance\n"
+              f"element face {len(face)}\nproperty list uchar int vertex_indices\nend_header\n")
+    _atomic_write(path, lambda f: (f.write(header.encode()), f.write(vert.tobytes()),
+                                   f.write(face.tobytes())))
+    return path
+
+
+def write_mesh_obj(mesh: SurfaceMesh, path, offset=None, vmax: Optional[float] = None) -> Path:
+    """Wavefront OBJ; vertex colours as the common ``v x y z r g b`` extension."""
+    path = Path(path)
+    v = mesh.vertices + (0 if offset is None else np.asarray(offset))
+    rgb = variance_colors(mesh.vertex_variance, vmax) / 255.0
+
+    def write(f):
+        f.write(b"# gmmgp_app surface; colours: predicted standard deviation (viridis)\n")
+        np.savetxt(f, np.column_stack([v, rgb]), fmt="v %.6f %.6f %.6f %.4f %.4f %.4f")
+        np.savetxt(f, mesh.faces + 1, fmt="f %d %d %d")
+
+    _atomic_write(path, write)
+    return path
+
+
+def read_mesh_ply(path) -> SurfaceMesh:
+    """Read a PLY written by :func:`write_mesh_ply` (vertices, faces, variance)."""
+    data = Path(path).read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    lines = data[:end].decode().splitlines()
+    nv = int(next(ln.split()[-1] for ln in lines if ln.startswith("element vertex")))
+    nf = int(next(ln.split()[-1] for ln in lines if ln.startswith("element face")))
+    vdt = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("red", "u1"), ("green", "u1"),
+                    ("blue", "u1"), ("variance", "<f8")])
+    vert = np.frombuffer(data, vdt, nv, end)
+    face = np.frombuffer(data, np.dtype([("n", "u1"), ("i", "<i4", (3,))]), nf,
+                         end + nv * vdt.itemsize)
+    return SurfaceMesh(np.column_stack([vert["x"], vert["y"], vert["z"]]),
+                       face["i"].astype(np.int64), vert["variance"].copy())
+
+
+def _atomic_write(path: Path, write) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
