@@ -15,6 +15,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 EXIT_OK, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 2, 130
 
 _EXAMPLES = {
@@ -132,7 +134,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="gmmgp (default, the paper's method), hgmm (GMR only), gpis")
     p.add_argument("--stage", default="all", choices=["prepare", "hgmm", "gmr", "all"],
                    help="stop after this stage (hgmm prints the level history)")
-    p.add_argument("--rrd", help="record every stage to this rerun .rrd file")
+    p.add_argument("--rrd", help="record every stage to this rerun .rrd file (headless)")
+    p.add_argument("--spawn", action="store_true", help="also open a rerun viewer")
+    p.add_argument("--serve", action="store_true",
+                   help="also serve the recording to viewers (bound to 127.0.0.1)")
     p.add_argument("--no-mesh", action="store_true", help="skip surface extraction")
     _add_reader_options(p)
     _add_config_options(p)
@@ -207,14 +212,17 @@ def cmd_run(args) -> int:
     _check_writable(out)
     console = ConsoleObserver(enabled=not args.quiet)
     observers = [console]
-    if args.rrd:
-        raise NotImplementedError("--rrd (rerun recording) arrives with issue 6; "
-                                  "run without --rrd for now.")
+    if args.rrd or args.spawn or args.serve:
+        from .viz.rerun_observer import RerunObserver
+
+        observers.append(RerunObserver(args.rrd, spawn=args.spawn, serve=args.serve,
+                                       config=cfg))
+    observer = _Fanout(observers)
     t0 = time.perf_counter()
     scan = read_scan(args.scan[0] if len(args.scan) == 1 else args.scan, **_reader_kwargs(args))
     read_s = time.perf_counter() - t0
     stop = None if args.stage == "all" else args.stage
-    smap = build_map(scan, cfg, method=args.method, observer=_Fanout(observers), stop_after=stop)
+    smap = build_map(scan, cfg, method=args.method, observer=observer, stop_after=stop)
     smap.summary["seconds"] = {"read": read_s, **smap.summary["seconds"]}
     if args.stage == "hgmm" and smap.hgmm is not None:
         from .stages.hgmm import format_level_history
@@ -222,13 +230,44 @@ def cmd_run(args) -> int:
         print(format_level_history(smap.hgmm))
     out.mkdir(parents=True, exist_ok=True)
     smap.save(out / "map")
+    written = [out / "map"]
+    if args.stage == "all" and not args.no_mesh:
+        written += _write_meshes(smap, out, observer, console)
     _write_text_atomic(out / "config.toml", cfg.to_toml())
     smap.summary["seconds"]["total"] = time.perf_counter() - t0
     _write_text_atomic(out / "summary.json", json.dumps(_jsonable(smap.summary), indent=2))
+    written += [out / "config.toml", out / "summary.json"]
+    if args.rrd:
+        written.append(Path(args.rrd))
     if not args.quiet:
-        print(f"map written to {out / 'map'}; summary in {out / 'summary.json'}",
-              file=sys.stderr)
+        print("wrote " + ", ".join(str(w) for w in written), file=sys.stderr)
     return EXIT_OK
+
+
+def _write_meshes(smap, out: Path, observer, console) -> list:
+    """Marching-cubes surfaces of the map and of its HGMM prior (GMR alone)."""
+    from .pipeline import StagePayload
+    from .stages.surface import extract_surface, write_mesh_ply
+
+    t0 = time.perf_counter()
+    sc = smap.config.surface
+    meshes = {}
+    if smap.method != "hgmm":
+        meshes[smap.method] = smap.extract_surface(progress=console.progress)
+    if smap.hgmm is not None:
+        meshes["hgmm"] = extract_surface(smap.prior.predict, smap.seed_points,
+                                         voxel_size=sc.voxel_size, max_std=sc.max_std,
+                                         progress=console.progress)
+    seconds = time.perf_counter() - t0
+    smap.summary["seconds"]["surface"] = seconds
+    smap.summary["counts"]["surface"] = {k: {"vertices": len(m.vertices), "faces": len(m.faces)}
+                                         for k, m in meshes.items()}
+    observer.on_stage("surface", StagePayload(meshes, seconds))
+    # Same colour scale for every mesh so they can be compared side by side.
+    vmax = max((float(np.sqrt(np.quantile(m.vertex_variance, 0.98)))
+                for m in meshes.values() if len(m.vertices)), default=None)
+    return [write_mesh_ply(m, out / f"mesh_{k}.ply", offset=smap.offset, vmax=vmax)
+            for k, m in meshes.items()]
 
 
 def _print_config_help() -> int:

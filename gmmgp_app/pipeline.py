@@ -235,6 +235,7 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
     observer = observer or NullObserver()
     summary: dict = {"method": method, "n_scan_points": len(scan), "seconds": {}, "counts": {}}
     stage = _StageRunner(observer, summary)
+    observer.on_stage("scan", StagePayload(scan, 0.0))
 
     data = stage("prepare", lambda: prepare(scan, cfg),
                  counts=lambda d: {"hit_points": len(d.points), "rows": len(d.rows),
