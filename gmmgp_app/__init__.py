@@ -25,6 +25,8 @@ _PUBLIC = {
     "SurfaceMesh": "gmmgp_app.types",
     "read_scan": "gmmgp_app.datasets",
     "ScanReadError": "gmmgp_app.datasets",
+    "ScanWarning": "gmmgp_app.datasets",
+    "scan_summary": "gmmgp_app.datasets",
     "prepare": "gmmgp_app.stages.prepare",
     "fit_hgmm": "gmmgp_app.stages.hgmm",
     "build_map": "gmmgp_app.pipeline",

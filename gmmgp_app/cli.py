@@ -165,12 +165,12 @@ def cmd_info(args) -> int:
     if args.json:
         print(json.dumps(s, indent=2, default=float))
         return EXIT_OK
-    ext = s["extent"]
+    ext = s["extent_m"]
     print(f"scan      {scan.source}")
     print(f"points    {s['n_points']:,}")
     print(f"extent    {ext[0]:.2f} x {ext[1]:.2f} x {ext[2]:.2f} m")
     print(f"bbox      min {_fmt3(s['bbox_min'])}  max {_fmt3(s['bbox_max'])}")
-    print(f"spacing   {s['median_spacing']:.4f} m (median nearest neighbour)")
+    print(f"spacing   {s['spacing_m']:.4f} m (median nearest neighbour)")
     print(f"units     {s['units']} (converted to metres)")
     off = s.get("offset")
     if off is not None and any(abs(v) > 0 for v in off):
