@@ -10,7 +10,12 @@ hierarchical GMM prior and local Gaussian processes.
 Public names are imported lazily so that ``gmmgp --help`` stays fast.
 """
 
+import os
 from importlib import import_module
+
+# numba's TBB layer refuses the TBB that Open3D's wheels bring (too old) and warns on
+# every parallel kernel; OpenMP is what it would fall back to anyway.
+os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")
 
 __version__ = "0.1.0"
 

@@ -98,6 +98,10 @@ class PrepareConfig:
     drop_inconsistent_virtual: bool = _f(
         True, "Drop virtual points that land closer than s to another part of the surface "
         "(their label +-s would be wrong).")
+    virtual_margin: float = _f(
+        0.1, "A virtual point is inconsistent when its nearest hit point is closer than "
+        "s * (1 - margin); the margin tolerates range noise and gentle curvature.", 0.0, 1.0,
+        source="chosen: 2.5 cm at s = 0.25 m, a few times MMS range noise")
     seed: int = _f(0, "Seed of the subsampling.", 0, 2**32 - 1)
 
 
@@ -123,6 +127,18 @@ class HGMMConfig:
         1e-6, "Added to covariance diagonals (in the units of the rows, m^2).", 0.0, 1.0,
         unit="m^2", source="as scikit-learn's GaussianMixture")
     seed: int = _f(0, "Seed of the k-means++ style initialisation.", 0, 2**32 - 1)
+    complexity_metric: str = _f(
+        "correlation", "Matrix c is computed on: 'covariance' (paper, literally) or "
+        "'correlation' (per-axis scale removed; the d axis's fixed small variance otherwise "
+        "caps c below 0.01 for any node wider than about 2 m).",
+        choices=("correlation", "covariance"),
+        source="chosen: see stages/hgmm.py complexity() and scripts/bench_hgmm.py")
+    split_max_std: Optional[float] = _f(
+        None, "If set, also split nodes whose largest spatial standard deviation (sqrt of the "
+        "top eigenvalue of the xyz block) exceeds this, even when flat: one Gaussian per whole "
+        "facade is what c alone gives, and it fits the density (held-out likelihood) poorly.",
+        1e-3, 1e4, unit="m", optional=True,
+        source="not in the paper; see scripts/bench_hgmm.py for the likelihood it buys")
 
 
 @dataclass(frozen=True)
@@ -135,6 +151,16 @@ class GMRConfig:
     mahalanobis_cut: float = _f(
         6.0, "Components farther than this Mahalanobis distance (in xyz) are inactive.",
         0.5, 100.0, source="chosen: exp(-18) relative weight at 6 sigma")
+    far_variance_growth: float = _f(
+        0.5, "Standard deviation the GMR gains per metre a query lies beyond a "
+        "component's support (sigma_j^2 += (gamma e_j)^2; 0 = the paper's variance).",
+        0.0, 100.0, symbol="gamma", source="chosen: calibrated on synthetic scenes "
+        "(see gmmgp_app/stages/gmr.py)")
+    far_growth_start: float = _f(
+        1.0, "Mahalanobis radius D0 (xyz) where a component's support ends and the "
+        "variance growth starts.", 0.0, 100.0, symbol="D0",
+        source="chosen with far_variance_growth: median z^2 near 0.45 at 0.5-1 m "
+        "from the data on synthetic scenes (scripts/bench_gmr.py)")
 
 
 @dataclass(frozen=True)

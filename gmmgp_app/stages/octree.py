@@ -1,0 +1,136 @@
+"""Grid-aligned leaf blocks for the local GPs (paper Sec. V-B, "Octree" partition).
+
+Space is cut into cubes of edge ``block_size`` aligned to the grid ``i * block_size``;
+only *occupied* leaves (cubes holding at least one GP point) exist, kept as a
+sorted table of packed integer cell coordinates (a hash of the leaves of an octree,
+without the inner nodes that nothing here needs). A block trains on the points
+within ``(1 + overlap) * block_size / 2`` of its centre in the L-infinity norm, and
+a query is predicted by every block whose training region contains it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["OctreeError", "BlockGrid"]
+
+_BITS = 21
+_BIAS = 1 << (_BITS - 1)
+_MASK = (1 << _BITS) - 1
+
+
+class OctreeError(ValueError):
+    """Bad input to the block partition."""
+
+
+def _pack(cells: np.ndarray) -> np.ndarray:
+    c = cells + _BIAS
+    return (c[:, 0] << (2 * _BITS)) | (c[:, 1] << _BITS) | c[:, 2]
+
+
+class BlockGrid:
+    """Occupied leaf blocks and the mapping of points to the blocks that cover them.
+
+    Parameters
+    ----------
+    keys : (B, 3) int64
+        Integer cell coordinates of the occupied leaves (any order; stored sorted).
+    block_size : float
+        Leaf edge in metres.
+    overlap : float
+        Training region half-edge is ``(1 + overlap) * block_size / 2``.
+    """
+
+    def __init__(self, keys, block_size: float, overlap: float):
+        if not (block_size > 0 and math.isfinite(block_size)):
+            raise OctreeError(f"Expected a positive block_size, found {block_size}.")
+        if not (overlap >= 0 and math.isfinite(overlap)):
+            raise OctreeError(f"Expected overlap >= 0, found {overlap}.")
+        keys = np.asarray(keys, dtype=np.int64).reshape(-1, 3)
+        if len(keys) and (keys.min() < -_BIAS or keys.max() >= _BIAS):
+            raise OctreeError(
+                f"Expected block coordinates within +-{_BIAS} cells, found "
+                f"[{keys.min()}, {keys.max()}]; shift the scan to a local frame or use "
+                "larger blocks.")
+        packed = _pack(keys)
+        order = np.argsort(packed)
+        self.keys = np.ascontiguousarray(keys[order])
+        self._packed = packed[order]
+        if len(np.unique(self._packed)) != len(self._packed):
+            raise OctreeError("Expected distinct block keys, found duplicates.")
+        self.block_size = float(block_size)
+        self.overlap = float(overlap)
+
+    @classmethod
+    def from_points(cls, points: np.ndarray, block_size: float, overlap: float) -> "BlockGrid":
+        """The leaves occupied by ``points`` (P, 3)."""
+        if not (block_size > 0 and math.isfinite(block_size)):
+            raise OctreeError(f"Expected a positive block_size, found {block_size}.")
+        cells = np.floor(np.asarray(points, dtype=np.float64) / block_size).astype(np.int64)
+        return cls(np.unique(cells, axis=0), block_size, overlap)
+
+    @property
+    def n_blocks(self) -> int:
+        return len(self.keys)
+
+    @property
+    def centres(self) -> np.ndarray:
+        """(B, 3) block centres."""
+        return (self.keys + 0.5) * self.block_size
+
+    @property
+    def half_extent(self) -> float:
+        """Half-edge of the training (and prediction) region of a block."""
+        return 0.5 * (1.0 + self.overlap) * self.block_size
+
+    def lookup(self, cells: np.ndarray) -> np.ndarray:
+        """Block index of each (n, 3) integer cell, -1 where the cell is unoccupied."""
+        cells = np.asarray(cells, dtype=np.int64).reshape(-1, 3)
+        if len(self._packed) == 0 or len(cells) == 0:
+            return np.full(len(cells), -1, dtype=np.int64)
+        inside = np.all((cells >= -_BIAS) & (cells < _BIAS), axis=1)
+        p = _pack(np.where(inside[:, None], cells, 0))
+        pos = np.clip(np.searchsorted(self._packed, p), 0, len(self._packed) - 1)
+        hit = inside & (self._packed[pos] == p)
+        return np.where(hit, pos, -1)
+
+    def cover(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pairs (point, block) such that the block's region contains the point.
+
+        Parameters
+        ----------
+        xyz : (n, 3) float64
+
+        Returns
+        -------
+        point_index : (M,) int64
+        block_index : (M,) int64
+            Sorted by block, then by point.
+        """
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        h = self.block_size
+        half = self.half_extent
+        # block i covers x when |x - (i + 0.5) h| <= half, i.e. i in [lo, hi] per axis
+        lo = np.ceil((xyz - half) / h - 0.5).astype(np.int64)
+        hi = np.floor((xyz + half) / h - 0.5).astype(np.int64)
+        span = int((hi - lo).max()) + 1 if len(xyz) else 0
+        pts, blks = [], []
+        for dx in range(span):
+            for dy in range(span):
+                for dz in range(span):
+                    cell = lo + np.array([dx, dy, dz])
+                    valid = np.all(cell <= hi, axis=1)
+                    b = np.full(len(xyz), -1, dtype=np.int64)
+                    if valid.any():
+                        b[valid] = self.lookup(cell[valid])
+                    sel = np.flatnonzero(b >= 0)
+                    pts.append(sel)
+                    blks.append(b[sel])
+        if not pts:
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+        p = np.concatenate(pts)
+        b = np.concatenate(blks)
+        order = np.lexsort((p, b))
+        return p[order], b[order]

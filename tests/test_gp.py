@@ -1,0 +1,223 @@
+"""Local GPs: exact dense GP oracle, variance bounds, accuracy on a sphere, persistence."""
+
+import numpy as np
+import pytest
+from sklearn.mixture import GaussianMixture as SkGMM
+
+from gmmgp_app.config import GPConfig
+from gmmgp_app.stages.gmr import GMRField
+from gmmgp_app.stages.gp import (ConstantPrior, GPError, LocalGPField, fit_block,
+                                 fit_local_gps, select_gp_points)
+from gmmgp_app.stages.kernels import matern32_joint
+from gmmgp_app.stages.octree import BlockGrid, OctreeError
+from gmmgp_app.types import GaussianMixture
+
+
+def sphere(n, r=1.0, noise=0.008, seed=0):
+    rng = np.random.default_rng(seed)
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    return r * u + noise * rng.normal(size=(n, 1)) * u, u
+
+
+@pytest.fixture(scope="module")
+def sphere_scene():
+    pts, nrm = sphere(1000)
+    s = 0.25
+    rows = np.vstack([np.c_[pts, np.zeros(len(pts))], np.c_[pts + s * nrm, np.full(len(pts), s)],
+                      np.c_[pts - s * nrm, np.full(len(pts), -s)]])
+    g = SkGMM(16, covariance_type="full", random_state=0, reg_covar=1e-6).fit(rows)
+    mix = GaussianMixture(g.weights_, g.means_, g.covariances_)
+    return pts, nrm, GMRField(mix)
+
+
+def dense_gp(points, normals, prior, cfg, xs):
+    """One exact GP over all points (numpy solve, no blocks, no Cholesky caching)."""
+    m, v, g = prior.predict(points, return_grad=True)
+    y = np.column_stack([-m, normals - g]).reshape(-1)
+    S = np.repeat(np.sqrt(v), 4)
+    K = S[:, None] * matern32_joint(points, points, cfg.length_scale) * S[None]
+    K += np.diag(np.tile([cfg.value_noise] + [cfg.gradient_noise] * 3, len(points)))
+    ms, vs, gs = prior.predict(xs, return_grad=True)
+    Ss = np.repeat(np.sqrt(vs), 4)
+    Ks = Ss[:, None] * matern32_joint(xs, points, cfg.length_scale) * S[None]
+    post = Ks @ np.linalg.solve(K, y)
+    kv = Ks[0::4]
+    var = vs - np.einsum("ij,ji->i", kv, np.linalg.solve(K, kv.T)) + cfg.value_noise
+    return ms + post[0::4], var, gs + post.reshape(-1, 4)[:, 1:]
+
+
+def small_scene(seed=0):
+    """40 points on the positive octant of the unit sphere: one 10 m block holds them."""
+    pts, nrm = sphere(40, seed=seed)
+    pts, nrm = np.abs(pts), np.abs(nrm)
+    rng = np.random.default_rng(seed + 1)
+    xs = rng.uniform(0.05, 1.1, size=(50, 3))
+    return pts, nrm, xs
+
+
+@pytest.mark.parametrize("prior", [ConstantPrior(0.05, 0.01), "gmr"])
+def test_one_block_equals_dense_exact_gp(prior, sphere_scene):
+    if prior == "gmr":
+        prior = sphere_scene[2]
+    pts, nrm, xs = small_scene()
+    cfg = GPConfig(block_size=10.0, jitter=0.0, length_scale=0.1)
+    field = fit_local_gps(pts, nrm, prior, cfg)
+    assert field.info["n_blocks"] == 1
+    m, v, g = field.predict(xs, return_grad=True)
+    md, vd, gd = dense_gp(pts, nrm, prior, cfg, xs)
+    np.testing.assert_allclose(m, md, atol=1e-9)
+    np.testing.assert_allclose(v, vd, atol=1e-10)
+    np.testing.assert_allclose(g, gd, atol=1e-7)
+
+
+def test_gradient_is_derivative_of_mean_for_constant_prior():
+    pts, nrm, xs = small_scene(3)
+    field = fit_local_gps(pts, nrm, ConstantPrior(0.0, 0.01), GPConfig(block_size=10.0))
+    _, _, g = field.predict(xs, return_grad=True)
+    eps = 1e-6
+    fd = np.stack([(field.predict(xs + eps * e)[0] - field.predict(xs - eps * e)[0])
+                   / (2 * eps) for e in np.eye(3)], axis=1)
+    np.testing.assert_allclose(g, fd, atol=1e-5)
+
+
+def test_posterior_variance_bounded_by_prior_plus_noise(sphere_scene):
+    pts, nrm, prior = sphere_scene
+    cfg = GPConfig(block_size=0.3)
+    field = fit_local_gps(pts[:400], nrm[:400], prior, cfg)
+    assert field.info["n_blocks"] > 10
+    rng = np.random.default_rng(2)
+    q = rng.uniform(-1.3, 1.3, size=(3000, 3))
+    _, v = field.predict(q)
+    _, vp = prior.predict(q)
+    assert np.all(v <= vp + cfg.value_noise + 1e-12)
+    assert np.all(v > 0)
+
+
+def test_prior_alone_outside_every_block(sphere_scene):
+    pts, nrm, prior = sphere_scene
+    field = fit_local_gps(pts[:50], nrm[:50], prior, GPConfig())
+    q = np.array([[5.0, 5.0, 5.0], [-4.0, 3.0, 0.0]])
+    m, v, g = field.predict(q, return_grad=True)
+    mp, vp, gp = prior.predict(q, return_grad=True)
+    np.testing.assert_array_equal(m, mp)
+    np.testing.assert_array_equal(v, vp)
+    np.testing.assert_array_equal(g, gp)
+
+
+def test_gp_beats_gmr_on_a_sphere_near_the_surface(sphere_scene):
+    pts, nrm, prior = sphere_scene
+    mask = select_gp_points(prior.predict(pts)[0], GPConfig().d_m)
+    assert 0 < mask.sum() < len(pts)
+    field = fit_local_gps(pts[mask], nrm[mask], prior, GPConfig())
+    rng = np.random.default_rng(5)
+    u = rng.normal(size=(3000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    d = rng.uniform(-0.1, 0.1, size=3000)
+    q = u * (1 + d[:, None])                          # exact SDF: |x| - 1 = d
+    mg, vg = field.predict(q)
+    mp, vp = prior.predict(q)
+    rmse = lambda m: np.sqrt(np.mean((m - d) ** 2))  # noqa: E731
+    ll = lambda m, v: np.mean(-0.5 * np.log(2 * np.pi * v) - 0.5 * (m - d) ** 2 / v)  # noqa
+    assert rmse(mg) < 0.6 * rmse(mp)
+    assert ll(mg, vg) > ll(mp, vp)
+
+
+def test_save_load_round_trip(tmp_path, sphere_scene):
+    pts, nrm, prior = sphere_scene
+    cfg = GPConfig(block_size=0.4)
+    field = fit_local_gps(pts[:300], nrm[:300], prior, cfg)
+    np.savez(tmp_path / "gp.npz", **field.to_arrays())
+    with np.load(tmp_path / "gp.npz", allow_pickle=False) as z:
+        loaded = LocalGPField.from_arrays(dict(z), prior, cfg)
+    q = np.random.default_rng(0).uniform(-1.2, 1.2, size=(500, 3))
+    for a, b in zip(field.predict(q, return_grad=True), loaded.predict(q, return_grad=True)):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(GPError, match="fitted with length_scale=0.08, the config has 0.1"):
+        LocalGPField.from_arrays(field.to_arrays(), prior, GPConfig(block_size=0.4,
+                                                                    length_scale=0.1))
+    arrays = field.to_arrays()
+    del arrays["gp_L"]
+    with pytest.raises(GPError, match=r"missing \['gp_L'\]"):
+        LocalGPField.from_arrays(arrays, prior, cfg)
+    arrays = field.to_arrays()
+    arrays["gp_alpha"] = arrays["gp_alpha"][:-1]
+    with pytest.raises(GPError, match="inconsistent"):
+        LocalGPField.from_arrays(arrays, prior, cfg)
+
+
+def test_block_cap_is_seeded_and_reported():
+    pts, nrm = sphere(300, r=0.2)
+    cfg = GPConfig(max_block_points=25, block_size=0.2)
+    prior = ConstantPrior(0.0, 0.01)
+    a = fit_local_gps(pts, nrm, prior, cfg, rng=np.random.default_rng(7))
+    b = fit_local_gps(pts, nrm, prior, cfg, rng=np.random.default_rng(7))
+    assert a.info["n_capped_blocks"] > 0 and a.info["n_points_dropped_by_cap"] > 0
+    assert max(len(blk.X) for blk in a.blocks) == 25
+    for x, y in zip(a.blocks, b.blocks):
+        np.testing.assert_array_equal(x.X, y.X)
+
+
+def test_jitter_raised_when_cholesky_fails():
+    X = np.zeros((3, 3))                 # three identical points, no noise: singular
+    fit = fit_block(X, np.ones(3), np.zeros((3, 4)), 0.1, 0.0, 0.0, 0.0)
+    assert fit.jitter_raised >= 1 and fit.jitter > 0
+    np.testing.assert_allclose(fit.L @ fit.L.T, matern32_joint(X, X, 0.1)
+                               + fit.jitter * np.eye(12), atol=1e-9)
+
+
+def test_select_gp_points():
+    m = np.array([0.0, 0.03, -0.05, 0.02, -0.01])
+    np.testing.assert_array_equal(select_gp_points(m, 0.02), [False, True, True, False, False])
+    with pytest.raises(GPError, match="d_m >= 0, found -1"):
+        select_gp_points(m, -1.0)
+    with pytest.raises(GPError, match="finite prior means, found 1 NaN"):
+        select_gp_points(np.array([np.nan, 0.0]), 0.02)
+    with pytest.raises(GPError, match=r"shape \(P,\), found \(5, 1\)"):
+        select_gp_points(m[:, None], 0.02)
+
+
+def test_octree_cover_matches_brute_force():
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-1, 1, size=(200, 3))
+    grid = BlockGrid.from_points(pts, 0.5, 0.5)
+    q = rng.uniform(-1.5, 1.5, size=(400, 3))
+    qi, bi = grid.cover(q)
+    got = set(zip(qi.tolist(), bi.tolist()))
+    dist = np.abs(q[:, None, :] - grid.centres[None]).max(axis=2)
+    want = set(zip(*np.nonzero(dist <= grid.half_extent)))
+    assert got == {(int(a), int(b)) for a, b in want}
+    with pytest.raises(OctreeError, match="positive block_size"):
+        BlockGrid.from_points(pts, 0.0, 0.5)
+    with pytest.raises(OctreeError, match="overlap >= 0"):
+        BlockGrid(np.zeros((1, 3)), 1.0, -0.5)
+    with pytest.raises(OctreeError, match="local frame"):
+        BlockGrid(np.array([[5_000_000, 0, 0]]), 1.0, 0.5)
+
+
+def test_bad_inputs(sphere_scene):
+    pts, nrm, prior = sphere_scene
+    cfg = GPConfig()
+    with pytest.raises(GPError, match=r"one normal per GP point \(\(10, 3\)\), found \(9, 3\)"):
+        fit_local_gps(pts[:10], nrm[:9], prior, cfg)
+    with pytest.raises(GPError, match="at least one GP training point, found 0"):
+        fit_local_gps(np.zeros((0, 3)), np.zeros((0, 3)), prior, cfg)
+    with pytest.raises(GPError, match=r"GP points with shape \(P, 3\), found \(10, 2\)"):
+        fit_local_gps(pts[:10, :2], nrm[:10], prior, cfg)
+    field = fit_local_gps(pts[:20], nrm[:20], prior, cfg)
+    q = np.zeros((3, 3))
+    q[2, 0] = np.nan
+    with pytest.raises(GPError, match="finite query points, found 1 rows"):
+        field.predict(q)
+    with pytest.raises(GPError, match="positive variance"):
+        ConstantPrior(0.0, 0.0)
+    with pytest.raises(GPError, match="positive prior variance at every GP point"):
+        fit_local_gps(pts[:5], nrm[:5], _ZeroVar(), cfg)
+    with pytest.raises(GPError, match="not positive definite even with relative jitter"):
+        fit_block(np.zeros((2, 3)), np.ones(2), np.zeros((2, 4)), 0.1, -10.0, -10.0, 0.0)
+
+
+class _ZeroVar:
+    def predict(self, xyz, return_grad=False):
+        n = len(xyz)
+        return np.zeros(n), np.zeros(n), np.zeros((n, 3))
