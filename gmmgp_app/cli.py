@@ -11,7 +11,6 @@ import argparse
 import json
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -204,6 +203,7 @@ def cmd_run(args) -> int:
                          "'gmmgp run assets/demo_street.npz --out out/demo'.")
     cfg = _load_config(args)  # validate settings before the (slow) read
 
+    from ._atomic import atomic_write_text
     from .datasets import read_scan
     from .pipeline import build_map
     from .progress import ConsoleObserver
@@ -233,9 +233,9 @@ def cmd_run(args) -> int:
     written = [out / "map"]
     if args.stage == "all" and not args.no_mesh:
         written += _write_meshes(smap, out, observer, console)
-    _write_text_atomic(out / "config.toml", cfg.to_toml())
+    atomic_write_text(out / "config.toml", cfg.to_toml())
     smap.summary["seconds"]["total"] = time.perf_counter() - t0
-    _write_text_atomic(out / "summary.json", json.dumps(_jsonable(smap.summary), indent=2))
+    atomic_write_text(out / "summary.json", json.dumps(_jsonable(smap.summary), indent=2))
     written += [out / "config.toml", out / "summary.json"]
     if args.rrd:
         written.append(Path(args.rrd))
@@ -309,17 +309,6 @@ def _check_writable(out: Path) -> None:
     if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
         raise PermissionError(f"Cannot write to output folder '{out}' ('{probe}' is not a "
                               "writable folder); choose another --out.")
-
-
-def _write_text_atomic(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _jsonable(obj):

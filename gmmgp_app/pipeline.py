@@ -10,9 +10,6 @@ as it finishes; the rerun logger and the GUI are such observers.
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,6 +17,7 @@ from typing import Any, Optional
 
 import numpy as np
 
+from ._atomic import atomic_dir
 from .config import MappingConfig
 from .types import GaussianMixture, HGMMLevel, HierarchicalGMM, Scan, SurfaceMesh
 
@@ -139,9 +137,7 @@ class SurfaceMap:
         when complete, so an interrupted save never leaves a half-written map.
         """
         directory = Path(directory)
-        directory.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{directory.name}.tmp-", dir=directory.parent))
-        try:
+        with atomic_dir(directory) as tmp:
             arrays = {"offset": self.offset, "gp_points": self.gp_points,
                       "gp_normals": self.gp_normals, "seed_points": self.seed_points}
             if self.hgmm is not None:
@@ -158,10 +154,6 @@ class SurfaceMap:
                 "summary": _jsonable(self.summary),
             }
             (tmp / "map.json").write_text(json.dumps(meta, indent=2))
-            _replace_dir(tmp, directory)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
         return directory
 
 
@@ -190,7 +182,7 @@ def load_map(directory) -> SurfaceMap:
         arrays = {k: z[k] for k in z.files}
     hgmm = _hgmm_from_arrays(arrays) if "hgmm/leaves/weights" in arrays else None
     if meta["prior"] == "GMRField":
-        prior = GMRField(hgmm.leaves, **_gmr_kwargs(cfg))
+        prior = GMRField.from_config(hgmm.leaves, cfg.gmr)
     else:
         prior = ConstantPrior(**meta["prior_params"])
     gp_arrays = {k[3:]: v for k, v in arrays.items() if k.startswith("gp/")}
@@ -252,7 +244,7 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
                                        "leaves": h.leaves.n_components})
         if stop_after == "hgmm":
             return _early_map(method, cfg, scan, data, hgmm, summary)
-        prior = GMRField(hgmm.leaves, **_gmr_kwargs(cfg))
+        prior = GMRField.from_config(hgmm.leaves, cfg.gmr)
         m_hits = stage("gmr", lambda: prior.predict(data.points)[0],
                        extra=lambda m: {"points": data.points, "error": m})
         gp_mask = select_gp_points(m_hits, cfg.gp.d_m) if method == "gmmgp" else gp_mask
@@ -260,14 +252,14 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
                                     "gp_points": int(gp_mask.sum())}
         if stop_after == "gmr" or method == "hgmm":
             return SurfaceMap(method, cfg, scan.offset, prior, hgmm=hgmm,
-                              seed_points=data.points, summary=summary)
+                              seed_points=_surface_seeds(scan, cfg), summary=summary)
     pts, nrm = data.points[gp_mask], data.normals[gp_mask]
     if len(pts):
         gp = stage("gp", lambda: fit_local_gps(pts, nrm, prior, cfg.gp),
                    counts=lambda g: dict(g.info.get("counts", {})),
                    extra=lambda g: {"points": pts, "normals": nrm})
     return SurfaceMap(method, cfg, scan.offset, prior, hgmm=hgmm, gp=gp, gp_points=pts,
-                      gp_normals=nrm, seed_points=data.points, summary=summary)
+                      gp_normals=nrm, seed_points=_surface_seeds(scan, cfg), summary=summary)
 
 
 class _StageRunner:
@@ -295,13 +287,19 @@ def _early_map(method, cfg, scan, data, hgmm, summary):
     from .stages.gp import ConstantPrior
 
     return SurfaceMap(method, cfg, scan.offset, ConstantPrior(**_gpis_prior_kwargs(cfg)),
-                      hgmm=hgmm, seed_points=data.points, summary=summary)
+                      hgmm=hgmm, seed_points=_surface_seeds(scan, cfg), summary=summary)
 
 
-def _gmr_kwargs(cfg: MappingConfig) -> dict:
-    import dataclasses
+def _surface_seeds(scan: Scan, cfg: MappingConfig) -> np.ndarray:
+    """One scan point per cell of half the surface voxel: where the surface is sought.
 
-    return dataclasses.asdict(cfg.gmr)
+    All hit points (not only the training subsample) so that marching cubes covers
+    every observed surface; thinned so that dense scans do not bloat the map.
+    """
+    cell = cfg.surface.voxel_size / 2
+    keys = np.floor(scan.points / cell).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return scan.points[np.sort(first)]
 
 
 def _gpis_prior_kwargs(cfg: MappingConfig) -> dict:
@@ -348,17 +346,6 @@ def _hgmm_from_arrays(a: dict) -> HierarchicalGMM:
     leaves = GaussianMixture(a["hgmm/leaves/weights"], a["hgmm/leaves/means"],
                              a["hgmm/leaves/covariances"])
     return HierarchicalGMM(tuple(levels), leaves, a["hgmm/leaf_level"], {})
-
-
-def _replace_dir(tmp: Path, target: Path) -> None:
-    """Move the finished folder ``tmp`` to ``target``, replacing an older one."""
-    if target.exists():
-        old = target.with_name(f".{target.name}.old-{os.getpid()}")
-        os.replace(target, old)
-        os.replace(tmp, target)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, target)
 
 
 def _jsonable(obj):

@@ -221,3 +221,35 @@ class _ZeroVar:
     def predict(self, xyz, return_grad=False):
         n = len(xyz)
         return np.zeros(n), np.zeros(n), np.zeros((n, 3))
+
+
+def test_compiled_pair_predictor_matches_numpy_block_predictor():
+    """_predict_pairs (numba) against predict_block (numpy) on random blocks."""
+    from gmmgp_app.stages.gp import _predict_pairs, fit_block, predict_block
+
+    rng = np.random.default_rng(5)
+    fits = []
+    for n in (1, 4, 9):
+        X = rng.uniform(-0.1, 0.1, size=(n, 3))
+        sp = rng.uniform(0.01, 0.05, size=n)
+        t = rng.normal(scale=0.01, size=(n, 4))
+        fits.append(fit_block(X, sp, t, 0.08, 4e-4, 5e-4, 1e-8))
+    xs = rng.uniform(-0.15, 0.15, size=(7, 3))
+    sig = rng.uniform(0.01, 0.05, size=7)
+    qi = np.repeat(np.arange(7), 3)
+    bi = np.tile(np.arange(3), 7)
+    n = np.array([len(f.X) for f in fits])
+    ptr = np.r_[0, np.cumsum(n)]
+    loff = np.r_[0, np.cumsum((4 * n) ** 2)]
+    X = np.concatenate([f.X for f in fits])
+    sp = np.concatenate([f.sigma_p for f in fits])
+    L = np.concatenate([f.L.ravel() for f in fits])
+    al = np.concatenate([f.alpha for f in fits])
+    a = np.sqrt(3.0) / 0.08
+    dm, red, dg = _predict_pairs(xs, sig, qi, bi, ptr, X, sp, L, loff, al, a, True)
+    for b, f in enumerate(fits):
+        mu, rd, gr = predict_block(f, xs, sig, 0.08, True)
+        sel = bi == b
+        np.testing.assert_allclose(dm[sel], mu, rtol=1e-10, atol=1e-14)
+        np.testing.assert_allclose(red[sel], rd, rtol=1e-10, atol=1e-14)
+        np.testing.assert_allclose(dg[sel], gr, rtol=1e-10, atol=1e-14)

@@ -10,13 +10,12 @@ vertices with the same lattice-edge key (no duplicates, no cracks).
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 from typing import Callable, Optional
 
 import numpy as np
 
+from .._atomic import atomic_path
 from ..types import SurfaceMesh
 
 __all__ = ["extract_surface", "write_mesh_ply", "write_mesh_obj", "read_mesh_ply",
@@ -30,41 +29,43 @@ class GridTooLargeError(MemoryError):
     """The requested surface grid would not fit the machine; message has the estimate."""
 
 
-def estimate_grid_nodes(seeds: np.ndarray, voxel_size: float, block_cells: int = 16) -> int:
-    """Number of lattice nodes the sparse grid would evaluate (before running)."""
-    blocks = _active_blocks(seeds, voxel_size, block_cells)
-    return len(blocks) * (block_cells + 1) ** 3
+def estimate_grid_nodes(seeds: np.ndarray, voxel_size: float, dilate: int = 1) -> int:
+    """Upper bound on the lattice nodes the sparse grid evaluates (cheap, up front)."""
+    cells = np.unique(np.floor(np.asarray(seeds) / voxel_size).astype(np.int64), axis=0)
+    return int(len(cells) * (2 * dilate + 1) ** 3)
 
 
 def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.05, *,
-                    max_std: Optional[float] = None, block_cells: int = 16,
-                    band: Optional[float] = None, batch: int = 200_000,
+                    max_std: Optional[float] = None, block_cells: int = 32,
+                    dilate: Optional[int] = None, batch: int = 200_000,
                     progress=None) -> SurfaceMesh:
     """Zero level set of a field as a triangle mesh with per-vertex variance.
+
+    Only the lattice cells that contain a seed point, grown by ``dilate`` cells,
+    are evaluated (in large batches); nodes elsewhere are masked, so no surface is
+    invented far from the data.
 
     Parameters
     ----------
     predict : callable
         ``predict(xyz (K,3)) -> (mean (K,), var (K,))``.
     seeds : (N, 3) float64
-        Points near the surface (training hit points); blocks are kept around them.
+        Points on or near the surface (the scan's hit points).
     voxel_size : float
         Lattice spacing h in metres.
     max_std : float, optional
         Drop faces with a vertex whose predicted standard deviation exceeds this.
     block_cells : int
-        Cells per block edge B.
-    band : float, optional
-        Lattice nodes farther than this from every seed are masked out, so that no
-        surface is invented far from the data. Default ``3 * voxel_size`` or 0.1 m,
-        whichever is larger.
+        Cells per block edge B (marching cubes runs per block).
+    dilate : int, optional
+        Cells grown around seed cells. Default: 1, or enough to bridge half the
+        median seed spacing when the seeds are sparser than the lattice.
     progress : callable(total, desc) -> bar with update()/close(), optional
 
     Returns
     -------
     SurfaceMesh
     """
-    from scipy.spatial import cKDTree
     from skimage.measure import marching_cubes
 
     seeds = np.asarray(seeds, dtype=np.float64)
@@ -73,55 +74,68 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     if not voxel_size > 0:
         raise ValueError(f"Expected voxel_size > 0 m, found {voxel_size}.")
     h = float(voxel_size)
-    band = max(3 * h, 0.1) if band is None else float(band)
-    blocks = _active_blocks(seeds, h, block_cells)
-    n_nodes = len(blocks) * (block_cells + 1) ** 3
-    if n_nodes > MAX_GRID_NODES:
+    if dilate is None:
+        dilate = max(1, int(np.ceil(0.5 * _median_spacing(seeds) / h)))
+    bound = estimate_grid_nodes(seeds, h, dilate)
+    if bound > MAX_GRID_NODES:
         raise GridTooLargeError(
-            f"A surface grid at voxel_size={h} m needs about {n_nodes:,} field evaluations "
-            f"(~{n_nodes * 8 * 6 / 2**30:.1f} GiB of temporaries), more than the limit of "
+            f"A surface grid at voxel_size={h} m needs up to {bound:,} field evaluations "
+            f"(~{bound * 8 * 8 / 2**30:.1f} GiB of temporaries), more than the limit of "
             f"{MAX_GRID_NODES:,}; use a larger voxel size.")
-    tree = cKDTree(seeds)
+
+    # 1. The cells to evaluate and their corner nodes, as sorted packed int64 keys.
+    cells = np.unique(np.floor(seeds / h).astype(np.int64), axis=0)
+    r = np.arange(-dilate, dilate + 1)
+    grow = np.stack(np.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
+    cells = np.unique((cells[:, None, :] + grow[None]).reshape(-1, 3), axis=0)
+    corners = np.stack(np.meshgrid(*([0, 1],) * 3, indexing="ij"), -1).reshape(-1, 3)
+    nodes = np.unique((cells[:, None, :] + corners[None]).reshape(-1, 3), axis=0)
+    pack = _Packer(nodes.min(0) - block_cells, nodes.max(0) + block_cells)
+    node_keys = pack(nodes)
+    order = np.argsort(node_keys)
+    node_keys, nodes = node_keys[order], nodes[order]
+
+    # 2. The field at every node, in large batches.
+    values = np.empty(len(nodes))
+    bar = progress(int(np.ceil(len(nodes) / batch)), "surface field") if progress else None
+    for s in range(0, len(nodes), batch):
+        values[s:s + batch] = predict(nodes[s:s + batch] * h)[0]
+        bar and bar.update(1)
+    bar and bar.close()
+
+    # 3. Marching cubes per block on its (B+1)^3 nodes, looked up by key.
+    blocks = np.unique(np.floor_divide(cells, block_cells), axis=0)
     nb = block_cells + 1
     local = np.stack(np.meshgrid(*(np.arange(nb),) * 3, indexing="ij"), -1).reshape(-1, 3)
-    bar = progress(len(blocks), "surface blocks") if progress else None
-
     keys_all, verts_all, faces_all = [], [], []
     n_verts = 0
+    bar = progress(len(blocks), "marching cubes") if progress else None
     for b in blocks:
-        node_idx = b * block_cells + local            # global integer lattice indices
-        xyz = node_idx * h
-        near = tree.query(xyz, k=1, distance_upper_bound=band)[0] < np.inf
-        if near.sum() < 8:
-            bar and bar.update(1)
+        bar and bar.update(1)
+        want = pack(b * block_cells + local)
+        pos = np.minimum(np.searchsorted(node_keys, want), len(node_keys) - 1)
+        found = node_keys[pos] == want
+        if found.sum() < 8:
             continue
-        vals = np.full(len(xyz), np.nan)
-        for s in range(0, int(near.sum()), batch):
-            sel = np.flatnonzero(near)[s:s + batch]
-            vals[sel] = predict(xyz[sel])[0]
-        vol = vals.reshape(nb, nb, nb)
+        vol = np.where(found, values[pos], np.nan).reshape(nb, nb, nb)
         finite = np.isfinite(vol)
-        if not finite.any() or np.nanmin(vol) > 0 or np.nanmax(vol) < 0:
-            bar and bar.update(1)
+        if np.nanmin(vol) > 0 or np.nanmax(vol) < 0:
             continue
-        vol_filled = np.where(finite, vol, 1.0).astype(np.float64)  # masked cells are skipped anyway
+        vol_filled = np.where(finite, vol, 1.0)  # placeholder; faces on it are dropped
         try:
             v, f, _, _ = marching_cubes(vol_filled, level=0.0, mask=finite,
                                         allow_degenerate=False)
         except (ValueError, RuntimeError):
-            bar and bar.update(1)
             continue
         # Faces touching a masked node interpolate a placeholder value: drop them.
         f = f[_valid_vertices(v, finite)[f].all(1)]
         if len(f) == 0:
-            bar and bar.update(1)
             continue
         lo, axis, v = _refine_on_edges(v, vol_filled)
         keys_all.append(np.column_stack([lo + b * block_cells, axis]))
         verts_all.append(v + b * block_cells)           # lattice coordinates
         faces_all.append(f + n_verts)
         n_verts += len(v)
-        bar and bar.update(1)
     bar and bar.close()
 
     if not verts_all:
@@ -145,15 +159,31 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     return SurfaceMesh(verts, faces, var)
 
 
-def _active_blocks(seeds: np.ndarray, h: float, block_cells: int) -> np.ndarray:
-    """Integer block indices (n, 3) of blocks within one cell of any seed."""
-    cells = np.floor(seeds / h).astype(np.int64)
-    near = np.concatenate([cells + np.array(o) for o in _OFFSETS])
-    blocks = np.unique(np.floor_divide(near, block_cells), axis=0)
-    return blocks
+def _median_spacing(points: np.ndarray, n: int = 20000) -> float:
+    """Median nearest-neighbour spacing, from a seeded sample scaled to the full set."""
+    from scipy.spatial import cKDTree
+
+    if len(points) < 2:
+        return 0.0
+    sample = points[np.random.default_rng(0).permutation(len(points))[:n]]
+    spacing = float(np.median(cKDTree(sample).query(sample, k=2)[0][:, 1]))
+    # A sample of a surface is sqrt(N / n) times sparser than the whole set.
+    return spacing * float(np.sqrt(len(sample) / len(points)))
 
 
-_OFFSETS = [(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)]
+class _Packer:
+    """Packs integer lattice coordinates within [lo, hi] into sortable int64 keys."""
+
+    def __init__(self, lo: np.ndarray, hi: np.ndarray):
+        self.lo = lo.astype(np.int64)
+        self.dims = (hi - lo + 1).astype(np.int64)
+        if float(np.prod(self.dims.astype(np.float64))) >= 2.0 ** 62:
+            raise GridTooLargeError("The surface lattice spans too many cells to index; "
+                                    "use a larger voxel size or tile the scan.")
+
+    def __call__(self, ijk: np.ndarray) -> np.ndarray:
+        q = ijk - self.lo
+        return (q[:, 0] * self.dims[1] + q[:, 1]) * self.dims[2] + q[:, 2]
 
 
 def _refine_on_edges(v: np.ndarray, vol: np.ndarray):
@@ -236,8 +266,10 @@ def write_mesh_ply(mesh: SurfaceMesh, path, offset=None, vmax: Optional[float] =
               "property double z\nproperty uchar red\nproperty uchar green\n"
               "property uchar blue\nproperty double variance\n"
               f"element face {len(face)}\nproperty list uchar int vertex_indices\nend_header\n")
-    _atomic_write(path, lambda f: (f.write(header.encode()), f.write(vert.tobytes()),
-                                   f.write(face.tobytes())))
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(header.encode())
+        f.write(vert.tobytes())
+        f.write(face.tobytes())
     return path
 
 
@@ -247,12 +279,10 @@ def write_mesh_obj(mesh: SurfaceMesh, path, offset=None, vmax: Optional[float] =
     v = mesh.vertices + (0 if offset is None else np.asarray(offset))
     rgb = variance_colors(mesh.vertex_variance, vmax) / 255.0
 
-    def write(f):
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.write(b"# gmmgp_app surface; colours: predicted standard deviation (viridis)\n")
         np.savetxt(f, np.column_stack([v, rgb]), fmt="v %.6f %.6f %.6f %.4f %.4f %.4f")
         np.savetxt(f, mesh.faces + 1, fmt="f %d %d %d")
-
-    _atomic_write(path, write)
     return path
 
 
@@ -270,15 +300,3 @@ def read_mesh_ply(path) -> SurfaceMesh:
                          end + nv * vdt.itemsize)
     return SurfaceMesh(np.column_stack([vert["x"], vert["y"], vert["z"]]),
                        face["i"].astype(np.int64), vert["variance"].copy())
-
-
-def _atomic_write(path: Path, write) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise

@@ -8,12 +8,11 @@ half-written output under the final name.
 from __future__ import annotations
 
 import json
-import os
-import uuid
 from pathlib import Path
 
 import numpy as np
 
+from .._atomic import atomic_path
 from .scanner import scan_scene
 from .scenes import LABELS, SynthError, SyntheticScene
 
@@ -22,16 +21,8 @@ __all__ = ["write_scene", "save_scan_npz", "save_mesh_ply"]
 
 def _atomic(path: Path, write, suffix: str) -> None:
     """Call ``write(tmp_path)`` and move the result onto ``path``."""
-    # a unique sibling name (same filesystem, so os.replace is atomic); opened by the
-    # writer with the ordinary umask, unlike mkstemp's private 0600 files
-    tmp = str(path.parent / f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp{suffix}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_path(path, suffix) as tmp:
+        write(str(tmp))
 
 
 def save_scan_npz(path, points, origins=None, labels=None, *, dtype=np.float64) -> Path:
