@@ -111,21 +111,31 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    # The global flags are accepted after the command too ("gmmgp run ... -q").
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                        help="show tracebacks on errors")
+    common.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                        help="no progress output")
 
-    p = sub.add_parser("info", help="summarise a scan (points, extent, spacing, units, classes)",
+    def add(name, **kw):
+        return sub.add_parser(name, parents=[common],
+                              formatter_class=argparse.RawDescriptionHelpFormatter, **kw)
+
+    p = add("info", help="summarise a scan (points, extent, spacing, units, classes)",
                        epilog=_EXAMPLES["info"])
     p.add_argument("scan", nargs="+", help="scan file(s) or folder")
     _add_reader_options(p)
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
 
-    p = sub.add_parser("synth", help="make a synthetic scene with exact ground truth",
+    p = add("synth", help="make a synthetic scene with exact ground truth",
                        epilog=_EXAMPLES["synth"])
     p.add_argument("name", help="scene: plane, sphere, box, street, street2")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--density", type=float, default=1.0, help="scan density multiplier")
 
-    p = sub.add_parser("run", help="map a scan: prepare, HGMM, GMR, GP; save the map",
+    p = add("run", help="map a scan: prepare, HGMM, GMR, GP; save the map",
                        epilog=_EXAMPLES["run"])
     p.add_argument("scan", nargs="*", help="scan file(s) or folder")
     p.add_argument("--out", help="output folder (map/, summary.json, ...); required")
@@ -141,14 +151,14 @@ def build_parser() -> argparse.ArgumentParser:
     _add_reader_options(p)
     _add_config_options(p)
 
-    p = sub.add_parser("view", help="open the interactive desktop app", epilog=_EXAMPLES["view"])
+    p = add("view", help="open the interactive desktop app", epilog=_EXAMPLES["view"])
     p.add_argument("target", help="scan file or saved map folder")
 
-    p = sub.add_parser("eval", help="evaluate maps against a reference", epilog=_EXAMPLES["eval"])
+    p = add("eval", help="evaluate maps against a reference", epilog=_EXAMPLES["eval"])
     p.add_argument("directory")
     p.add_argument("--reference", required=True)
 
-    p = sub.add_parser("sweep", help="sweep a config field", epilog=_EXAMPLES["sweep"])
+    p = add("sweep", help="sweep a config field", epilog=_EXAMPLES["sweep"])
     p.add_argument("scan")
     p.add_argument("--param", required=True)
     p.add_argument("--values", required=True)

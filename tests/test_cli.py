@@ -1,0 +1,90 @@
+"""The gmmgp command line: outputs, help with examples, one-line errors with exit code 2."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gmmgp_app.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+DEMO = ROOT / "assets" / "demo_street.npz"
+
+
+def _run(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "gmmgp_app.cli", *map(str, args)],
+                          capture_output=True, text=True, cwd=cwd, timeout=600)
+
+
+def test_info_prints_the_demo_scan(capsys):
+    assert main(["info", str(DEMO)]) == 0
+    out = capsys.readouterr().out
+    n = len(np.load(DEMO)["points"])
+    assert f"{n:,}" in out and "origins   yes" in out and "spacing" in out
+
+
+@pytest.mark.parametrize("cmd", ["info", "synth", "run", "view", "eval", "sweep"])
+def test_every_command_has_help_with_examples(cmd, capsys):
+    with pytest.raises(SystemExit) as e:
+        main([cmd, "--help"])
+    assert e.value.code == 0
+    assert "examples:" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("args,match", [
+    (["info", "missing.ply"], "does not exist"),
+    (["info", "scan.unknownext"], "does not exist"),
+    (["run", str(DEMO), "--out", "OUT", "--set", "hgmm.split_threshold=9"],
+     r"Config field 'hgmm.split_threshold' must lie in \[0.0, 0.25\], found 9.0"),
+    (["run", str(DEMO), "--out", "OUT", "--set", "hgmm.nope=1"], "Unknown config field"),
+    (["run", str(DEMO)], "Expected a scan and --out DIR"),
+    (["run", str(DEMO), "--out", "OUT", "--config", "missing.toml"], "does not exist"),
+])
+def test_bad_input_is_one_line_exit_2(args, match, tmp_path):
+    args = [a.replace("OUT", str(tmp_path / "out")) for a in args]
+    r = _run(*args, cwd=tmp_path)
+    assert r.returncode == 2, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "Traceback" not in r.stderr
+    import re
+    assert re.search(match, lines[0]), lines[0]
+    assert not (tmp_path / "out").exists(), "nothing may be written on bad input"
+
+
+def test_unwritable_output_folder(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    r = _run("run", DEMO, "--out", blocker / "sub", cwd=tmp_path)
+    assert r.returncode == 2 and "Cannot write to output folder" in r.stderr
+
+
+def test_synth_then_run_writes_map_meshes_and_summary(tmp_path):
+    r = _run("synth", "box", "--out", tmp_path / "box", "--density", "0.2")
+    assert r.returncode == 0, r.stderr
+    out = tmp_path / "run"
+    r = _run("run", tmp_path / "box" / "scan.npz", "--out", out, "-q",
+             "--set", "surface.voxel_size=0.1")
+    assert r.returncode == 0, r.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["seconds"]) >= {"read", "prepare", "hgmm", "gmr", "gp", "surface"}
+    assert summary["counts"]["hgmm"]["leaves"] > 0
+    for name in ("mesh_gmmgp.ply", "mesh_hgmm.ply", "config.toml", "map/map.json",
+                 "map/arrays.npz"):
+        assert (out / name).is_file(), name
+    from gmmgp_app.stages.surface import read_mesh_ply
+
+    mesh = read_mesh_ply(out / "mesh_gmmgp.ply")
+    assert len(mesh.faces) > 100 and np.all(mesh.vertex_variance > 0)
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+
+
+def test_stage_hgmm_prints_the_level_history(tmp_path):
+    r = _run("synth", "box", "--out", tmp_path / "box", "--density", "0.2")
+    assert r.returncode == 0, r.stderr
+    r = _run("run", tmp_path / "box" / "scan.npz", "--out", tmp_path / "o", "--stage", "hgmm",
+             "-q")
+    assert r.returncode == 0, r.stderr
+    assert "level" in r.stdout and "leaves" in r.stdout
