@@ -256,7 +256,8 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
     pts, nrm = data.points[gp_mask], data.normals[gp_mask]
     if len(pts):
         gp = stage("gp", lambda: fit_local_gps(pts, nrm, prior, cfg.gp),
-                   counts=lambda g: dict(g.info.get("counts", {})),
+                   counts=lambda g: {k: v for k, v in g.info.items()
+                                     if isinstance(v, (int, float))},
                    extra=lambda g: {"points": pts, "normals": nrm})
     return SurfaceMap(method, cfg, scan.offset, prior, hgmm=hgmm, gp=gp, gp_points=pts,
                       gp_normals=nrm, seed_points=_surface_seeds(scan, cfg), summary=summary)
