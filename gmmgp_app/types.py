@@ -121,6 +121,9 @@ class TrainingSet:
         Virtual point spacing s in metres.
     n_dropped_virtual : int
         Virtual points removed because they landed closer than s to other surface.
+    n_dropped_normals : int
+        Subsampled hit points removed because no normal could be estimated
+        (too few neighbours, or a collinear neighbourhood).
     """
 
     rows: np.ndarray
@@ -129,6 +132,7 @@ class TrainingSet:
     normals: np.ndarray
     spacing: float
     n_dropped_virtual: int = 0
+    n_dropped_normals: int = 0
 
 
 @dataclass(frozen=True)

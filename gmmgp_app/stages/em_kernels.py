@@ -1,0 +1,445 @@
+"""numba kernels of expectation-maximisation for full-covariance Gaussian mixtures.
+
+These are the inner loops of :mod:`gmmgp_app.stages.hgmm`; they work on raw
+arrays and never allocate per point. Conventions shared by every kernel:
+
+* ``X`` is ``(N, D)`` float64, C-contiguous.
+* A component is described to the kernels by its *precision Cholesky factor*
+  ``P = L^{-1}`` (lower triangular, ``Sigma = L L^T``) and a log constant
+  ``log pi_k - D/2 log(2 pi) - sum(log diag L)``, so that
+  ``log pi_k N(x | mu_k, Sigma_k) = logconst_k - 0.5 * |P (x - mu_k)|^2``.
+* Reductions over points are done in fixed-size chunks whose partial sums are
+  added in chunk order: results do not depend on the number of threads, so a
+  seed gives bitwise identical fits on any machine with the same numba build.
+
+Each kernel has a plain numpy reference in ``tests/test_hgmm.py``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+__all__ = [
+    "CHUNK",
+    "cholesky_into",
+    "component_terms",
+    "weighted_log_prob",
+    "log_likelihood",
+    "accumulate",
+    "mstep_from_resp",
+    "em_loop",
+    "assign",
+    "kmeanspp",
+]
+
+LOG_2PI = float(np.log(2.0 * np.pi))
+CHUNK = 2048
+# Responsibilities below this are not accumulated: their share of any statistic
+# is below 1e-12 of one row's, far under float64 noise for the sums involved,
+# and skipping them halves the M-step work once components have separated.
+RESP_FLOOR = 1e-12
+EPS10 = 10.0 * np.finfo(np.float64).eps
+
+
+@njit(cache=True)
+def cholesky_into(A, L):
+    """Lower Cholesky factor of ``A`` (D, D) into ``L``; False if not positive definite."""
+    D = A.shape[0]
+    for j in range(D):
+        s = A[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not (s > 0.0) or not np.isfinite(s):
+            return False
+        ljj = np.sqrt(s)
+        L[j, j] = ljj
+        for i in range(j + 1, D):
+            t = A[i, j]
+            for k in range(j):
+                t -= L[i, k] * L[j, k]
+            L[i, j] = t / ljj
+        for i in range(j):
+            L[i, j] = 0.0
+    return True
+
+
+@njit(cache=True)
+def component_terms(weights, covs, pchol, logconst):
+    """Fill ``pchol`` (K, D, D) with ``L_k^{-1}`` and ``logconst`` (K,).
+
+    Returns the index of the first component whose covariance is not positive
+    definite (or whose weight is not positive), else -1.
+    """
+    K, D = covs.shape[0], covs.shape[1]
+    L = np.empty((D, D))
+    for k in range(K):
+        if not (weights[k] > 0.0):
+            return k
+        if not cholesky_into(covs[k], L):
+            return k
+        logdet_half = 0.0
+        for i in range(D):
+            logdet_half += np.log(L[i, i])
+        # P = L^{-1} by forward substitution, column by column.
+        for c in range(D):
+            for i in range(D):
+                if i < c:
+                    pchol[k, i, c] = 0.0
+                    continue
+                t = 1.0 if i == c else 0.0
+                for j in range(c, i):
+                    t -= L[i, j] * pchol[k, j, c]
+                pchol[k, i, c] = t / L[i, i]
+        logconst[k] = np.log(weights[k]) - 0.5 * D * LOG_2PI - logdet_half
+    return -1
+
+
+@njit(cache=True, inline="always")
+def _row_logprob(X, n, means, pchol, logconst, out):
+    K, D = means.shape
+    for k in range(K):
+        maha = 0.0
+        for i in range(D):
+            y = 0.0
+            for j in range(i + 1):
+                y += pchol[k, i, j] * (X[n, j] - means[k, j])
+            maha += y * y
+        out[k] = logconst[k] - 0.5 * maha
+
+
+@njit(cache=True, inline="always")
+def _lse(v):
+    m = -np.inf
+    for k in range(v.shape[0]):
+        if v[k] > m:
+            m = v[k]
+    if m == -np.inf:
+        return m
+    s = 0.0
+    for k in range(v.shape[0]):
+        s += np.exp(v[k] - m)
+    return m + np.log(s)
+
+
+@njit(cache=True, parallel=True)
+def weighted_log_prob(X, means, pchol, logconst):
+    """``log pi_k N(x_n | mu_k, Sigma_k)`` for all rows and components, (N, K)."""
+    N = X.shape[0]
+    K = means.shape[0]
+    out = np.empty((N, K))
+    for n in prange(N):
+        _row_logprob(X, n, means, pchol, logconst, out[n])
+    return out
+
+
+@njit(cache=True, parallel=True)
+def log_likelihood(X, means, pchol, logconst):
+    """Per-row mixture log-likelihood ``log sum_k pi_k N(x_n | .)``, (N,).
+
+    Works chunk-wise so that memory stays O(K) per thread for any K.
+    """
+    N = X.shape[0]
+    K = means.shape[0]
+    out = np.empty(N)
+    nch = (N + CHUNK - 1) // CHUNK
+    for c in prange(nch):
+        lp = np.empty(K)
+        for n in range(c * CHUNK, min(N, (c + 1) * CHUNK)):
+            _row_logprob(X, n, means, pchol, logconst, lp)
+            out[n] = _lse(lp)
+    return out
+
+
+@njit(cache=True)
+def assign(X, means, pchol, logconst):
+    """Hard assignment: index of the component with the largest ``pi_k N(x|.)``, (N,) int64."""
+    N = X.shape[0]
+    K = means.shape[0]
+    out = np.empty(N, dtype=np.int64)
+    nch = (N + CHUNK - 1) // CHUNK
+    lp = np.empty(K)
+    for c in range(nch):
+        for n in range(c * CHUNK, min(N, (c + 1) * CHUNK)):
+            _row_logprob(X, n, means, pchol, logconst, lp)
+            best = 0
+            for k in range(1, K):
+                if lp[k] > lp[best]:
+                    best = k
+            out[n] = best
+    return out
+
+
+@njit(cache=True)
+def _accumulate_range(X, start, end, means, pchol, logconst, nk, sx, sxx, lp):
+    """E-step for rows [start, end) fused with the M-step sufficient statistics.
+
+    Statistics are taken about the *current* means (``x - mu_k``): the new
+    covariance is then ``S / n_k - delta delta^T`` with a small ``delta``, which
+    avoids the cancellation of raw second moments when coordinates are tens of
+    metres and covariances are millimetres squared.
+    Returns (sum of row log-likelihoods, worst row log-likelihood, its index).
+    """
+    K, D = means.shape
+    ll = 0.0
+    worst = np.inf
+    worst_i = -1
+    diff = np.empty(D)
+    for n in range(start, end):
+        _row_logprob(X, n, means, pchol, logconst, lp)
+        lse = _lse(lp)
+        ll += lse
+        if lse < worst:
+            worst = lse
+            worst_i = n
+        for k in range(K):
+            r = np.exp(lp[k] - lse)
+            if r < RESP_FLOOR:
+                continue
+            nk[k] += r
+            for i in range(D):
+                diff[i] = X[n, i] - means[k, i]
+                sx[k, i] += r * diff[i]
+            for i in range(D):
+                ri = r * diff[i]
+                for j in range(i + 1):
+                    sxx[k, i, j] += ri * diff[j]
+    return ll, worst, worst_i
+
+
+@njit(cache=True, parallel=True)
+def _accumulate_parallel(X, means, pchol, logconst):
+    N = X.shape[0]
+    K, D = means.shape
+    nch = (N + CHUNK - 1) // CHUNK
+    NK = np.zeros((nch, K))
+    SX = np.zeros((nch, K, D))
+    SXX = np.zeros((nch, K, D, D))
+    LL = np.zeros(nch)
+    WORST = np.zeros(nch)
+    WI = np.zeros(nch, dtype=np.int64)
+    for c in prange(nch):
+        lp = np.empty(K)
+        ll, w, wi = _accumulate_range(X, c * CHUNK, min(N, (c + 1) * CHUNK), means, pchol,
+                                      logconst, NK[c], SX[c], SXX[c], lp)
+        LL[c] = ll
+        WORST[c] = w
+        WI[c] = wi
+    # Fixed-order reduction: identical sums whatever the thread count.
+    nk = np.zeros(K)
+    sx = np.zeros((K, D))
+    sxx = np.zeros((K, D, D))
+    ll = 0.0
+    worst = np.inf
+    worst_i = -1
+    for c in range(nch):
+        nk += NK[c]
+        sx += SX[c]
+        sxx += SXX[c]
+        ll += LL[c]
+        if WORST[c] < worst:
+            worst = WORST[c]
+            worst_i = WI[c]
+    return nk, sx, sxx, ll, worst, worst_i
+
+
+@njit(cache=True)
+def accumulate(X, means, pchol, logconst, parallel=False):
+    """Fused E-step and M-step statistics over all rows.
+
+    Returns
+    -------
+    nk : (K,) sum of responsibilities
+    sx : (K, D) sum of r * (x - mu_k)
+    sxx : (K, D, D) sum of r * (x - mu_k)(x - mu_k)^T (lower triangle filled)
+    ll : float, sum of row log-likelihoods
+    worst, worst_i : lowest row log-likelihood and its row index
+    """
+    N = X.shape[0]
+    K, D = means.shape
+    if N <= CHUNK or not parallel:
+        # Serial by default: on a shared, oversubscribed machine a parallel
+        # region waits for its slowest thread and measured 2-10x *slower* than
+        # one thread; and one chunk never pays for the region's start-up.
+        nk = np.zeros(K)
+        sx = np.zeros((K, D))
+        sxx = np.zeros((K, D, D))
+        lp = np.empty(K)
+        ll, worst, worst_i = _accumulate_range(X, 0, N, means, pchol, logconst, nk, sx, sxx, lp)
+        return nk, sx, sxx, ll, worst, worst_i
+    return _accumulate_parallel(X, means, pchol, logconst)
+
+
+@njit(cache=True)
+def _mstep_from_stats(N, nk, sx, sxx, means_old, reg_covar, weights, means, covs):
+    """M-step from shifted statistics (as scikit-learn: n_k + 10 eps, reg_covar on the diagonal)."""
+    K, D = means_old.shape
+    total = 0.0
+    for k in range(K):
+        total += nk[k] + EPS10
+    for k in range(K):
+        n = nk[k] + EPS10
+        weights[k] = n / total
+        delta = np.empty(D)
+        for i in range(D):
+            delta[i] = sx[k, i] / n
+            means[k, i] = means_old[k, i] + delta[i]
+        for i in range(D):
+            for j in range(i + 1):
+                v = sxx[k, i, j] / n - delta[i] * delta[j]
+                covs[k, i, j] = v
+                covs[k, j, i] = v
+            covs[k, i, i] += reg_covar
+
+
+@njit(cache=True)
+def mstep_from_resp(X, resp, reg_covar):
+    """M-step from given responsibilities (N, K): (weights (K,), means (K, D), covs (K, D, D))."""
+    N, D = X.shape
+    K = resp.shape[1]
+    nk = np.zeros(K)
+    sx = np.zeros((K, D))
+    sxx = np.zeros((K, D, D))
+    zero = np.zeros((K, D))
+    for n in range(N):
+        for k in range(K):
+            r = resp[n, k]
+            if r == 0.0:
+                continue
+            nk[k] += r
+            for i in range(D):
+                sx[k, i] += r * X[n, i]
+    # Second pass about the new means: the exact two-pass formula.
+    mu = np.zeros((K, D))
+    for k in range(K):
+        for i in range(D):
+            mu[k, i] = sx[k, i] / (nk[k] + EPS10)
+    for n in range(N):
+        for k in range(K):
+            r = resp[n, k]
+            if r == 0.0:
+                continue
+            for i in range(D):
+                di = X[n, i] - mu[k, i]
+                for j in range(i + 1):
+                    sxx[k, i, j] += r * di * (X[n, j] - mu[k, j])
+    weights = np.empty(K)
+    means = np.empty((K, D))
+    covs = np.empty((K, D, D))
+    _mstep_from_stats(N, nk, zero, sxx, mu, reg_covar, weights, means, covs)
+    return weights, means, covs
+
+
+@njit(cache=True)
+def em_loop(X, weights, means, covs, max_iter, tol, reg_covar, min_nk, parallel=False):
+    """Run EM in place until convergence, ``max_iter`` or a bad component.
+
+    The sequence is scikit-learn's: E-step with the current parameters (its mean
+    log-likelihood is the "lower bound"), M-step, stop when the lower bound
+    changed by less than ``tol``.
+
+    Returns
+    -------
+    n_iter : int, EM iterations done (E+M pairs)
+    converged : bool
+    status : 0 ok; 1 component ``bad_k`` not positive definite; 2 component
+        ``bad_k`` empty (fewer than ``min_nk`` rows of responsibility). On status
+        1 or 2 the parameters are those of the last good M-step (for status 2 the
+        E-step that found the empty component is not applied).
+    bad_k : int
+    lower_bound : float, mean row log-likelihood of the last E-step
+    worst_i : int, row with the lowest log-likelihood in the last E-step
+    """
+    N, D = X.shape
+    K = means.shape[0]
+    pchol = np.empty((K, D, D))
+    logconst = np.empty(K)
+    prev = -np.inf
+    lb = -np.inf
+    worst_i = -1
+    for it in range(max_iter):
+        bad = component_terms(weights, covs, pchol, logconst)
+        if bad >= 0:
+            return it, False, 1, bad, lb, worst_i
+        nk, sx, sxx, ll, worst, worst_i = accumulate(X, means, pchol, logconst, parallel)
+        lb = ll / N
+        if not np.isfinite(lb):
+            return it, False, 1, -1, lb, worst_i
+        for k in range(K):
+            if nk[k] < min_nk:
+                return it, False, 2, k, lb, worst_i
+        old = means.copy()
+        _mstep_from_stats(N, nk, sx, sxx, old, reg_covar, weights, means, covs)
+        if abs(lb - prev) < tol:
+            return it + 1, True, 0, -1, lb, worst_i
+        prev = lb
+    return max_iter, False, 0, -1, lb, worst_i
+
+
+@njit(cache=True)
+def kmeanspp(X, K, u):
+    """k-means++ seeding: indices of up to K rows, (k,) int64 with k <= K.
+
+    ``u`` (K,) are uniform draws in [0, 1) supplied by the caller's Generator, so
+    the seeding is reproducible. Fewer than K indices come back when the rows
+    have fewer than K distinct values (every remaining row sits on a centre).
+    """
+    N, D = X.shape
+    idx = np.empty(K, dtype=np.int64)
+    idx[0] = min(int(u[0] * N), N - 1)
+    d2 = np.empty(N)
+    for n in range(N):
+        s = 0.0
+        for i in range(D):
+            t = X[n, i] - X[idx[0], i]
+            s += t * t
+        d2[n] = s
+    for c in range(1, K):
+        total = 0.0
+        for n in range(N):
+            total += d2[n]
+        if not (total > 0.0):
+            return idx[:c]
+        target = u[c] * total
+        acc = 0.0
+        pick = -1
+        last_pos = -1
+        for n in range(N):
+            if d2[n] > 0.0:
+                last_pos = n
+            acc += d2[n]
+            if acc > target and d2[n] > 0.0:
+                pick = n
+                break
+        if pick < 0:
+            pick = last_pos  # rounding at the very end of the cumulative sum
+        idx[c] = pick
+        for n in range(N):
+            s = 0.0
+            for i in range(D):
+                t = X[n, i] - X[pick, i]
+                s += t * t
+            if s < d2[n]:
+                d2[n] = s
+    return idx
+
+
+@njit(cache=True)
+def nearest_center(X, centers):
+    """Index of the Euclidean-nearest centre for every row, (N,) int64."""
+    N, D = X.shape
+    K = centers.shape[0]
+    out = np.empty(N, dtype=np.int64)
+    for n in range(N):
+        best = 0
+        bd = np.inf
+        for k in range(K):
+            s = 0.0
+            for i in range(D):
+                t = X[n, i] - centers[k, i]
+                s += t * t
+            if s < bd:
+                bd = s
+                best = k
+        out[n] = best
+    return out

@@ -1,0 +1,459 @@
+"""Top-down hierarchical Gaussian mixture in 4D (paper Sec. III-A).
+
+The hierarchy starts with ``initial_components`` Gaussians fitted by EM on all
+rows ``(x, y, z, d)``. Each node's complexity ``c`` (eq. complexity) says how far
+it is from a flat (degenerate) Gaussian; nodes with ``c`` above the split
+threshold that hold enough rows are split: their hard-assigned rows are fitted by
+EM with ``n_children`` components, and the children get global weights
+``parent weight x local weight``. Unsplit nodes of every level are the leaves:
+the mixture the GMR stage uses.
+
+>>> import numpy as np
+>>> from gmmgp_app.config import HGMMConfig
+>>> rows = np.random.default_rng(0).normal(size=(2000, 4))
+>>> h = fit_hgmm(rows, HGMMConfig(split_threshold=0.2))
+>>> float(h.leaves.weights.sum().round(12))
+1.0
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Optional
+
+import numpy as np
+
+from gmmgp_app.config import HGMMConfig
+from gmmgp_app.stages import em_kernels as ek
+from gmmgp_app.types import GaussianMixture, HGMMLevel, HierarchicalGMM
+
+__all__ = [
+    "HGMMError",
+    "complexity",
+    "fit_gmm",
+    "fit_hgmm",
+    "score_samples",
+    "score",
+    "predict_labels",
+    "hgmm_diagnostics",
+    "format_level_history",
+]
+
+# A child of a split needs at least this many rows per dimension to carry a
+# full covariance that is more than reg_covar; fewer rows => fewer children.
+_ROWS_PER_CHILD_PER_DIM = 2
+
+
+class HGMMError(ValueError):
+    """Training rows or mixture parameters unusable for EM."""
+
+
+# --------------------------------------------------------------------- checks
+def _check_rows(X, name: str = "rows", min_rows: int = 1) -> np.ndarray:
+    X = np.asarray(X)
+    if X.ndim != 2 or X.shape[1] < 1:
+        raise HGMMError(
+            f"Expected {name} as a 2-D array (N, D), found shape {X.shape}; "
+            "reshape to one row per sample (e.g. rows[:, :4] for x, y, z, d)."
+        )
+    X = np.ascontiguousarray(X, dtype=np.float64)
+    bad = ~np.isfinite(X).all(axis=1)
+    if bad.any():
+        raise HGMMError(
+            f"Expected finite {name}, found {int(bad.sum())} of {len(X)} rows with NaN or "
+            "inf; drop them first (rows[np.isfinite(rows).all(axis=1)])."
+        )
+    if len(X) < min_rows:
+        raise HGMMError(
+            f"Expected at least {min_rows} {name} (one per component), found {len(X)}; "
+            "use fewer components or more rows."
+        )
+    return X
+
+
+def _check_not_identical(X, name: str = "rows") -> None:
+    if len(X) > 1 and np.all(X.max(axis=0) - X.min(axis=0) == 0.0):
+        raise HGMMError(
+            f"All {len(X)} {name} are identical, so no mixture can be fitted; check the "
+            "input (e.g. a scan of one repeated point)."
+        )
+
+
+def _terms(gm: GaussianMixture):
+    K, D = gm.means.shape
+    pchol = np.empty((K, D, D))
+    logconst = np.empty(K)
+    bad = ek.component_terms(gm.weights, gm.covariances, pchol, logconst)
+    if bad >= 0:
+        raise HGMMError(
+            f"Component {bad} of the mixture has a covariance that is not positive definite "
+            f"(or weight {gm.weights[bad]!r} <= 0); refit with a larger reg_covar."
+        )
+    return pchol, logconst
+
+
+# ------------------------------------------------------------------ equations
+def complexity(covariances: np.ndarray, *, normalize: bool = False) -> np.ndarray:
+    """Node complexity, eq. complexity: ``c = lambda_n / sum_i lambda_i``.
+
+    ``lambda_i`` are the eigenvalues of a node's covariance, ``lambda_n`` the
+    smallest. ``c`` lies in [0, 1/D]: 0 for a degenerate (flat) Gaussian, 1/D
+    for an isotropic one.
+
+    Parameters
+    ----------
+    covariances : (K, D, D) or (D, D)
+    normalize : bool
+        Evaluate ``c`` on the correlation matrix ``S^-1/2 Sigma S^-1/2`` (S the
+        diagonal) instead of the covariance. In 4D rows ``(x, y, z, d)`` the
+        distance axis has a small fixed variance (about 2 s^2 / 3), which caps
+        ``lambda_n`` and makes ``c`` of any node wider than a metre or two fall
+        under the paper's threshold whatever its shape; the correlation form
+        keeps "flat = 0, round = 1/D" while removing the per-axis scale.
+
+    Returns
+    -------
+    c : (K,) float64 (a float for a single (D, D) input)
+    """
+    C = np.asarray(covariances, dtype=np.float64)
+    single = C.ndim == 2
+    if single:
+        C = C[None]
+    if C.ndim != 3 or C.shape[1] != C.shape[2]:
+        raise HGMMError(f"Expected covariances of shape (K, D, D), found {C.shape}.")
+    if normalize:
+        s = np.sqrt(np.clip(np.einsum("kii->ki", C), 1e-300, None))
+        C = C / (s[:, :, None] * s[:, None, :])
+    lam = np.linalg.eigvalsh(C)
+    total = lam.sum(axis=1)
+    c = np.where(total > 0, np.clip(lam[:, 0], 0.0, None) / np.where(total > 0, total, 1.0), 0.0)
+    return float(c[0]) if single else c
+
+
+# ------------------------------------------------------------------- flat EM
+def _init_from_labels(X, labels, K, reg_covar):
+    resp = np.zeros((len(X), K))
+    resp[np.arange(len(X)), labels] = 1.0
+    return ek.mstep_from_resp(X, resp, reg_covar)
+
+
+def fit_gmm(
+    X: np.ndarray,
+    n_components: int,
+    *,
+    max_iter: int = 100,
+    tol: float = 1e-4,
+    reg_covar: float = 1e-6,
+    rng: Optional[np.random.Generator] = None,
+    init="kmeans++",
+    on_empty: str = "reseed",
+    min_component_rows: float = 1.0,
+    parallel: bool = False,
+) -> tuple[GaussianMixture, dict]:
+    """Flat EM for a full-covariance Gaussian mixture (E and M steps in numba).
+
+    Parameters
+    ----------
+    X : (N, D) float64
+        Finite rows, N >= n_components.
+    n_components : int
+    max_iter, tol : EM stops after ``max_iter`` iterations or when the mean
+        row log-likelihood changes by less than ``tol`` (as scikit-learn).
+    reg_covar : float
+        Added to every covariance diagonal after each M-step.
+    rng : numpy Generator, used for the k-means++ seeding.
+    init : "kmeans++", (K, D) means, (N, K) responsibilities, or a GaussianMixture
+        "kmeans++": seeded k-means++ centres, rows hard-assigned to the nearest
+        one, one M-step. Means: rows assigned to the nearest mean. A mixture is
+        used as is (e.g. to reproduce a scikit-learn run).
+    on_empty : "reseed" or "drop"
+        What to do with a component that loses its rows (responsibility sum
+        below ``min_component_rows``) or whose covariance stops being positive
+        definite: "reseed" puts it on the worst-explained row with the average
+        covariance (at most ``n_components`` times per fit, then drop);
+        "drop" removes it.
+    min_component_rows : float
+    parallel : bool
+        Run the E/M pass over rows with numba threads (worth it on an idle
+        machine with large N; off by default, see em_kernels.accumulate).
+
+    Returns
+    -------
+    mixture : GaussianMixture
+    info : dict
+        ``n_iter``, ``converged``, ``lower_bound`` (mean log-likelihood of the
+        last E-step), ``reseeded`` / ``dropped`` (lists of ``(iteration,
+        component)``), ``n_init_components`` (k-means++ may find fewer distinct
+        centres than asked).
+    """
+    if on_empty not in ("reseed", "drop"):
+        raise HGMMError(f"Expected on_empty 'reseed' or 'drop', found {on_empty!r}.")
+    n_components = int(n_components)
+    if n_components < 1:
+        raise HGMMError(f"Expected n_components >= 1, found {n_components}.")
+    X = _check_rows(X, min_rows=n_components)
+    rng = np.random.default_rng(0) if rng is None else rng
+    N, D = X.shape
+    info = dict(n_iter=0, converged=False, lower_bound=-np.inf, reseeded=[], dropped=[],
+                n_init_components=n_components)
+
+    if isinstance(init, GaussianMixture):
+        if init.means.shape[1] != D:
+            raise HGMMError(f"Expected an initial mixture in {D} dimensions, found {init.dim}.")
+        w, m, c = (init.weights.copy(), init.means.copy(), init.covariances.copy())
+    elif isinstance(init, str):
+        if init != "kmeans++":
+            raise HGMMError(f"Expected init 'kmeans++', means or a mixture, found {init!r}.")
+        _check_not_identical(X)
+        idx = ek.kmeanspp(X, n_components, rng.random(n_components))
+        info["n_init_components"] = len(idx)
+        labels = ek.nearest_center(X, X[idx])
+        w, m, c = _init_from_labels(X, labels, len(idx), reg_covar)
+    else:
+        a = np.ascontiguousarray(np.asarray(init, dtype=np.float64))
+        if a.shape == (n_components, D):
+            labels = ek.nearest_center(X, a)
+            w, m, c = _init_from_labels(X, labels, n_components, reg_covar)
+            m = a.copy()
+        elif a.shape == (N, n_components):
+            w, m, c = ek.mstep_from_resp(X, a, reg_covar)
+        else:
+            raise HGMMError(
+                f"Expected init means ({n_components}, {D}) or responsibilities "
+                f"({N}, {n_components}), found {a.shape}."
+            )
+
+    budget = n_components if on_empty == "reseed" else 0
+    it_done = 0
+    while True:
+        n_iter, conv, status, bad_k, lb, worst_i = ek.em_loop(
+            X, w, m, c, int(max_iter - it_done), float(tol), float(reg_covar),
+            float(min_component_rows), bool(parallel))
+        it_done += n_iter
+        info["lower_bound"] = float(lb)
+        if status == 0:
+            info["converged"] = bool(conv)
+            break
+        if bad_k < 0:
+            raise HGMMError(
+                "EM produced a non-finite log-likelihood; the rows may span wildly "
+                "different scales; rescale them or raise reg_covar."
+            )
+        if budget > 0 and len(w) > 1:
+            budget -= 1
+            info["reseeded"].append((it_done, int(bad_k)))
+            others = np.arange(len(w)) != bad_k
+            cov_avg = np.einsum("k,kij->ij", w[others] / w[others].sum(), c[others])
+            m[bad_k] = X[worst_i] if worst_i >= 0 else X[rng.integers(N)]
+            c[bad_k] = cov_avg
+            w[bad_k] = 1.0 / N
+            w /= w.sum()
+        elif len(w) > 1:
+            info["dropped"].append((it_done, int(bad_k)))
+            keep = np.arange(len(w)) != bad_k
+            w, m, c = w[keep].copy(), m[keep].copy(), c[keep].copy()
+            w /= w.sum()
+        else:
+            raise HGMMError(
+                "The only mixture component became degenerate (covariance not positive "
+                f"definite) after {it_done} iterations; raise reg_covar (now {reg_covar})."
+            )
+        if it_done >= max_iter:
+            break
+    # A stop on max_iter right after a re-seed leaves parameters that were never
+    # checked; make sure what we hand out is usable.
+    gm = GaussianMixture(w, m, c)
+    _terms(gm)
+    info["n_iter"] = int(it_done)
+    return gm, info
+
+
+def score_samples(gm: GaussianMixture, X: np.ndarray) -> np.ndarray:
+    """Per-row log-likelihood ``log p(x_n)`` under the mixture, (N,)."""
+    X = _check_rows(X)
+    if X.shape[1] != gm.dim:
+        raise HGMMError(f"Expected rows with {gm.dim} columns, found {X.shape[1]}.")
+    pchol, logconst = _terms(gm)
+    return ek.log_likelihood(X, gm.means, pchol, logconst)
+
+
+def score(gm: GaussianMixture, X: np.ndarray) -> float:
+    """Mean per-row log-likelihood under the mixture."""
+    return float(np.mean(score_samples(gm, X)))
+
+
+def predict_labels(gm: GaussianMixture, X: np.ndarray) -> np.ndarray:
+    """Hard assignment of rows to the component with the largest ``pi_k N(x|.)``, (N,) int64."""
+    X = _check_rows(X)
+    pchol, logconst = _terms(gm)
+    return ek.assign(X, gm.means, pchol, logconst)
+
+
+# ----------------------------------------------------------------- hierarchy
+def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
+             rng: Optional[np.random.Generator] = None) -> HierarchicalGMM:
+    """Fit the top-down hierarchical GMM (paper Sec. III-A).
+
+    Parameters
+    ----------
+    rows : (M, D) float64
+        Training rows, in the mapper ``(x, y, z, d)``.
+    hcfg : HGMMConfig
+        ``initial_components``, ``n_children``, ``split_threshold``,
+        ``min_rows``, ``max_levels``, EM settings, ``seed`` and
+        ``complexity_metric``.
+    rng : numpy Generator, optional
+        Defaults to ``np.random.default_rng(hcfg.seed)``.
+
+    Returns
+    -------
+    HierarchicalGMM
+        ``levels[l]`` holds the nodes of level l with global weights, parents,
+        ``c``, split flags and row counts; ``leaves`` every unsplit node
+        (weights sum to 1); ``info`` fit statistics (timings, EM iterations,
+        components re-seeded or dropped per level).
+    """
+    t0 = time.perf_counter()
+    X = _check_rows(rows, min_rows=hcfg.initial_components)
+    _check_not_identical(X)
+    rng = np.random.default_rng(hcfg.seed) if rng is None else rng
+    D = X.shape[1]
+    normalize = getattr(hcfg, "complexity_metric", "correlation") == "correlation"
+    em_kw = dict(max_iter=hcfg.max_iter, tol=hcfg.tol, reg_covar=hcfg.reg_covar)
+    min_child_rows = _ROWS_PER_CHILD_PER_DIM * D
+
+    gm0, info0 = fit_gmm(X, hcfg.initial_components, rng=rng, on_empty="drop",
+                         min_component_rows=float(D), **em_kw)
+    labels = predict_labels(gm0, X)
+    # Current level: arrays of node parameters and the row indices of each node.
+    weights, means, covs = gm0.weights, gm0.means, gm0.covariances
+    parents = np.full(len(weights), -1, dtype=np.int64)
+    node_rows = _group(labels, len(weights))
+
+    levels = []
+    leaves_w, leaves_m, leaves_c, leaf_level = [], [], [], []
+    level_info = [dict(n_fits=1, em_iter=info0["n_iter"], dropped=len(info0["dropped"]),
+                       not_converged=int(not info0["converged"]), failed_splits=0)]
+    for lev in range(hcfg.max_levels):
+        c = complexity(covs, normalize=normalize)
+        n_rows = np.array([len(r) for r in node_rows], dtype=np.int64)
+        want = c > hcfg.split_threshold
+        max_std = getattr(hcfg, "split_max_std", None)
+        if max_std is not None:
+            d3 = min(3, D)
+            want |= np.linalg.eigvalsh(covs[:, :d3, :d3])[:, -1] > max_std ** 2
+        want &= (n_rows >= hcfg.min_rows) & (lev < hcfg.max_levels - 1)
+        split = np.zeros(len(weights), dtype=bool)
+        nxt_w, nxt_m, nxt_c, nxt_p, nxt_rows = [], [], [], [], []
+        stats = dict(n_fits=0, em_iter=0, dropped=0, not_converged=0, failed_splits=0)
+        for j in np.flatnonzero(want):
+            idx = node_rows[j]
+            k = min(hcfg.n_children, len(idx) // min_child_rows)
+            if k < 2:
+                stats["failed_splits"] += 1
+                continue
+            Xj = X[idx]
+            if np.all(Xj.max(axis=0) == Xj.min(axis=0)):
+                stats["failed_splits"] += 1
+                continue
+            gmj, infoj = fit_gmm(Xj, k, rng=rng, on_empty="drop",
+                                 min_component_rows=float(D), **em_kw)
+            stats["n_fits"] += 1
+            stats["em_iter"] += infoj["n_iter"]
+            stats["dropped"] += len(infoj["dropped"])
+            stats["not_converged"] += int(not infoj["converged"])
+            lab = predict_labels(gmj, Xj)
+            groups = _group(lab, gmj.n_components)
+            alive = [g for g in range(gmj.n_components) if len(groups[g]) > 0]
+            if len(alive) < 2:
+                # EM put everything in one child: it would equal its parent.
+                stats["failed_splits"] += 1
+                continue
+            split[j] = True
+            for g in range(gmj.n_components):
+                nxt_w.append(weights[j] * gmj.weights[g])
+                nxt_m.append(gmj.means[g])
+                nxt_c.append(gmj.covariances[g])
+                nxt_p.append(j)
+                nxt_rows.append(idx[groups[g]])
+        levels.append(HGMMLevel(
+            mixture=GaussianMixture(weights, means, covs), parent=parents,
+            complexity=np.asarray(c, dtype=np.float64), split=split, n_rows=n_rows))
+        keep = ~split
+        leaves_w.append(weights[keep])
+        leaves_m.append(means[keep])
+        leaves_c.append(covs[keep])
+        leaf_level.append(np.full(int(keep.sum()), lev, dtype=np.int64))
+        if not nxt_w:
+            break
+        level_info.append(stats)  # the fits that made level lev + 1
+        weights = np.asarray(nxt_w)
+        means = np.asarray(nxt_m)
+        covs = np.asarray(nxt_c)
+        parents = np.asarray(nxt_p, dtype=np.int64)
+        node_rows = nxt_rows
+    lw = np.concatenate(leaves_w)
+    leaves = GaussianMixture(lw / lw.sum(), np.concatenate(leaves_m), np.concatenate(leaves_c))
+    info = dict(
+        reg_covar=hcfg.reg_covar,
+        complexity_metric="correlation" if normalize else "covariance",
+        n_rows=int(len(X)),
+        n_leaves=int(leaves.n_components),
+        level_fits=level_info,
+        fit_seconds=time.perf_counter() - t0,
+    )
+    return HierarchicalGMM(levels=tuple(levels), leaves=leaves,
+                           leaf_level=np.concatenate(leaf_level), info=info)
+
+
+def _group(labels: np.ndarray, K: int) -> list:
+    """Row indices per label, each sorted, (K lists)."""
+    order = np.argsort(labels, kind="stable")
+    bounds = np.searchsorted(labels[order], np.arange(K + 1))
+    return [order[bounds[k]:bounds[k + 1]] for k in range(K)]
+
+
+# --------------------------------------------------------------- diagnostics
+def hgmm_diagnostics(hgmm: HierarchicalGMM, heldout_rows: Optional[np.ndarray] = None) -> dict:
+    """Summary of a fitted hierarchy.
+
+    Returns
+    -------
+    dict with ``n_levels``, ``n_leaves``, ``nodes_per_level``,
+    ``leaves_per_level``, ``split_per_level``, ``leaf_complexity_quantiles``
+    (c over leaves at q = 0, 0.05, 0.25, 0.5, 0.75, 0.95, 1) and, when held-out
+    rows are given, ``heldout_mean_loglik`` (mean log p of those rows under the
+    leaves) and ``n_heldout``.
+    """
+    leaf_c = np.concatenate([lv.complexity[~lv.split] for lv in hgmm.levels])
+    qs = [0.0, 0.05, 0.25, 0.5, 0.75, 0.95, 1.0]
+    out = dict(
+        n_levels=len(hgmm.levels),
+        n_leaves=int(hgmm.leaves.n_components),
+        nodes_per_level=[int(lv.mixture.n_components) for lv in hgmm.levels],
+        split_per_level=[int(lv.split.sum()) for lv in hgmm.levels],
+        leaves_per_level=[int((~lv.split).sum()) for lv in hgmm.levels],
+        leaf_complexity_quantiles={f"q{int(q * 100):02d}": float(np.quantile(leaf_c, q))
+                                   for q in qs},
+    )
+    if heldout_rows is not None:
+        out["heldout_mean_loglik"] = score(hgmm.leaves, heldout_rows)
+        out["n_heldout"] = int(len(heldout_rows))
+    return out
+
+
+def format_level_history(hgmm: HierarchicalGMM) -> str:
+    """The level history as a text table (level, nodes, split, leaves, rows, c min/median/max)."""
+    head = f"{'level':>5} {'nodes':>6} {'split':>6} {'leaves':>6} {'rows':>9} " \
+           f"{'c min':>9} {'c median':>9} {'c max':>9}"
+    lines = [head, "-" * len(head)]
+    for i, lv in enumerate(hgmm.levels):
+        c = lv.complexity
+        lines.append(
+            f"{i:>5} {lv.mixture.n_components:>6} {int(lv.split.sum()):>6} "
+            f"{int((~lv.split).sum()):>6} {int(lv.n_rows.sum()):>9} "
+            f"{c.min():>9.2e} {np.median(c):>9.2e} {c.max():>9.2e}")
+    lines.append(f"leaves: {hgmm.leaves.n_components} "
+                 f"(complexity on the {hgmm.info.get('complexity_metric', '?')}, "
+                 f"fit {hgmm.info.get('fit_seconds', float('nan')):.2f} s)")
+    return "\n".join(lines)

@@ -1,0 +1,266 @@
+"""Training rows for the HGMM: subsample, PCA normals, virtual points (paper Sec. III-B, V-B).
+
+Every hit point gets a unit normal pointing into free space; the training rows
+are the hit points with distance 0 and two virtual points at ``p +- s n`` with
+distances ``+-s`` (eq. virtual_points). A virtual point that lands closer than
+``s`` to another part of the surface (thin walls, inner corners, balconies)
+carries a wrong label; such points are detected with the nearest hit point of
+the full scan and dropped when ``cfg.prepare.drop_inconsistent_virtual``.
+
+>>> import numpy as np
+>>> from gmmgp_app.types import Scan
+>>> from gmmgp_app.config import MappingConfig
+>>> g = np.stack(np.meshgrid(np.arange(40.), np.arange(40.)), -1).reshape(-1, 2) * 0.05
+>>> scan = Scan(np.c_[g, np.zeros(len(g))], origins=np.tile([1.0, 1.0, 2.0], (len(g), 1)))
+>>> data = prepare(scan, MappingConfig().replace("prepare.subsample_rate", 1.0))
+>>> data.rows.shape, bool(np.allclose(data.normals, [0, 0, 1]))
+((4800, 4), True)
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Optional
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from gmmgp_app.config import MappingConfig, PrepareConfig
+from gmmgp_app.types import Scan, TrainingSet
+
+__all__ = [
+    "PrepareError",
+    "OrientationWarning",
+    "MIN_POINTS",
+    "prepare",
+    "subsample",
+    "estimate_normals",
+    "orient_normals",
+    "virtual_points",
+    "inconsistent_virtual",
+]
+
+MIN_POINTS = 10
+# Above this many subsampled points the minimum-spanning-tree propagation of
+# Open3D becomes slow (seconds to minutes); we then orient away from the centroid.
+_MST_MAX_POINTS = 50_000
+# A neighbourhood whose middle eigenvalue is below this fraction of the largest is
+# a line (or a point): its PCA normal is arbitrary.
+_COLLINEAR_RATIO = 1e-6
+
+
+class PrepareError(ValueError):
+    """A scan cannot be turned into training rows."""
+
+
+class OrientationWarning(UserWarning):
+    """Normals were oriented by a heuristic because the scan has no sensor origins."""
+
+
+def subsample(points: np.ndarray, cfg: PrepareConfig,
+              rng: np.random.Generator) -> np.ndarray:
+    """Indices (sorted, int64) of the hit points kept for training.
+
+    With ``cfg.voxel_size`` set, one randomly chosen real point per occupied
+    voxel (real points keep their sensor origins, unlike voxel centroids);
+    otherwise ``round(rate * N)`` points drawn without replacement.
+    """
+    n = len(points)
+    if cfg.voxel_size is not None:
+        perm = rng.permutation(n)
+        keys = np.floor((points[perm] - points.min(axis=0)) / cfg.voxel_size).astype(np.int64)
+        _, first = np.unique(keys, axis=0, return_index=True)
+        return np.sort(perm[first])
+    m = max(1, int(round(cfg.subsample_rate * n)))
+    if m >= n:
+        return np.arange(n, dtype=np.int64)
+    return np.sort(rng.choice(n, size=m, replace=False))
+
+
+def estimate_normals(points: np.ndarray, radius: float, max_nn: int,
+                     query: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
+    """PCA normals through Open3D (hybrid radius / k-NN search).
+
+    Parameters
+    ----------
+    points : (N, 3) the full cloud: neighbourhoods are taken from all points.
+    radius, max_nn : the search (``KDTreeSearchParamHybrid``).
+    query : (Q,) int indices of the points whose normals are wanted (all if None).
+
+    Returns
+    -------
+    normals : (Q, 3) unit normals, unoriented.
+    valid : (Q,) bool, False where fewer than 3 neighbours lie within ``radius``
+        or the neighbourhood is collinear: there the normal is meaningless.
+    """
+    import open3d as o3d
+
+    query = np.arange(len(points)) if query is None else np.asarray(query)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    param = o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn)
+    pcd.estimate_covariances(param)
+    cov = np.asarray(pcd.covariances)[query]
+    pcd.estimate_normals(param)
+    normals = np.asarray(pcd.normals)[query]
+    # Open3D returns a default normal for tiny neighbourhoods; find them ourselves.
+    counts = cKDTree(points).query_ball_point(points[query], r=radius, return_length=True)
+    lam = np.linalg.eigvalsh(cov)
+    collinear = lam[:, 1] <= _COLLINEAR_RATIO * np.maximum(lam[:, 2], 1e-300)
+    valid = (counts >= 3) & ~collinear & np.isfinite(normals).all(axis=1)
+    norm = np.linalg.norm(normals, axis=1, keepdims=True)
+    normals = np.where(norm > 0, normals / np.where(norm > 0, norm, 1.0), 0.0)
+    return normals, valid
+
+
+def orient_normals(points: np.ndarray, normals: np.ndarray,
+                   origins: Optional[np.ndarray]) -> tuple[np.ndarray, str]:
+    """Flip normals to point into free space.
+
+    With sensor origins, ``n`` is flipped where ``n . (origin - p) < 0`` (the
+    sensor sees the surface from free space). Without them there is no right
+    answer, and an :class:`OrientationWarning` is issued: up to 50 000 points,
+    Open3D's consistent tangent-plane propagation makes the field coherent,
+    then the global sign is chosen so that most normals point away from the
+    centroid (right for scanned objects); beyond that, each normal is pointed
+    away from the centroid directly. Scans taken from *inside* a scene (streets,
+    rooms) need origins.
+
+    Returns
+    -------
+    normals : (N, 3) oriented
+    method : "sensor", "tangent-plane+centroid" or "centroid"
+    """
+    n = normals.copy()
+    if origins is not None:
+        flip = np.einsum("ij,ij->i", n, origins - points) < 0
+        n[flip] *= -1.0
+        return n, "sensor"
+    out = points - points.mean(axis=0)
+    method = "centroid"
+    if len(points) <= _MST_MAX_POINTS and len(points) >= 4:
+        import open3d as o3d
+
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+        pcd.normals = o3d.utility.Vector3dVector(n)
+        try:
+            pcd.orient_normals_consistent_tangent_plane(min(15, len(points) - 1))
+            n = np.asarray(pcd.normals).copy()
+            if np.sum(np.einsum("ij,ij->i", n, out) < 0) > len(n) / 2:
+                n *= -1.0
+            method = "tangent-plane+centroid"
+        except RuntimeError:
+            method = "centroid"
+    if method == "centroid":
+        flip = np.einsum("ij,ij->i", n, out) < 0
+        n[flip] *= -1.0
+    warnings.warn(
+        f"Scan has no sensor origins; {len(points)} normals were oriented by '{method}' "
+        "(away from the centroid), which is wrong for scans taken from inside a scene; "
+        "give the reader sensor origins (e.g. read_scan(..., origin=(x, y, z))).",
+        OrientationWarning, stacklevel=3)
+    return n, method
+
+
+def virtual_points(points: np.ndarray, normals: np.ndarray, s: float) -> np.ndarray:
+    """Training rows, eq. virtual_points: ``(p, 0)``, ``(p + s n, +s)``, ``(p - s n, -s)``.
+
+    Parameters
+    ----------
+    points, normals : (H, 3); normals unit and pointing into free space.
+    s : virtual point spacing (m).
+
+    Returns
+    -------
+    rows : (3H, 4) in the order hits, outside (+s), inside (-s).
+    """
+    H = len(points)
+    rows = np.empty((3 * H, 4))
+    rows[:H, :3] = points
+    rows[:H, 3] = 0.0
+    rows[H:2 * H, :3] = points + s * normals
+    rows[H:2 * H, 3] = s
+    rows[2 * H:, :3] = points - s * normals
+    rows[2 * H:, 3] = -s
+    return rows
+
+
+def inconsistent_virtual(virtual_xyz: np.ndarray, hit_tree: cKDTree, s: float,
+                         margin: float) -> np.ndarray:
+    """True for virtual points whose nearest hit point is closer than ``s (1 - margin)``.
+
+    Such a point lies nearer to some other part of the surface than to the hit
+    point it was made from, so the label ``+-s`` overstates its distance (and,
+    through a thin wall, may have the wrong sign).
+    """
+    dist, _ = hit_tree.query(virtual_xyz, k=1)
+    return dist < s * (1.0 - margin)
+
+
+def prepare(scan: Scan, cfg: MappingConfig, *,
+            rng: Optional[np.random.Generator] = None) -> TrainingSet:
+    """4D training rows ``(x, y, z, d)`` from a scan (paper Sec. III-B, V-B).
+
+    Parameters
+    ----------
+    scan : Scan
+        Hit points (N, 3), sensor origins (N, 3) when known.
+    cfg : MappingConfig
+        Uses ``cfg.prepare``: subsampling (rate or voxel size), normal search
+        radius / neighbours, virtual spacing s, dropping of inconsistent
+        virtual points and its margin.
+    rng : numpy Generator, optional
+        Defaults to ``np.random.default_rng(cfg.prepare.seed)``.
+
+    Returns
+    -------
+    TrainingSet
+        ``rows`` (M, 4) hits then outside then inside virtual points (minus the
+        dropped ones), ``kinds`` (M,) 0 / +1 / -1, ``points`` / ``normals`` of
+        the H subsampled hit points with a valid normal, ``spacing`` s,
+        ``n_dropped_virtual``.
+
+    Raises
+    ------
+    PrepareError
+        Fewer than 10 finite points, non-finite coordinates, or no point with a
+        usable normal (all isolated, identical or collinear).
+    """
+    p = cfg.prepare
+    pts = scan.points
+    finite = np.isfinite(pts).all(axis=1)
+    if not finite.all():
+        raise PrepareError(
+            f"Expected finite coordinates, found {int((~finite).sum())} of {len(pts)} points "
+            "with NaN or inf; remove them (scan.select(np.isfinite(scan.points).all(axis=1)))."
+        )
+    if len(pts) < MIN_POINTS:
+        raise PrepareError(
+            f"Expected at least {MIN_POINTS} points to estimate normals, found {len(pts)}; "
+            "the scan is empty or truncated."
+        )
+    rng = np.random.default_rng(p.seed) if rng is None else rng
+    keep = subsample(pts, p, rng)
+    normals, valid = estimate_normals(pts, p.normal_radius, p.normal_max_nn, query=keep)
+    if not valid.any():
+        raise PrepareError(
+            f"No normal could be estimated for any of the {len(keep)} subsampled points "
+            f"(fewer than 3 neighbours within normal_radius={p.normal_radius} m, or all "
+            "points identical/collinear); raise prepare.normal_radius or check the scan."
+        )
+    n_no_normal = int((~valid).sum())
+    keep = keep[valid]
+    hits = pts[keep]
+    normals, method = orient_normals(hits, normals[valid],
+                                     None if scan.origins is None else scan.origins[keep])
+    s = p.virtual_spacing
+    rows = virtual_points(hits, normals, s)
+    H = len(hits)
+    kinds = np.concatenate([np.zeros(H, np.int8), np.ones(H, np.int8), -np.ones(H, np.int8)])
+    n_dropped = 0
+    if p.drop_inconsistent_virtual:
+        bad = np.zeros(3 * H, dtype=bool)
+        bad[H:] = inconsistent_virtual(rows[H:, :3], cKDTree(pts), s, p.virtual_margin)
+        n_dropped = int(bad.sum())
+        rows, kinds = rows[~bad], kinds[~bad]
+    return TrainingSet(rows=rows, kinds=kinds, points=hits, normals=normals, spacing=s,
+                       n_dropped_virtual=n_dropped, n_dropped_normals=n_no_normal)

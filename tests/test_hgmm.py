@@ -1,0 +1,348 @@
+"""Tests of the EM kernels, flat EM and the hierarchical GMM (stages/hgmm.py)."""
+
+import numpy as np
+import pytest
+from scipy.special import logsumexp
+from scipy.stats import multivariate_normal
+
+from gmmgp_app.config import HGMMConfig
+from gmmgp_app.stages import em_kernels as ek
+from gmmgp_app.stages.hgmm import (
+    HGMMError,
+    complexity,
+    fit_gmm,
+    fit_hgmm,
+    format_level_history,
+    hgmm_diagnostics,
+    predict_labels,
+    score,
+    score_samples,
+)
+from gmmgp_app.types import GaussianMixture
+
+
+# ------------------------------------------------------------------ fixtures
+def random_mixture(rng, K=3, D=4, scale=5.0):
+    means = rng.normal(scale=scale, size=(K, D))
+    A = rng.normal(size=(K, D, D))
+    covs = np.einsum("kij,klj->kil", A, A) + 0.3 * np.eye(D)
+    w = rng.uniform(0.5, 1.5, K)
+    return GaussianMixture(w / w.sum(), means, covs)
+
+
+def sample_mixture(gm, n, rng):
+    counts = rng.multinomial(n, gm.weights)
+    X = np.concatenate([rng.multivariate_normal(gm.means[k], gm.covariances[k], size=c)
+                        for k, c in enumerate(counts)])
+    return X[rng.permutation(len(X))]
+
+
+def np_weighted_log_prob(X, gm):
+    return np.stack([np.log(gm.weights[k]) + multivariate_normal(
+        gm.means[k], gm.covariances[k]).logpdf(X) for k in range(gm.n_components)], axis=1)
+
+
+def np_mstep(X, resp, reg):
+    nk = resp.sum(0) + 10 * np.finfo(float).eps
+    means = resp.T @ X / nk[:, None]
+    covs = np.stack([(resp[:, k, None] * (X - means[k])).T @ (X - means[k]) / nk[k]
+                     + reg * np.eye(X.shape[1]) for k in range(resp.shape[1])])
+    return nk / nk.sum(), means, covs
+
+
+def terms(gm):
+    K, D = gm.means.shape
+    P, lc = np.empty((K, D, D)), np.empty(K)
+    assert ek.component_terms(gm.weights, gm.covariances, P, lc) == -1
+    return P, lc
+
+
+def plane_rows(rng, n=600, s=0.25, size=4.0, noise=0.002):
+    """4D rows of a noisy planar patch z = 0 with virtual points at +-s."""
+    p = np.c_[rng.uniform(0, size, (n, 2)), rng.normal(scale=noise, size=n)]
+    nrm = np.tile([0.0, 0.0, 1.0], (n, 1))
+    return np.concatenate([np.c_[p, np.zeros(n)], np.c_[p + s * nrm, np.full(n, s)],
+                           np.c_[p - s * nrm, np.full(n, -s)]])
+
+
+def corner_rows(rng, n=600, s=0.25, size=2.0):
+    """4D rows of the three faces of a box corner (outside of the octant x,y,z <= 0)."""
+    out = []
+    for ax in range(3):
+        p = -rng.uniform(0, size, (n, 3))
+        p[:, ax] = 0.0
+        nrm = np.zeros((n, 3))
+        nrm[:, ax] = 1.0
+        out += [np.c_[p, np.zeros(n)], np.c_[p + s * nrm, np.full(n, s)],
+                np.c_[p - s * nrm, np.full(n, -s)]]
+    return np.concatenate(out)
+
+
+# ------------------------------------------------------------------- kernels
+def test_weighted_log_prob_and_loglik_match_scipy():
+    rng = np.random.default_rng(0)
+    gm = random_mixture(rng)
+    X = sample_mixture(gm, 5000, rng)
+    P, lc = terms(gm)
+    ref = np_weighted_log_prob(X, gm)
+    np.testing.assert_allclose(ek.weighted_log_prob(X, gm.means, P, lc), ref, rtol=1e-10,
+                               atol=1e-10)
+    np.testing.assert_allclose(ek.log_likelihood(X, gm.means, P, lc), logsumexp(ref, axis=1),
+                               rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(score_samples(gm, X), logsumexp(ref, axis=1), rtol=1e-10)
+    assert score(gm, X) == pytest.approx(logsumexp(ref, axis=1).mean(), rel=1e-12)
+    np.testing.assert_array_equal(ek.assign(X, gm.means, P, lc), ref.argmax(1))
+    np.testing.assert_array_equal(predict_labels(gm, X), ref.argmax(1))
+
+
+def test_cholesky_and_precision_factor_match_numpy():
+    rng = np.random.default_rng(1)
+    gm = random_mixture(rng, K=4)
+    P, lc = terms(gm)
+    for k in range(4):
+        L = np.linalg.cholesky(gm.covariances[k])
+        np.testing.assert_allclose(P[k], np.linalg.inv(L), rtol=1e-10, atol=1e-12)
+        ref = np.log(gm.weights[k]) - 2 * np.log(2 * np.pi) - np.log(np.diag(L)).sum()
+        assert lc[k] == pytest.approx(ref, rel=1e-12)
+    bad = gm.covariances.copy()
+    bad[2] = -np.eye(4)
+    assert ek.component_terms(gm.weights, bad, P, lc) == 2
+
+
+def test_mstep_from_resp_matches_numpy():
+    rng = np.random.default_rng(2)
+    X = rng.normal(size=(3000, 4)) * [10, 10, 3, 0.2] + [50, -20, 5, 0]
+    resp = rng.dirichlet(np.ones(5), size=len(X))
+    for a, b in zip(ek.mstep_from_resp(X, resp, 1e-6), np_mstep(X, resp, 1e-6)):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+
+
+def test_fused_em_step_matches_numpy_e_then_m():
+    """One iteration of the numba loop (shifted statistics, responsibility floor)
+    equals a numpy E-step followed by the numpy M-step."""
+    rng = np.random.default_rng(3)
+    gm = random_mixture(rng, K=4)
+    X = sample_mixture(gm, 4000, rng) + [100.0, 200.0, 0.0, 0.0]  # far from the origin
+    gm = GaussianMixture(gm.weights, gm.means + [100.0, 200.0, 0.0, 0.0], gm.covariances)
+    lr = np_weighted_log_prob(X, gm)
+    resp = np.exp(lr - logsumexp(lr, axis=1, keepdims=True))
+    w_ref, m_ref, c_ref = np_mstep(X, resp, 1e-6)
+    w, m, c = gm.weights.copy(), gm.means.copy(), gm.covariances.copy()
+    n_iter, conv, status, bad, lb, worst = ek.em_loop(X, w, m, c, 1, 0.0, 1e-6, 1.0)
+    assert (n_iter, status) == (1, 0)
+    assert lb == pytest.approx(logsumexp(lr, axis=1).mean(), rel=1e-12)
+    assert worst == np.argmin(logsumexp(lr, axis=1))
+    np.testing.assert_allclose(w, w_ref, rtol=1e-9)
+    np.testing.assert_allclose(m, m_ref, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(c, c_ref, rtol=1e-8, atol=1e-10)
+
+
+def test_parallel_accumulate_equals_serial():
+    rng = np.random.default_rng(4)
+    gm = random_mixture(rng, K=3)
+    X = sample_mixture(gm, 3 * ek.CHUNK + 17, rng)
+    P, lc = terms(gm)
+    a = ek.accumulate(X, gm.means, P, lc, False)
+    b = ek.accumulate(X, gm.means, P, lc, True)
+    for x, y in zip(a, b):
+        np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-12)
+
+
+def np_kmeanspp(X, K, u):
+    idx = [min(int(u[0] * len(X)), len(X) - 1)]
+    d2 = ((X - X[idx[0]]) ** 2).sum(1)
+    for c in range(1, K):
+        cs = np.cumsum(d2)
+        i = int(np.flatnonzero((cs > u[c] * cs[-1]) & (d2 > 0))[0])
+        idx.append(i)
+        d2 = np.minimum(d2, ((X - X[i]) ** 2).sum(1))
+    return np.array(idx)
+
+
+def test_kmeanspp_matches_numpy_and_stops_on_duplicates():
+    rng = np.random.default_rng(5)
+    X = rng.normal(size=(500, 4))
+    u = rng.random(8)
+    np.testing.assert_array_equal(ek.kmeanspp(X, 8, u), np_kmeanspp(X, 8, u))
+    two = np.repeat(np.array([[0.0, 0, 0, 0], [1.0, 1, 1, 1]]), 50, axis=0)
+    idx = ek.kmeanspp(two, 5, u[:5])
+    assert len(idx) == 2 and len(np.unique(two[idx], axis=0)) == 2
+
+
+# ------------------------------------------------------------------- flat EM
+def test_em_recovers_known_mixture():
+    rng = np.random.default_rng(6)
+    truth = random_mixture(rng, K=3, scale=8.0)
+    X = sample_mixture(truth, 30000, rng)
+    gm, info = fit_gmm(X, 3, rng=np.random.default_rng(0), tol=1e-8, max_iter=500)
+    assert info["converged"] and not info["reseeded"] and not info["dropped"]
+    order = [int(np.argmin(((gm.means - m) ** 2).sum(1))) for m in truth.means]
+    assert sorted(order) == [0, 1, 2]
+    np.testing.assert_allclose(gm.weights[order], truth.weights, atol=0.01)
+    np.testing.assert_allclose(gm.means[order], truth.means, atol=0.1)
+    np.testing.assert_allclose(gm.covariances[order], truth.covariances, rtol=0.1, atol=0.15)
+
+
+def test_em_matches_sklearn_from_same_initialisation():
+    sk = pytest.importorskip("sklearn.mixture")
+    rng = np.random.default_rng(7)
+    truth = random_mixture(rng, K=4, scale=3.0)  # overlapping: many iterations
+    X = sample_mixture(truth, 4000, rng)
+    init, _ = fit_gmm(X, 4, rng=np.random.default_rng(1), max_iter=1)
+    for max_iter, tol in ((30, 0.0), (200, 1e-5)):
+        gm, info = fit_gmm(X, 4, init=init, max_iter=max_iter, tol=tol, reg_covar=1e-4)
+        ref = sk.GaussianMixture(
+            4, covariance_type="full", weights_init=init.weights, means_init=init.means,
+            precisions_init=np.linalg.inv(init.covariances), reg_covar=1e-4,
+            max_iter=max_iter, tol=tol).fit(X)
+        assert info["n_iter"] == ref.n_iter_
+        np.testing.assert_allclose(gm.weights, ref.weights_, rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(gm.means, ref.means_, rtol=1e-8, atol=1e-8)
+        np.testing.assert_allclose(gm.covariances, ref.covariances_, rtol=1e-7, atol=1e-9)
+        assert score(gm, X) == pytest.approx(ref.score(X), rel=1e-10)
+
+
+def test_empty_component_is_reseeded_or_dropped_and_reported():
+    rng = np.random.default_rng(8)
+    X = np.concatenate([rng.normal(size=(500, 4)), rng.normal(size=(500, 4)) + 10.0])
+    # Third component far from every row: it gets no responsibility at all.
+    init = GaussianMixture(np.full(3, 1 / 3), np.array([[0.0] * 4, [10.0] * 4, [1e3] * 4]),
+                           np.tile(np.eye(4), (3, 1, 1)))
+    gm, info = fit_gmm(X, 3, init=init, on_empty="reseed")
+    assert info["reseeded"] and info["reseeded"][0][1] == 2
+    assert gm.n_components == 3 and np.isfinite(gm.covariances).all()
+    assert np.isfinite(score(gm, X))
+    gm, info = fit_gmm(X, 3, init=init, on_empty="drop")
+    assert info["dropped"] == [(0, 2)] and gm.n_components == 2
+    assert gm.weights.sum() == pytest.approx(1.0)
+
+
+def test_degenerate_covariance_never_gives_nan():
+    # Rows on a 2-D subspace of 4-D with reg_covar 0: covariances are singular.
+    rng = np.random.default_rng(9)
+    X = np.c_[rng.normal(size=(400, 2)), np.zeros((400, 2))]
+    with pytest.raises(HGMMError, match="not positive definite|degenerate"):
+        fit_gmm(X, 2, reg_covar=0.0, rng=np.random.default_rng(0), on_empty="drop")
+    gm, _ = fit_gmm(X, 2, reg_covar=1e-6, rng=np.random.default_rng(0))
+    assert np.isfinite(score_samples(gm, X)).all()
+
+
+@pytest.mark.parametrize("bad, match", [
+    (np.zeros((3, 4)) + np.arange(3)[:, None], "at least 4 rows"),
+    (np.ones((50, 4)), "identical"),
+    (np.r_[np.random.default_rng(0).normal(size=(50, 4)), [[np.nan, 0, 0, 0]]], "NaN"),
+    (np.arange(10.0), "2-D array"),
+])
+def test_bad_rows_raise(bad, match):
+    with pytest.raises(HGMMError, match=match):
+        fit_gmm(bad, 4)
+    with pytest.raises(HGMMError, match=match):
+        fit_hgmm(bad, HGMMConfig())
+
+
+def test_bad_arguments_raise():
+    X = np.random.default_rng(0).normal(size=(100, 4))
+    with pytest.raises(HGMMError, match="on_empty"):
+        fit_gmm(X, 2, on_empty="ignore")
+    with pytest.raises(HGMMError, match="init means"):
+        fit_gmm(X, 2, init=np.zeros((3, 4)))
+    with pytest.raises(HGMMError, match="init 'kmeans"):
+        fit_gmm(X, 2, init="random")
+    with pytest.raises(HGMMError, match="n_components >= 1"):
+        fit_gmm(X, 0)
+    gm = GaussianMixture(np.ones(1), np.zeros((1, 4)), -np.eye(4)[None])
+    with pytest.raises(HGMMError, match="not positive definite"):
+        score_samples(gm, X)
+    with pytest.raises(HGMMError, match="columns"):
+        score_samples(GaussianMixture(np.ones(1), np.zeros((1, 3)), np.eye(3)[None]), X)
+    with pytest.raises(HGMMError, match=r"shape \(K, D, D\)"):
+        complexity(np.zeros((2, 3, 4)))
+
+
+# ---------------------------------------------------------------- complexity
+def test_complexity_known_values():
+    assert complexity(np.eye(4)) == pytest.approx(0.25)
+    assert complexity(np.diag([1.0, 1, 1, 0])) == pytest.approx(0.0)
+    assert complexity(np.diag([4.0, 3, 2, 1])) == pytest.approx(0.1)
+    R = np.linalg.qr(np.random.default_rng(0).normal(size=(4, 4)))[0]
+    rotated = R @ np.diag([4.0, 3, 2, 1]) @ R.T
+    np.testing.assert_allclose(complexity(np.stack([rotated, np.eye(4) * 7])), [0.1, 0.25])
+    # Correlation form: per-axis scale does not matter, flatness does.
+    S = np.diag([100.0, 10.0, 1.0, 0.1])
+    assert complexity(S @ np.eye(4) @ S, normalize=True) == pytest.approx(0.25)
+    assert complexity(S @ np.eye(4) @ S) < 1e-5
+    flat = S @ np.diag([1.0, 1, 1, 0]) @ S
+    assert complexity(flat, normalize=True) == pytest.approx(0.0, abs=1e-12)
+
+
+# ----------------------------------------------------------------- hierarchy
+def test_plane_does_not_split_but_corner_does():
+    rng = np.random.default_rng(10)
+    cfg = HGMMConfig(initial_components=1, split_threshold=0.01, min_rows=64)
+    h = fit_hgmm(plane_rows(rng), cfg)
+    assert len(h.levels) == 1 and h.leaves.n_components == 1
+    assert h.levels[0].complexity[0] < 1e-3
+    h = fit_hgmm(corner_rows(rng), cfg)
+    assert h.levels[0].complexity[0] > 0.01 and h.levels[0].split[0]
+    assert len(h.levels) >= 2 and h.leaves.n_components > 1
+
+
+def test_hierarchy_bookkeeping():
+    rng = np.random.default_rng(11)
+    rows = corner_rows(rng, n=1500)
+    h = fit_hgmm(rows, HGMMConfig(initial_components=2, split_threshold=0.005, max_levels=4))
+    assert h.leaves.weights.sum() == pytest.approx(1.0, abs=1e-12)
+    assert len(h.leaf_level) == h.leaves.n_components
+    assert h.levels[0].n_rows.sum() == len(rows)
+    for lev in range(1, len(h.levels)):
+        prev, cur = h.levels[lev - 1], h.levels[lev]
+        assert set(cur.parent) == set(np.flatnonzero(prev.split))
+        for j in np.flatnonzero(prev.split):
+            kids = cur.parent == j
+            # Children's global weights are the parent's times the local ones.
+            assert cur.mixture.weights[kids].sum() == pytest.approx(prev.mixture.weights[j])
+            assert cur.n_rows[kids].sum() == prev.n_rows[j]
+    # Leaves are exactly the unsplit nodes of all levels.
+    n_unsplit = sum(int((~lv.split).sum()) for lv in h.levels)
+    assert n_unsplit == h.leaves.n_components
+    assert not h.levels[-1].split.any()
+    assert len(h.levels) <= 4
+
+
+def test_same_seed_same_result_bitwise():
+    rows = corner_rows(np.random.default_rng(12), n=800)
+    cfg = HGMMConfig(split_threshold=0.005)
+    a, b = fit_hgmm(rows, cfg), fit_hgmm(rows, cfg)
+    for x, y in zip((a.leaves.weights, a.leaves.means, a.leaves.covariances),
+                    (b.leaves.weights, b.leaves.means, b.leaves.covariances)):
+        assert np.array_equal(x, y)
+    c = fit_hgmm(rows, HGMMConfig(split_threshold=0.005, seed=3))
+    assert c.leaves.n_components != a.leaves.n_components or not np.array_equal(
+        c.leaves.means, a.leaves.means)
+
+
+def test_split_max_std_tiles_large_flat_nodes():
+    rows = plane_rows(np.random.default_rng(13), n=3000, size=20.0)
+    flat = fit_hgmm(rows, HGMMConfig(initial_components=1))
+    assert flat.leaves.n_components == 1  # c alone: a plane is one Gaussian
+    h = fit_hgmm(rows, HGMMConfig(initial_components=1, split_max_std=2.0))
+    sd = np.sqrt(np.linalg.eigvalsh(h.leaves.covariances[:, :3, :3])[:, -1])
+    n_rows = np.concatenate([lv.n_rows[~lv.split] for lv in h.levels])
+    # Every leaf is small enough, or could not be split further.
+    assert np.all((sd <= 2.0) | (n_rows < 64))
+    assert h.leaves.n_components >= 20
+
+
+def test_diagnostics_and_level_table():
+    rng = np.random.default_rng(14)
+    rows = corner_rows(rng, n=1000)
+    h = fit_hgmm(rows, HGMMConfig(split_threshold=0.005))
+    d = hgmm_diagnostics(h, rows[:500])
+    assert d["n_leaves"] == h.leaves.n_components == sum(d["leaves_per_level"])
+    assert d["nodes_per_level"][0] == 4
+    assert d["heldout_mean_loglik"] == pytest.approx(score(h.leaves, rows[:500]))
+    q = list(d["leaf_complexity_quantiles"].values())
+    assert q == sorted(q)
+    table = format_level_history(h)
+    assert table.splitlines()[0].split()[:4] == ["level", "nodes", "split", "leaves"]
+    assert len(table.splitlines()) == 2 + len(h.levels) + 1
