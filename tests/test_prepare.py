@@ -182,3 +182,22 @@ def test_no_normals_raises(pts):
     with pytest.raises(PrepareError, match="No normal could be estimated.*normal_radius"):
         prepare(Scan(points=pts, origins=np.zeros_like(pts)),
                 cfg_with(subsample_rate=1.0))
+
+
+def test_normals_agree_with_open3d_estimate_normals():
+    """The batched PCA equals Open3D's hybrid-search normals (up to sign)."""
+    import open3d as o3d
+
+    from gmmgp_app.stages.prepare import estimate_normals
+
+    rng = np.random.default_rng(11)
+    u = rng.uniform(-1, 1, size=(3000, 2))
+    pts = np.c_[u, 0.2 * np.sin(2 * u[:, 0]) + 0.1 * u[:, 1] ** 2]  # a curved sheet
+    query = np.sort(rng.choice(len(pts), 500, replace=False))
+    ours, valid = estimate_normals(pts, radius=0.15, max_nn=20, query=query)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.15, max_nn=20))
+    theirs = np.asarray(pcd.normals)[query]
+    assert valid.all()
+    cos = np.abs(np.einsum("ij,ij->i", ours, theirs))
+    assert np.min(cos) > 1 - 1e-6

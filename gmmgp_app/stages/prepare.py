@@ -78,14 +78,25 @@ def subsample(points: np.ndarray, cfg: PrepareConfig,
 
 
 def estimate_normals(points: np.ndarray, radius: float, max_nn: int,
-                     query: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
-    """PCA normals through Open3D (hybrid radius / k-NN search).
+                     query: Optional[np.ndarray] = None, *,
+                     tree: Optional[cKDTree] = None,
+                     chunk: int = 100_000) -> tuple[np.ndarray, np.ndarray]:
+    """PCA normals of the ``query`` points, neighbourhoods taken from all points.
+
+    The neighbourhood is Open3D's hybrid search (the ``max_nn`` nearest points
+    within ``radius``) and the normal the eigenvector of the smallest eigenvalue
+    of its covariance, as ``open3d.geometry.PointCloud.estimate_normals`` does
+    (the tests check the two agree). It is computed here only for the training
+    subsample: Open3D estimates every point of the cloud, which took 9 s of
+    the 10 s of this stage on a 1.3M-point street when 10 % were used.
 
     Parameters
     ----------
-    points : (N, 3) the full cloud: neighbourhoods are taken from all points.
-    radius, max_nn : the search (``KDTreeSearchParamHybrid``).
+    points : (N, 3) the full cloud.
+    radius, max_nn : the hybrid search.
     query : (Q,) int indices of the points whose normals are wanted (all if None).
+    tree : cKDTree of ``points``, optional (built if not given).
+    chunk : queries per batch (bounds the (chunk, max_nn, 3) temporaries).
 
     Returns
     -------
@@ -93,22 +104,26 @@ def estimate_normals(points: np.ndarray, radius: float, max_nn: int,
     valid : (Q,) bool, False where fewer than 3 neighbours lie within ``radius``
         or the neighbourhood is collinear: there the normal is meaningless.
     """
-    import open3d as o3d
-
     query = np.arange(len(points)) if query is None else np.asarray(query)
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    param = o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn)
-    pcd.estimate_covariances(param)
-    cov = np.asarray(pcd.covariances)[query]
-    pcd.estimate_normals(param)
-    normals = np.asarray(pcd.normals)[query]
-    # Open3D returns a default normal for tiny neighbourhoods; find them ourselves.
-    counts = cKDTree(points).query_ball_point(points[query], r=radius, return_length=True)
-    lam = np.linalg.eigvalsh(cov)
-    collinear = lam[:, 1] <= _COLLINEAR_RATIO * np.maximum(lam[:, 2], 1e-300)
-    valid = (counts >= 3) & ~collinear & np.isfinite(normals).all(axis=1)
-    norm = np.linalg.norm(normals, axis=1, keepdims=True)
-    normals = np.where(norm > 0, normals / np.where(norm > 0, norm, 1.0), 0.0)
+    tree = cKDTree(points) if tree is None else tree
+    k = int(min(max_nn, len(points)))
+    normals = np.zeros((len(query), 3))
+    valid = np.zeros(len(query), dtype=bool)
+    for s in range(0, len(query), chunk):
+        q = query[s:s + chunk]
+        dist, idx = tree.query(points[q], k=k, distance_upper_bound=radius, workers=-1)
+        dist, idx = dist.reshape(len(q), k), idx.reshape(len(q), k)
+        found = np.isfinite(dist)                                # (c, k)
+        count = found.sum(axis=1)
+        nb = points[np.where(found, idx, q[:, None])]             # missing -> the point itself
+        w = found[..., None].astype(np.float64)
+        mean = (nb * w).sum(axis=1) / np.maximum(count, 1)[:, None]
+        diff = (nb - mean[:, None, :]) * w
+        cov = np.einsum("cki,ckj->cij", diff, diff) / np.maximum(count, 1)[:, None, None]
+        lam, vec = np.linalg.eigh(cov)                           # ascending eigenvalues
+        collinear = lam[:, 1] <= _COLLINEAR_RATIO * np.maximum(lam[:, 2], 1e-300)
+        normals[s:s + chunk] = vec[:, :, 0]
+        valid[s:s + chunk] = (count >= 3) & ~collinear
     return normals, valid
 
 
@@ -240,7 +255,9 @@ def prepare(scan: Scan, cfg: MappingConfig, *,
         )
     rng = np.random.default_rng(p.seed) if rng is None else rng
     keep = subsample(pts, p, rng)
-    normals, valid = estimate_normals(pts, p.normal_radius, p.normal_max_nn, query=keep)
+    tree = cKDTree(pts)
+    normals, valid = estimate_normals(pts, p.normal_radius, p.normal_max_nn, query=keep,
+                                      tree=tree)
     if not valid.any():
         raise PrepareError(
             f"No normal could be estimated for any of the {len(keep)} subsampled points "
@@ -259,7 +276,7 @@ def prepare(scan: Scan, cfg: MappingConfig, *,
     n_dropped = 0
     if p.drop_inconsistent_virtual:
         bad = np.zeros(3 * H, dtype=bool)
-        bad[H:] = inconsistent_virtual(rows[H:, :3], cKDTree(pts), s, p.virtual_margin)
+        bad[H:] = inconsistent_virtual(rows[H:, :3], tree, s, p.virtual_margin)
         n_dropped = int(bad.sum())
         rows, kinds = rows[~bad], kinds[~bad]
     return TrainingSet(rows=rows, kinds=kinds, points=hits, normals=normals, spacing=s,
