@@ -11,9 +11,11 @@ A component is a *candidate* for query ``x`` when its Mahalanobis distance in xy
 ``D_j(x) = sqrt((x - mu_jX)^T Sigma_jXX^-1 (x - mu_jX))``, is at most the cut; the
 active set is the top ``J`` candidates by ``pi_j p_j(x)``.
 
-The search is exact, not heuristic:
+The search is exact, not heuristic, and its set-up is paid once per cell:
 
-1. Queries are grouped into cubic cells of edge ``h`` (half diagonal ``rho``).
+1. Space is cut into a fixed grid of cubic cells of edge ``h`` (half diagonal
+   ``rho``) over the box where any component can be a candidate (the union of the
+   balls below). A query outside that box has no candidate at all.
 2. Component means sit in scipy cKDTrees, one per *radius bucket*. Because
    ``D_j(x) <= c`` implies ``|x - mu_jX| <= c sqrt(lambda_max(Sigma_jXX)) =: r_j``,
    a Euclidean ball of radius ``r_j`` contains the whole Mahalanobis ellipsoid; with
@@ -26,9 +28,13 @@ The search is exact, not heuristic:
    inequality in the Mahalanobis norm) bounds ``D_j`` and hence ``log pi_j p_j``.
    A component is dropped when it can never be inside the cut, or when ``J``
    components that are surely inside the cut have a lower bound above its upper
-   bound (it can never be in the top ``J``). The result equals the per-query
-   definition exactly.
-4. Per query (numba, ``prange``) the exact cut and top ``J`` are applied.
+   bound (it can never be in the top ``J``).
+4. The pruned list of a cell is built the first time a query falls in it and kept
+   (a sorted table of cell keys + one CSR list per cell, bounded by
+   ``cache_entries``; when full it is emptied and rebuilt on demand). A later query
+   costs a binary search for its cell plus the exact cut and top ``J`` over that
+   cell's list (numba, parallel over chunks of queries). The result equals the
+   per-query definition exactly, whichever cells were built before.
 
 Far from the data
 -----------------
@@ -38,26 +44,44 @@ defined everywhere.
 
 The plain GMR variance stays at the size of the ``+-s`` virtual-point band even
 metres away from the data, which makes the predictive likelihood collapse there.
-We therefore let each component's conditional variance grow with the Euclidean
-distance of the query *beyond the component's support*::
+The variance therefore grows with the Euclidean distance of the query *outside
+the region the responsible components describe* (eq. gmr_far_growth)::
 
-    sigma_j^2(x) = Lambda_jYY^-1 + (gamma * e_j(x))^2,
-    e_j(x) = max(0, |x - mu_jX| * (1 - D0 / D_j(x)))
+    sigma^2(x) = sigma_GMR^2(x) + (gamma * e(x))^2,
+    e(x) = max(0, -tau log sum_j (w_j(x) / w_max(x)) exp(-e_j(x) / tau)),
+    e_j(x) = || max(|R_j^T (x - mu_jX)| - max(D0 sqrt(lambda_j), f), 0) ||
 
-``e_j`` is the distance from ``x`` to the ellipsoid ``D_j = D0`` measured along the
-ray from the component mean (metres): zero inside the support, growing linearly
-outside. ``gamma`` (dimensionless, ``GMRConfig.far_variance_growth``) is the
-standard deviation gained per metre beyond the support and ``D0``
-(``GMRConfig.far_growth_start``) where the support ends. These terms enter the law of
-total variance like the component variances, so components responsible for the
-query decide how fast the uncertainty grows. ``gamma = 0`` gives the paper's GMR.
-The mean and its gradient are unaffected.
+with ``Sigma_jXX = R_j diag(lambda_j) R_j^T``: ``e_j`` is the exact Euclidean
+distance (m) from ``x`` to the box of half-sides ``D0`` standard deviations (at
+least ``f`` metres, ``GMRConfig.far_growth_floor``) along the component's
+principal axes, and ``e`` a soft minimum over the mixed components of
+``e_j + tau log(w_max / w_j)``: about the distance to the nearest support box of a
+component that is responsible for ``x`` (``tau = 0.1`` m per nat; zero when the
+most responsible component's box holds ``x``). Every axis is
+measured with its own extent, so a query beside a long flat patch does not count as
+far merely because it is several thin-axis sigmas off the patch, and a query beyond
+the end of the patch grows with its distance past that end; a query inside one
+responsible component's box is not far because a neighbour's box ends short of it.
+``e`` is zero inside, continuous (so are the responsibilities) and grows about one
+metre per metre outside (each ``e_j`` is 1-Lipschitz), so the variance rises smoothly as one leaves the data instead of jumping when the
+responsible components change. ``gamma`` (``GMRConfig.far_variance_growth``) is the
+standard deviation gained per metre outside the support, ``D0``
+(``GMRConfig.far_growth_start``) the half-extent in standard deviations (a uniform
+patch ends at sqrt(3) = 1.73 sigma). ``gamma = 0`` gives the paper's GMR; the mean
+and its gradient are unaffected.
+
+What the mixture cannot tell: a hole in the data *inside* a component's extent
+(a window in a facade, a gap in the ground) is covered by the box, so no growth
+happens there; nor does a component whose data are skewed (denser on one side)
+end exactly at ``D0`` sigma. Only the training points know these; the GP stage
+corrects the mean near them.
 """
 
 from __future__ import annotations
 
 import itertools
 import math
+import threading
 
 import numba as nb
 import numpy as np
@@ -69,17 +93,28 @@ __all__ = [
     "GMRError",
     "GMRField",
     "condition_on_xyz",
+    "far_growth_distance",
     "gmr_bruteforce",
     "DEFAULT_FAR_GROWTH",
     "DEFAULT_FAR_START",
 ]
 
-#: Defaults of ``GMRConfig.far_variance_growth`` and ``far_growth_start``
-#: (kept here too so the oracle and the field agree when called without a config).
-DEFAULT_FAR_GROWTH = 0.5
-DEFAULT_FAR_START = 1.0
+#: Defaults of ``GMRConfig.far_variance_growth``, ``far_growth_start`` and
+#: ``far_growth_floor`` (kept here too so the oracle and the field agree when called without a config).
+DEFAULT_FAR_GROWTH = 1.0
+DEFAULT_FAR_START = 2.0
+DEFAULT_FAR_FLOOR = 0.3
 
 _LOG_2PI = math.log(2.0 * math.pi)
+#: tau of eq. gmr_far_growth (m per nat): a component with responsibility w counts
+#: as tau log(w_max / w) farther, so a query inside the box of a responsible component is
+#: not "far" because a neighbour's box ends short of it
+_SOFTMIN_TAU = 0.1
+# queries per parallel work item: amortises the per-item scratch allocation
+_CHUNK = 512
+# cell lookups: not built yet / outside the candidate box (no candidate anywhere)
+_MISSING = -1
+_EMPTY_SLOT = 0
 
 
 class GMRError(ValueError):
@@ -144,7 +179,8 @@ def condition_on_xyz(mixture: GaussianMixture) -> dict:
         ``logc`` (K,) ``log pi_j - 0.5 log det(2 pi Sigma_XX)``; ``a`` (K,) ``mu_Y``;
         ``b`` (K, 3) slope ``-Lambda_YY^-1 Lambda_YX``; ``s2`` (K,) ``Lambda_YY^-1``;
         ``r_max`` (K,) ``sqrt(lambda_max(Sigma_XX))``; ``lip`` (K,)
-        ``sqrt(lambda_max(Sigma_XX^-1))``.
+        ``sqrt(lambda_max(Sigma_XX^-1))``; ``axes`` (K, 3, 3) principal axes of
+        ``Sigma_XX`` as rows (``R^T``); ``sd`` (K, 3) standard deviations along them.
     """
     _check_mixture(mixture)
     cov = mixture.covariances
@@ -159,7 +195,7 @@ def condition_on_xyz(mixture: GaussianMixture) -> dict:
     lam = np.linalg.inv(cov)
     lyy = lam[:, 3, 3]
     b = -lam[:, 3, :3] / lyy[:, None]
-    eig = np.linalg.eigvalsh(sxx)
+    eig, vec = np.linalg.eigh(sxx)
     prec = np.linalg.inv(sxx)
     prec = 0.5 * (prec + np.transpose(prec, (0, 2, 1)))
     w = mixture.weights / mixture.weights.sum()
@@ -175,7 +211,35 @@ def condition_on_xyz(mixture: GaussianMixture) -> dict:
         s2=np.ascontiguousarray(1.0 / lyy),
         r_max=np.sqrt(eig[:, -1]),
         lip=1.0 / np.sqrt(eig[:, 0]),
+        axes=np.ascontiguousarray(np.transpose(vec, (0, 2, 1))),
+        sd=np.ascontiguousarray(np.sqrt(eig)),
     )
+
+
+def far_growth_distance(dx, axes, half) -> np.ndarray:
+    """Distance of queries outside each component's support box (eq. gmr_far_growth).
+
+    ``e_j(x) = || max(|R_j^T (x - mu_jX)| - half_j, 0) ||``: the exact Euclidean
+    distance from ``x`` to the box with half-sides ``half_j`` along the principal
+    axes of ``Sigma_jXX`` (zero inside, 1-Lipschitz). This numpy form is the
+    reference; the numba kernel inlines the same expression.
+
+    Parameters
+    ----------
+    dx : (..., K, 3) array
+        ``x - mu_jX`` per query and component.
+    axes : (K, 3, 3) array
+        Principal axes as rows (``R_j^T``), from :func:`condition_on_xyz`.
+    half : (K, 3) array
+        Half-sides of the support boxes (m), ``D0`` times the standard deviations.
+
+    Returns
+    -------
+    (..., K) float64, metres.
+    """
+    u = np.einsum("kij,...kj->...ki", axes, dx)
+    out = np.maximum(np.abs(u) - half, 0.0)
+    return np.sqrt(np.einsum("...i,...i->...", out, out))
 
 
 # ---------------------------------------------------------------- numba kernels
@@ -222,6 +286,40 @@ def _prune_cells(centres, rho, ptr, idx, mux, prec, logc, lip, n_active, cut):
     return keep
 
 
+@nb.njit(cache=True, parallel=True)
+def _lookup_cells(xyz, inv_h, base, span, keys, slots):
+    """Cell key and cached slot per query.
+
+    ``key`` is -1 outside the candidate box (the slot is then the empty list);
+    ``slot`` is ``_MISSING`` (-1) for a cell inside the box not built yet.
+    """
+    nq = xyz.shape[0]
+    qkey = np.empty(nq, dtype=np.int64)
+    qslot = np.empty(nq, dtype=np.int64)
+    nk = keys.shape[0]
+    for q in nb.prange(nq):
+        c0 = math.floor(xyz[q, 0] * inv_h) - base[0]
+        c1 = math.floor(xyz[q, 1] * inv_h) - base[1]
+        c2 = math.floor(xyz[q, 2] * inv_h) - base[2]
+        if (c0 < 0 or c1 < 0 or c2 < 0 or c0 >= span[0] or c1 >= span[1]
+                or c2 >= span[2]):
+            qkey[q] = -1
+            qslot[q] = 0
+            continue
+        key = (np.int64(c0) * span[1] + np.int64(c1)) * span[2] + np.int64(c2)
+        qkey[q] = key
+        lo = 0
+        hi = nk
+        while lo < hi:
+            mid = (lo + hi) >> 1
+            if keys[mid] < key:
+                lo = mid + 1
+            else:
+                hi = mid
+        qslot[q] = slots[lo] if lo < nk and keys[lo] == key else -1
+    return qkey, qslot
+
+
 @nb.njit(cache=True, inline="always")
 def _push_top(l, j, best_l, best_j, n, imin):
     """Keep the n_active largest log-weights seen so far (unsorted, tracks the min)."""
@@ -247,89 +345,108 @@ def _push_top(l, j, best_l, best_j, n, imin):
 
 
 @nb.njit(cache=True, parallel=True)
-def _gmr_kernel(xyz, qcell, ptr, idx, mux, prec, logc, a, b, s2, n_active, cut,
-                growth, start, want_grad):
-    """GMR mean (eq. gmm_mean), variance (eq. gmm_sigma + far growth), gradient."""
+def _gmr_kernel(xyz, qslot, ptr, idx, mux, prec, logc, a, b, s2, axes, half,
+                n_active, cut, growth, tau, want_grad):
+    """GMR mean (eq. gmm_mean), variance (eq. gmm_sigma + eq. gmr_far_growth), gradient.
+
+    ``qslot[q]`` is the row of ``ptr`` holding query ``q``'s candidate list.
+    """
     nq = xyz.shape[0]
     n_comp = mux.shape[0]
     mean = np.empty(nq)
     var = np.empty(nq)
     grad = np.zeros((nq, 3) if want_grad else (0, 3))
     cut2 = cut * cut
-    n_fallback = 0
-    for q in nb.prange(nq):
-        x0, x1, x2 = xyz[q, 0], xyz[q, 1], xyz[q, 2]
+    g2 = growth * growth
+    n_chunks = (nq + _CHUNK - 1) // _CHUNK
+    fallback = np.zeros(n_chunks, dtype=np.int64)
+    for ci in nb.prange(n_chunks):
         best_l = np.empty(n_active)
         best_j = np.empty(n_active, dtype=np.int64)
-        n = 0
-        imin = 0
-        c = qcell[q]
-        for t in range(ptr[c], ptr[c + 1]):
-            j = idx[t]
-            d2 = _maha2(x0, x1, x2, mux, prec, j)
-            if d2 <= cut2:
-                n, imin = _push_top(logc[j] - 0.5 * d2, j, best_l, best_j, n, imin)
-        if n == 0:
-            # no component within the cut: the nearest ones in the responsibility
-            # sense, so the field (and its growing variance) is defined everywhere
-            n_fallback += 1
-            for j in range(n_comp):
+        w = np.empty(n_active)
+        mu = np.empty(n_active)
+        n_fb = 0
+        for q in range(ci * _CHUNK, min(nq, (ci + 1) * _CHUNK)):
+            x0, x1, x2 = xyz[q, 0], xyz[q, 1], xyz[q, 2]
+            n = 0
+            imin = 0
+            c = qslot[q]
+            for t in range(ptr[c], ptr[c + 1]):
+                j = idx[t]
                 d2 = _maha2(x0, x1, x2, mux, prec, j)
-                n, imin = _push_top(logc[j] - 0.5 * d2, j, best_l, best_j, n, imin)
-        lmax = -np.inf
-        for t in range(n):
-            if best_l[t] > lmax:
-                lmax = best_l[t]
-        wsum = 0.0
-        w = np.empty(n)
-        mu = np.empty(n)
-        for t in range(n):
-            w[t] = math.exp(best_l[t] - lmax)
-            wsum += w[t]
-        m = 0.0
-        for t in range(n):
-            w[t] /= wsum
-            j = best_j[t]
-            mu[t] = (a[j] + b[j, 0] * (x0 - mux[j, 0]) + b[j, 1] * (x1 - mux[j, 1])
-                     + b[j, 2] * (x2 - mux[j, 2]))
-            m += w[t] * mu[t]
-        v = 0.0
-        g0 = 0.0
-        g1 = 0.0
-        g2 = 0.0
-        for t in range(n):
-            j = best_j[t]
-            dmu = mu[t] - m
-            extra = 0.0
-            if growth > 0.0:
+                if d2 <= cut2:
+                    n, imin = _push_top(logc[j] - 0.5 * d2, j, best_l, best_j, n, imin)
+            if n == 0:
+                # no component within the cut: the nearest ones in the responsibility
+                # sense, so the field (and its growing variance) is defined everywhere
+                n_fb += 1
+                for j in range(n_comp):
+                    d2 = _maha2(x0, x1, x2, mux, prec, j)
+                    n, imin = _push_top(logc[j] - 0.5 * d2, j, best_l, best_j, n, imin)
+            lmax = -np.inf
+            for t in range(n):
+                if best_l[t] > lmax:
+                    lmax = best_l[t]
+            wsum = 0.0
+            m = 0.0
+            for t in range(n):
+                j = best_j[t]
+                w[t] = math.exp(best_l[t] - lmax)
+                wsum += w[t]
+                mu[t] = (a[j] + b[j, 0] * (x0 - mux[j, 0]) + b[j, 1] * (x1 - mux[j, 1])
+                         + b[j, 2] * (x2 - mux[j, 2]))
+                m += w[t] * mu[t]
+            m /= wsum
+            v = 0.0
+            g0 = 0.0
+            g1 = 0.0
+            g2_ = 0.0
+            emin = np.inf
+            for t in range(n):
+                j = best_j[t]
+                wt = w[t] / wsum
+                dmu = mu[t] - m
                 d0 = x0 - mux[j, 0]
                 d1 = x1 - mux[j, 1]
-                d2_ = x2 - mux[j, 2]
-                dd = math.sqrt(max(_maha2(x0, x1, x2, mux, prec, j), 0.0))
-                if dd > start:
-                    e = math.sqrt(d0 * d0 + d1 * d1 + d2_ * d2_) * (1.0 - start / dd)
-                    extra = (growth * e) ** 2
-            v += w[t] * (s2[j] + extra + dmu * dmu)
+                d2 = x2 - mux[j, 2]
+                if g2 > 0.0:
+                    r = axes[j]
+                    e2 = 0.0
+                    for i in range(3):
+                        u = abs(r[i, 0] * d0 + r[i, 1] * d1 + r[i, 2] * d2) - half[j, i]
+                        if u > 0.0:
+                            e2 += u * u
+                    mu[t] = math.sqrt(e2)          # reuse: e_j from here on
+                    if mu[t] < emin:
+                        emin = mu[t]
+                v += wt * (s2[j] + dmu * dmu)
+                if want_grad:
+                    p = prec[j]
+                    # d log p_j / dx = -P_j (x - mu_jX); dw_j = w_j (g_j - sum_k w_k g_k),
+                    # so sum_j mu_j dw_j = sum_j w_j (mu_j - m) g_j
+                    h0 = -(p[0, 0] * d0 + p[0, 1] * d1 + p[0, 2] * d2)
+                    h1 = -(p[1, 0] * d0 + p[1, 1] * d1 + p[1, 2] * d2)
+                    h2 = -(p[2, 0] * d0 + p[2, 1] * d1 + p[2, 2] * d2)
+                    g0 += wt * (b[j, 0] + dmu * h0)
+                    g1 += wt * (b[j, 1] + dmu * h1)
+                    g2_ += wt * (b[j, 2] + dmu * h2)
+            if g2 > 0.0:
+                # soft minimum of e_j + tau log(w_max / w_j) (eq. gmr_far_growth);
+                # w holds w_j / w_max here
+                acc = 0.0
+                for t in range(n):
+                    acc += w[t] * math.exp(-(mu[t] - emin) / tau)
+                e = emin - tau * math.log(acc)
+                if e > 0.0:
+                    v += g2 * e * e
+            mean[q] = m
+            var[q] = v
             if want_grad:
-                d0 = x0 - mux[j, 0]
-                d1 = x1 - mux[j, 1]
-                d2_ = x2 - mux[j, 2]
-                p = prec[j]
-                # d log p_j / dx = -P_j (x - mu_jX); dw_j = w_j (g_j - sum_k w_k g_k),
-                # so sum_j mu_j dw_j = sum_j w_j (mu_j - m) g_j
-                h0 = -(p[0, 0] * d0 + p[0, 1] * d1 + p[0, 2] * d2_)
-                h1 = -(p[1, 0] * d0 + p[1, 1] * d1 + p[1, 2] * d2_)
-                h2 = -(p[2, 0] * d0 + p[2, 1] * d1 + p[2, 2] * d2_)
-                g0 += w[t] * (b[j, 0] + dmu * h0)
-                g1 += w[t] * (b[j, 1] + dmu * h1)
-                g2 += w[t] * (b[j, 2] + dmu * h2)
-        mean[q] = m
-        var[q] = v
-        if want_grad:
-            grad[q, 0] = g0
-            grad[q, 1] = g1
-            grad[q, 2] = g2
-    return mean, var, grad, n_fallback
+                grad[q, 0] = g0
+                grad[q, 1] = g1
+                grad[q, 2] = g2_
+        fallback[ci] = n_fb
+    return mean, var, grad, fallback.sum()
 
 
 # --------------------------------------------------------------------- the field
@@ -345,59 +462,91 @@ class GMRField:
     mahalanobis_cut : float
         Components farther than this Mahalanobis distance (xyz) are not candidates.
     far_variance_growth : float
-        ``gamma``: standard deviation gained per metre beyond a component's support
-        (see the module docstring); 0 gives the paper's variance.
+        ``gamma``: standard deviation gained per metre outside a component's support
+        (eq. gmr_far_growth in the module docstring); 0 gives the paper's variance.
     far_growth_start : float
-        ``D0``: Mahalanobis radius where a component's support ends.
+        ``D0``: half-extent of a component's support box, in standard deviations
+        along each principal axis of ``Sigma_XX``.
+    far_growth_floor : float
+        Least half-extent of a support box (m), so a component made of one layer of
+        virtual points does not count the ``+-s`` band as outside.
     cell_size : float or None
-        Edge of the query cells used for candidate pruning (m); default four times
-        the median smallest standard deviation of the components (per-cell
-        Mahalanobis slack about 3.5 for a typical component). Smaller cells prune
-        tighter but cost more cKDTree queries; measured with scripts/bench_gmr.py.
+        Edge of the grid cells whose pruned candidate lists are cached (m); default
+        twice the median smallest standard deviation of the components (per-cell
+        Mahalanobis slack about 1.7 for a typical component: a few candidates more
+        than the exact set). Smaller cells prune tighter but cost more set-up and
+        memory; measured with scripts/bench_gmr.py.
+    cache_entries : int
+        Bound on the cached candidate entries (4 bytes each); when a batch would
+        exceed it the cache is emptied first and refilled on demand.
 
     Attributes
     ----------
     info : dict
         Counts of the last ``predict`` (``n_fallback``: queries with no component
-        within the cut; ``mean_candidates`` per query after pruning).
+        within the cut; ``mean_candidates`` per query after pruning;
+        ``cells_built`` by this call; ``cells_cached`` in total).
     """
 
     def __init__(self, mixture: GaussianMixture, n_active: int = 16,
                  mahalanobis_cut: float = 6.0, *,
                  far_variance_growth: float = DEFAULT_FAR_GROWTH,
                  far_growth_start: float = DEFAULT_FAR_START,
-                 cell_size: float | None = None):
+                 far_growth_floor: float = DEFAULT_FAR_FLOOR,
+                 cell_size: float | None = None, cache_entries: int = 1 << 25):
         if int(n_active) < 1:
             raise GMRError(f"Expected n_active >= 1, found {n_active}; use e.g. 16.")
         if not (mahalanobis_cut > 0 and math.isfinite(mahalanobis_cut)):
             raise GMRError(f"Expected a positive finite mahalanobis_cut, found "
                            f"{mahalanobis_cut}; use e.g. 6.0.")
-        if not (far_variance_growth >= 0 and far_growth_start >= 0):
+        if not (far_variance_growth >= 0 and far_growth_start >= 0
+                and math.isfinite(far_variance_growth) and math.isfinite(far_growth_start)):
             raise GMRError(
-                f"Expected far_variance_growth >= 0 and far_growth_start >= 0, found "
-                f"{far_variance_growth} and {far_growth_start}.")
+                f"Expected finite far_variance_growth >= 0 and far_growth_start >= 0, "
+                f"found {far_variance_growth} and {far_growth_start}.")
+        if not (far_growth_floor >= 0 and math.isfinite(far_growth_floor)):
+            raise GMRError(f"Expected a finite far_growth_floor >= 0, found "
+                           f"{far_growth_floor}; use e.g. 0.3 (m).")
+        if int(cache_entries) < 1:
+            raise GMRError(f"Expected cache_entries >= 1, found {cache_entries}; "
+                           "use e.g. 2**25.")
         self.mixture = mixture
         self.n_active = int(n_active)
         self.mahalanobis_cut = float(mahalanobis_cut)
         self.far_variance_growth = float(far_variance_growth)
         self.far_growth_start = float(far_growth_start)
+        self.cache_entries = int(cache_entries)
         self._c = condition_on_xyz(mixture)
+        self.far_growth_floor = float(far_growth_floor)
+        self._half = np.ascontiguousarray(
+            np.maximum(self.far_growth_start * self._c["sd"], self.far_growth_floor))
         k = mixture.n_components
         r = self.mahalanobis_cut * self._c["r_max"]
         if cell_size is None:
-            cell_size = 4.0 * float(np.median(1.0 / self._c["lip"]))
+            cell_size = 2.0 * float(np.median(1.0 / self._c["lip"]))
         if not (cell_size > 0 and math.isfinite(cell_size)):
             raise GMRError(f"Expected a positive cell_size, found {cell_size}.")
+        mux = self._c["mux"]
+        lo = (mux - r[:, None]).min(axis=0)
+        hi = (mux + r[:, None]).max(axis=0)
+        # keys are int64: keep the grid below 2**60 cells whatever the extent
+        cells = float(np.prod((hi - lo) / cell_size + 2.0))
+        if cells > 2.0 ** 60:
+            cell_size *= (cells / 2.0 ** 60) ** (1.0 / 3.0)
         self.cell_size = float(cell_size)
+        self._base = np.floor(lo / self.cell_size).astype(np.int64)
+        self._span = (np.floor(hi / self.cell_size).astype(np.int64) - self._base + 1)
         # radius buckets (powers of two) so one large component does not widen the
         # search ball of every small one
         level = np.floor(np.log2(r / r.min())).astype(np.int64)
         self._buckets = []
         for lv in np.unique(level):
             members = np.flatnonzero(level == lv)
-            self._buckets.append((cKDTree(self._c["mux"][members]), members,
+            self._buckets.append((cKDTree(mux[members]), members,
                                   float(r[members].max())))
         self.n_components = k
+        self._lock = threading.Lock()
+        self.clear_cache()
         self.info: dict = {}
 
     @classmethod
@@ -406,25 +555,32 @@ class GMRField:
         return cls(mixture, n_active=cfg.n_active, mahalanobis_cut=cfg.mahalanobis_cut,
                    far_variance_growth=getattr(cfg, "far_variance_growth",
                                                DEFAULT_FAR_GROWTH),
-                   far_growth_start=getattr(cfg, "far_growth_start", DEFAULT_FAR_START))
+                   far_growth_start=getattr(cfg, "far_growth_start", DEFAULT_FAR_START),
+                   far_growth_floor=getattr(cfg, "far_growth_floor", DEFAULT_FAR_FLOOR))
 
-    def _cell_candidates(self, xyz):
+    # ------------------------------------------------------------------ cache
+    def clear_cache(self) -> None:
+        """Forget every cached cell (slot 0, the empty list, stays)."""
+        self._keys = np.zeros(0, dtype=np.int64)      # sorted cell keys
+        self._slots = np.zeros(0, dtype=np.int64)     # slot of each key
+        self._ptr = np.zeros(2, dtype=np.int64)       # CSR over slots
+        self._idx = np.zeros(0, dtype=np.int32)
+
+    @property
+    def cells_cached(self) -> int:
+        """Number of grid cells whose candidate lists are built."""
+        return len(self._keys)
+
+    def _build_cells(self, keys: np.ndarray):
+        """Pruned candidate lists of the cells ``keys`` (unique) as CSR (ptr, idx)."""
         h = self.cell_size
-        cells = np.floor(xyz / h).astype(np.int64)
-        lo = cells.min(axis=0)
-        span = cells.max(axis=0) - lo + 1
-        if float(np.prod(span.astype(np.float64))) < 2.0 ** 62:
-            # one int64 key per cell: a 1D unique is far cheaper than unique(axis=0)
-            rel = cells - lo
-            key = (rel[:, 0] * span[1] + rel[:, 1]) * span[2] + rel[:, 2]
-            ukey, first, qcell = np.unique(key, return_index=True, return_inverse=True)
-            ucells = cells[first]
-        else:
-            ucells, qcell = np.unique(cells, axis=0, return_inverse=True)
-        qcell = np.ascontiguousarray(qcell.reshape(-1).astype(np.int64))
-        centres = (ucells + 0.5) * h
+        span = self._span
+        c2 = keys % span[2]
+        c1 = (keys // span[2]) % span[1]
+        c0 = keys // (span[2] * span[1])
+        centres = (np.c_[c0, c1, c2] + self._base + 0.5) * h
         rho = 0.5 * math.sqrt(3.0) * h
-        n_cells = len(ucells)
+        n_cells = len(keys)
         parts_cell, parts_idx = [], []
         for tree, members, rad in self._buckets:
             lists = tree.query_ball_point(centres, rad + rho, return_sorted=False)
@@ -443,10 +599,43 @@ class GMRField:
         keep = _prune_cells(centres, rho, ptr, idx, c["mux"], c["prec"], c["logc"],
                             c["lip"], self.n_active, self.mahalanobis_cut)
         csum = np.concatenate([[0], np.cumsum(keep, dtype=np.int64)])
-        counts = csum[ptr[1:]] - csum[ptr[:-1]]
-        ptr2 = np.zeros(n_cells + 1, dtype=np.int64)
-        np.cumsum(counts, out=ptr2[1:])
-        return qcell, ptr2, np.ascontiguousarray(idx[keep]), counts
+        ptr2 = csum[ptr]
+        return ptr2, idx[keep].astype(np.int32)
+
+    def _append(self, keys, ptr_new, idx_new) -> None:
+        """Add built cells (unique keys, not cached) to the cache."""
+        first = len(self._ptr) - 1
+        slots_new = np.arange(first, first + len(keys), dtype=np.int64)
+        self._ptr = np.concatenate([self._ptr, self._ptr[-1] + ptr_new[1:]])
+        self._idx = np.concatenate([self._idx, idx_new])
+        allk = np.concatenate([self._keys, keys])
+        alls = np.concatenate([self._slots, slots_new])
+        order = np.argsort(allk, kind="stable")
+        self._keys = np.ascontiguousarray(allk[order])
+        self._slots = np.ascontiguousarray(alls[order])
+
+    def _query_slots(self, x: np.ndarray):
+        """Slot of every query's cell, building the missing cells once."""
+        inv_h = 1.0 / self.cell_size
+        with self._lock:
+            qkey, qslot = _lookup_cells(x, inv_h, self._base, self._span, self._keys,
+                                        self._slots)
+            miss = qslot == _MISSING
+            n_built = 0
+            if miss.any():
+                new = np.unique(qkey[miss])
+                ptr_new, idx_new = self._build_cells(new)
+                if len(self._idx) + len(idx_new) > self.cache_entries:
+                    # full: start again with the cells this batch needs (a batch
+                    # larger than the bound is still served, then dropped later)
+                    self.clear_cache()
+                    new = np.unique(qkey[qkey >= 0])
+                    ptr_new, idx_new = self._build_cells(new)
+                n_built = len(new)
+                self._append(new, ptr_new, idx_new)
+                qkey, qslot = _lookup_cells(x, inv_h, self._base, self._span,
+                                            self._keys, self._slots)
+            return qslot, self._ptr, self._idx, n_built
 
     def predict(self, xyz, return_grad: bool = False):
         """GMR at query points.
@@ -463,7 +652,8 @@ class GMRField:
         mean : (K,) float64
             ``m(x)`` (eq. gmm_mean), free space positive.
         var : (K,) float64
-            ``sigma^2(x)`` (eq. gmm_sigma, plus the far-field growth term).
+            ``sigma^2(x)`` (eq. gmm_sigma, plus the far-field growth of
+            eq. gmr_far_growth).
         grad : (K, 3) float64, only if ``return_grad``
             ``grad m(x)`` including the derivative of the responsibilities.
         """
@@ -471,14 +661,16 @@ class GMRField:
         if len(x) == 0:
             out = (np.zeros(0), np.zeros(0))
             return out + (np.zeros((0, 3)),) if return_grad else out
-        qcell, ptr, idx, counts = self._cell_candidates(x)
+        qslot, ptr, idx, n_built = self._query_slots(x)
         c = self._c
         mean, var, grad, n_fb = _gmr_kernel(
-            x, qcell, ptr, idx, c["mux"], c["prec"], c["logc"], c["a"], c["b"], c["s2"],
-            self.n_active, self.mahalanobis_cut, self.far_variance_growth,
-            self.far_growth_start, bool(return_grad))
-        self.info = dict(n_queries=len(x), n_cells=len(ptr) - 1, n_fallback=int(n_fb),
-                         mean_candidates=float(counts[qcell].mean()))
+            x, qslot, ptr, idx, c["mux"], c["prec"], c["logc"], c["a"], c["b"], c["s2"],
+            c["axes"], self._half, self.n_active, self.mahalanobis_cut,
+            self.far_variance_growth, _SOFTMIN_TAU, bool(return_grad))
+        counts = np.diff(ptr)
+        self.info = dict(n_queries=len(x), n_fallback=int(n_fb), cells_built=n_built,
+                         cells_cached=self.cells_cached,
+                         mean_candidates=float(counts[qslot].mean()))
         return (mean, var, grad) if return_grad else (mean, var)
 
 
@@ -486,7 +678,8 @@ class GMRField:
 def gmr_bruteforce(mixture: GaussianMixture, xyz, return_grad: bool = False, *,
                    n_active: int | None = None, mahalanobis_cut: float | None = None,
                    far_variance_growth: float = DEFAULT_FAR_GROWTH,
-                   far_growth_start: float = DEFAULT_FAR_START, chunk: int = 1024):
+                   far_growth_start: float = DEFAULT_FAR_START,
+                   far_growth_floor: float = DEFAULT_FAR_FLOOR, chunk: int = 1024):
     """Reference GMR in plain numpy over all components (the tests' oracle).
 
     Conditions with the covariance form (``b = Sigma_XX^-1 Sigma_XY``,
@@ -502,7 +695,7 @@ def gmr_bruteforce(mixture: GaussianMixture, xyz, return_grad: bool = False, *,
     xyz : (Q, 3) array_like
     return_grad : bool
     n_active, mahalanobis_cut : int, float or None
-    far_variance_growth, far_growth_start : float
+    far_variance_growth, far_growth_start, far_growth_floor : float
         As in :class:`GMRField`.
     chunk : int
         Queries per vectorised block (memory: ``chunk * K * 3`` floats).
@@ -519,6 +712,9 @@ def gmr_bruteforce(mixture: GaussianMixture, xyz, return_grad: bool = False, *,
     s2 = syy - np.einsum("ki,ki->k", sxy, b)
     prec = np.linalg.inv(sxx)
     _, logdet = np.linalg.slogdet(sxx)
+    eig, vec = np.linalg.eigh(sxx)
+    axes = np.transpose(vec, (0, 2, 1))
+    half = np.maximum(far_growth_start * np.sqrt(eig), far_growth_floor)
     w0 = mixture.weights / mixture.weights.sum()
     with np.errstate(divide="ignore"):
         logc = np.log(w0) - 0.5 * (3 * _LOG_2PI + logdet)
@@ -545,13 +741,16 @@ def gmr_bruteforce(mixture: GaussianMixture, xyz, return_grad: bool = False, *,
         mu = a[None] + np.einsum("kj,qkj->qk", b, dx)
         m = np.sum(w * mu, axis=1)
         dmu = mu - m[:, None]
-        extra = np.zeros_like(mu)
+        v = np.sum(w * (s2[None] + dmu ** 2), axis=1)
         if far_variance_growth > 0:
-            dd = np.sqrt(np.maximum(d2, 0.0))
-            with np.errstate(divide="ignore", invalid="ignore"):
-                e = np.linalg.norm(dx, axis=2) * (1.0 - far_growth_start / dd)
-            extra = np.where(dd > far_growth_start, (far_variance_growth * e) ** 2, 0.0)
-        v = np.sum(w * (s2[None] + extra + dmu ** 2), axis=1)
+            e = far_growth_distance(dx, axes, half)
+            # soft minimum of e_j + tau log(w_max / w_j) over the mixed components,
+            # shifted by the smallest e_j so that exp does not underflow far away
+            rel = w / w.max(axis=1, keepdims=True)
+            emin = np.min(np.where(w > 0, e, np.inf), axis=1, keepdims=True)
+            acc = np.sum(rel * np.exp(-(e - emin) / _SOFTMIN_TAU), axis=1)
+            soft = emin[:, 0] - _SOFTMIN_TAU * np.log(acc)
+            v = v + (far_variance_growth * np.maximum(soft, 0.0)) ** 2
         out_m.append(m)
         out_v.append(v)
         if return_grad:

@@ -30,9 +30,13 @@ class GridTooLargeError(MemoryError):
 
 
 def estimate_grid_nodes(seeds: np.ndarray, voxel_size: float, dilate: int = 1) -> int:
-    """Upper bound on the lattice nodes the sparse grid evaluates (cheap, up front)."""
+    """Field evaluations the surface grid may need, estimated up front.
+
+    Surface following grows a sheet of cells around each seed cell, so the bound
+    is the seed cells times the area of a (2 dilate + 1)^2 patch, times 2 nodes.
+    """
     cells = np.unique(np.floor(np.asarray(seeds) / voxel_size).astype(np.int64), axis=0)
-    return int(len(cells) * (2 * dilate + 1) ** 3)
+    return int(2 * len(cells) * (2 * dilate + 1) ** 2)
 
 
 def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.05, *,
@@ -41,9 +45,11 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
                     progress=None) -> SurfaceMesh:
     """Zero level set of a field as a triangle mesh with per-vertex variance.
 
-    Only the lattice cells that contain a seed point, grown by ``dilate`` cells,
-    are evaluated (in large batches); nodes elsewhere are masked, so no surface is
-    invented far from the data.
+    The lattice is evaluated only where the surface is: starting from the cells
+    that hold a seed point, the zero crossing is followed into a neighbouring cell
+    whenever the shared face changes sign, at most ``dilate`` cells away from the
+    seeds. Nodes that were never evaluated are masked, so no surface is invented
+    far from the data.
 
     Parameters
     ----------
@@ -58,8 +64,8 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     block_cells : int
         Cells per block edge B (marching cubes runs per block).
     dilate : int, optional
-        Cells grown around seed cells. Default: 1, or enough to bridge half the
-        median seed spacing when the seeds are sparser than the lattice.
+        How far (in cells) the surface may be followed from the seed cells.
+        Default: enough to bridge the median seed spacing, at least 2.
     progress : callable(total, desc) -> bar with update()/close(), optional
 
     Returns
@@ -75,7 +81,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
         raise ValueError(f"Expected voxel_size > 0 m, found {voxel_size}.")
     h = float(voxel_size)
     if dilate is None:
-        dilate = max(1, int(np.ceil(0.5 * _median_spacing(seeds) / h)))
+        dilate = max(2, int(np.ceil(_median_spacing(seeds) / h)) + 1)
     bound = estimate_grid_nodes(seeds, h, dilate)
     if bound > MAX_GRID_NODES:
         raise GridTooLargeError(
@@ -83,27 +89,35 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
             f"(~{bound * 8 * 8 / 2**30:.1f} GiB of temporaries), more than the limit of "
             f"{MAX_GRID_NODES:,}; use a larger voxel size.")
 
-    # 1. The cells to evaluate and their corner nodes, as sorted packed int64 keys.
+    # 1. Follow the zero crossing from the seed cells (cells by their lower corner).
     cells = np.unique(np.floor(seeds / h).astype(np.int64), axis=0)
-    r = np.arange(-dilate, dilate + 1)
-    grow = np.stack(np.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
-    cells = np.unique((cells[:, None, :] + grow[None]).reshape(-1, 3), axis=0)
-    corners = np.stack(np.meshgrid(*([0, 1],) * 3, indexing="ij"), -1).reshape(-1, 3)
-    nodes = np.unique((cells[:, None, :] + corners[None]).reshape(-1, 3), axis=0)
-    pack = _Packer(nodes.min(0) - block_cells, nodes.max(0) + block_cells)
-    node_keys = pack(nodes)
-    order = np.argsort(node_keys)
-    node_keys, nodes = node_keys[order], nodes[order]
-
-    # 2. The field at every node, in large batches.
-    values = np.empty(len(nodes))
-    bar = progress(int(np.ceil(len(nodes) / batch)), "surface field") if progress else None
-    for s in range(0, len(nodes), batch):
-        values[s:s + batch] = predict(nodes[s:s + batch] * h)[0]
+    pack = _Packer(cells.min(0) - dilate - block_cells - 2,
+                   cells.max(0) + dilate + block_cells + 2)
+    lattice = _LatticeValues(predict, h, pack, batch)
+    cell_keys = np.sort(pack(cells))
+    frontier = cells
+    bar = progress(dilate + 1, "surface field") if progress else None
+    for _ in range(dilate):
+        vals = lattice(frontier[:, None, :] + _CORNERS[None]).reshape(len(frontier), 8)
+        grown = []
+        for step, face in _FACES:
+            fv = vals[:, face]
+            crosses = (fv.min(1) < 0) & (fv.max(1) > 0)
+            grown.append(frontier[crosses] + step)
+        grown = np.unique(np.concatenate(grown), axis=0)
+        keys = pack(grown)
+        new = grown[~_contains(cell_keys, keys)]
         bar and bar.update(1)
+        if len(new) == 0:
+            break
+        cell_keys = np.sort(np.concatenate([cell_keys, pack(new)]))
+        cells = np.concatenate([cells, new])
+        frontier = new
+    lattice(frontier[:, None, :] + _CORNERS[None])  # the last cells' corners
     bar and bar.close()
+    node_keys, values = lattice.keys, lattice.values
 
-    # 3. Marching cubes per block on its (B+1)^3 nodes, looked up by key.
+    # 2. Marching cubes per block on its (B+1)^3 nodes, looked up by key.
     blocks = np.unique(np.floor_divide(cells, block_cells), axis=0)
     nb = block_cells + 1
     local = np.stack(np.meshgrid(*(np.arange(nb),) * 3, indexing="ij"), -1).reshape(-1, 3)
@@ -169,6 +183,45 @@ def _median_spacing(points: np.ndarray, n: int = 20000) -> float:
     spacing = float(np.median(cKDTree(sample).query(sample, k=2)[0][:, 1]))
     # A sample of a surface is sqrt(N / n) times sparser than the whole set.
     return spacing * float(np.sqrt(len(sample) / len(points)))
+
+
+_CORNERS = np.stack(np.meshgrid(*([0, 1],) * 3, indexing="ij"), -1).reshape(-1, 3)
+# For each of the 6 faces of a cell: the step to the neighbour across it and the
+# indices (into _CORNERS) of the face's 4 corner nodes.
+_FACES = [(np.eye(3, dtype=np.int64)[a] * (1 if side else -1),
+           np.flatnonzero(_CORNERS[:, a] == side)) for a in range(3) for side in (0, 1)]
+
+
+def _contains(sorted_keys: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    pos = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
+    return sorted_keys[pos] == keys
+
+
+class _LatticeValues:
+    """Field values at lattice nodes, evaluated once each, in large batches."""
+
+    def __init__(self, predict, h: float, pack, batch: int):
+        self.predict, self.h, self.pack, self.batch = predict, h, pack, batch
+        self.keys = np.zeros(0, dtype=np.int64)       # sorted
+        self.values = np.zeros(0)
+
+    def __call__(self, ijk: np.ndarray) -> np.ndarray:
+        """Values at integer nodes ``ijk`` (..., 3), evaluating the missing ones."""
+        flat = ijk.reshape(-1, 3)
+        keys = self.pack(flat)
+        missing = ~_contains(self.keys, keys) if len(self.keys) else np.ones(len(keys), bool)
+        if missing.any():
+            new_keys, first = np.unique(keys[missing], return_index=True)
+            nodes = flat[np.flatnonzero(missing)[first]]
+            vals = np.empty(len(nodes))
+            for s in range(0, len(nodes), self.batch):
+                vals[s:s + self.batch] = self.predict(nodes[s:s + self.batch] * self.h)[0]
+            keys_all = np.concatenate([self.keys, new_keys])
+            order = np.argsort(keys_all, kind="stable")
+            self.keys = keys_all[order]
+            self.values = np.concatenate([self.values, vals])[order]
+        pos = np.searchsorted(self.keys, keys)
+        return self.values[pos].reshape(ijk.shape[:-1])
 
 
 class _Packer:
