@@ -350,6 +350,9 @@ def main(argv=None) -> int:
         return EXIT_BAD_INPUT
     try:
         return _COMMANDS[args.command](args)
+    except BrokenPipeError:  # e.g. "gmmgp info ... | head": the reader left, not an error
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_OK
     except KeyboardInterrupt:
         print("gmmgp: interrupted; nothing half-written was left behind.", file=sys.stderr)
         return EXIT_INTERRUPTED
