@@ -12,6 +12,7 @@ import json
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +51,9 @@ class _Parser(argparse.ArgumentParser):
     def __init__(self, *a, **kw):
         kw.setdefault("formatter_class", argparse.RawDescriptionHelpFormatter)
         super().__init__(*a, **kw)
+
+    def error(self, message):
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
 
 def _add_reader_options(p: argparse.ArgumentParser) -> None:
@@ -112,7 +116,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     # The global flags are accepted after the command too ("gmmgp run ... -q").
-    common = argparse.ArgumentParser(add_help=False)
+    common = _Parser(add_help=False)
     common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                         help="show tracebacks on errors")
     common.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
@@ -154,9 +158,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("view", help="open the interactive desktop app", epilog=_EXAMPLES["view"])
     p.add_argument("target", help="scan file or saved map folder")
 
-    p = add("eval", help="evaluate maps against a reference", epilog=_EXAMPLES["eval"])
-    p.add_argument("directory")
-    p.add_argument("--reference", required=True)
+    from .eval_cli import add_eval_arguments
+
+    p = add("eval", help="compare gmmgp/hgmm/gpis/loggpis against a reference")
+    add_eval_arguments(p)
 
     from .sweep import SWEEP_EXAMPLES, add_sweep_arguments
 
@@ -234,23 +239,35 @@ def cmd_run(args) -> int:
     scan = read_scan(args.scan[0] if len(args.scan) == 1 else args.scan, **_reader_kwargs(args))
     read_s = time.perf_counter() - t0
     stop = None if args.stage == "all" else args.stage
+    if stop is None and not args.no_mesh:  # refuse an impossible grid before fitting
+        from .pipeline import surface_seeds
+        from .stages.surface import check_grid_size
+
+        check_grid_size(surface_seeds(scan, cfg), cfg.surface.voxel_size)
     smap = build_map(scan, cfg, method=args.method, observer=observer, stop_after=stop)
     smap.summary["seconds"] = {"read": read_s, **smap.summary["seconds"]}
     if args.stage == "hgmm" and smap.hgmm is not None:
         from .stages.hgmm import format_level_history
 
         print(format_level_history(smap.hgmm))
-    out.mkdir(parents=True, exist_ok=True)
-    smap.save(out / "map")
-    written = [out / "map"]
-    if args.stage == "all" and not args.no_mesh:
-        written += _write_meshes(smap, out, observer, console)
-    if recorder is not None:
-        recorder.close()  # writes the recording's footer now, not at interpreter exit
-    atomic_write_text(out / "config.toml", cfg.to_toml())
-    smap.summary["seconds"]["total"] = time.perf_counter() - t0
-    atomic_write_text(out / "summary.json", json.dumps(_jsonable(smap.summary), indent=2))
-    written += [out / "config.toml", out / "summary.json"]
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        smap.summary["scan"] = {"paths": [str(Path(s).resolve()) for s in args.scan],
+                                "reader": _reader_kwargs(args)}
+        smap.save(out / "map")
+        written = [out / "map"]
+        if args.stage == "all" and not args.no_mesh:
+            written += _write_meshes(smap, out, observer, console)
+        if recorder is not None:
+            recorder.close()  # writes the recording's footer now, not at interpreter exit
+        atomic_write_text(out / "config.toml", cfg.to_toml())
+        smap.summary["seconds"]["total"] = time.perf_counter() - t0
+        atomic_write_text(out / "summary.json", json.dumps(_jsonable(smap.summary), indent=2))
+        written += [out / "config.toml", out / "summary.json"]
+    except OSError as exc:  # e.g. a full disk: numpy/zipfile do not name the file
+        if exc.filename is None:
+            exc.filename = str(out)
+        raise
     if args.rrd:
         written.append(Path(args.rrd))
     if not args.quiet:
@@ -298,8 +315,14 @@ def cmd_sweep(args) -> int:
     return run(args)
 
 
+def cmd_eval(args) -> int:
+    from .eval_cli import cmd_eval as run
+
+    return run(args)
+
+
 def cmd_not_yet(args) -> int:
-    issue = {"view": 7, "eval": 5}[args.command]
+    issue = {"view": 7}[args.command]
     raise NotImplementedError(
         f"'gmmgp {args.command}' is not available yet (planned in issue {issue}); "
         "use 'gmmgp run' to build and save a map.")
@@ -339,7 +362,7 @@ def _jsonable(obj):
 
 # --------------------------------------------------------------------------- entry point
 _COMMANDS = {"info": cmd_info, "synth": cmd_synth, "run": cmd_run,
-             "view": cmd_not_yet, "eval": cmd_not_yet, "sweep": cmd_sweep}
+             "view": cmd_not_yet, "eval": cmd_eval, "sweep": cmd_sweep}
 
 
 def main(argv=None) -> int:
@@ -348,6 +371,18 @@ def main(argv=None) -> int:
     if not args.command:
         parser.print_help()
         return EXIT_BAD_INPUT
+    # One line per warning, like errors (a recording test harness still sees them).
+    previous = warnings.formatwarning
+    if not args.debug:
+        warnings.formatwarning = lambda msg, *a, **k: \
+            f"gmmgp {args.command}: warning: {_one_line(msg)}\n"
+    try:
+        return _run_command(args)
+    finally:
+        warnings.formatwarning = previous
+
+
+def _run_command(args) -> int:
     try:
         return _COMMANDS[args.command](args)
     except BrokenPipeError:  # e.g. "gmmgp info ... | head": the reader left, not an error

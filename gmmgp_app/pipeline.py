@@ -252,7 +252,7 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
                                     "gp_points": int(gp_mask.sum())}
         if stop_after == "gmr" or method == "hgmm":
             return SurfaceMap(method, cfg, scan.offset, prior, hgmm=hgmm,
-                              seed_points=_surface_seeds(scan, cfg), summary=summary)
+                              seed_points=surface_seeds(scan, cfg), summary=summary)
     pts, nrm = data.points[gp_mask], data.normals[gp_mask]
     if len(pts):
         gp = stage("gp", lambda: fit_local_gps(pts, nrm, prior, cfg.gp),
@@ -260,7 +260,7 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
                                      if isinstance(v, (int, float))},
                    extra=lambda g: {"points": pts, "normals": nrm})
     return SurfaceMap(method, cfg, scan.offset, prior, hgmm=hgmm, gp=gp, gp_points=pts,
-                      gp_normals=nrm, seed_points=_surface_seeds(scan, cfg), summary=summary)
+                      gp_normals=nrm, seed_points=surface_seeds(scan, cfg), summary=summary)
 
 
 class _StageRunner:
@@ -288,10 +288,10 @@ def _early_map(method, cfg, scan, data, hgmm, summary):
     from .stages.gp import ConstantPrior
 
     return SurfaceMap(method, cfg, scan.offset, ConstantPrior(**_gpis_prior_kwargs(cfg)),
-                      hgmm=hgmm, seed_points=_surface_seeds(scan, cfg), summary=summary)
+                      hgmm=hgmm, seed_points=surface_seeds(scan, cfg), summary=summary)
 
 
-def _surface_seeds(scan: Scan, cfg: MappingConfig) -> np.ndarray:
+def surface_seeds(scan: Scan, cfg: MappingConfig) -> np.ndarray:
     """One scan point per cell of half the surface voxel: where the surface is sought.
 
     All hit points (not only the training subsample) so that marching cubes covers
@@ -359,3 +359,6 @@ def _jsonable(obj):
     if isinstance(obj, np.ndarray):
         return obj.tolist()
     return obj
+
+
+_surface_seeds = surface_seeds  # former private name, still used by tiling and the GUI model

@@ -12,15 +12,24 @@ float64, so millimetres survive UTM-sized values.
 
 from __future__ import annotations
 
+import logging
 import re
 import struct
 import warnings
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
-from ._common import RawScan, ScanReadError, ScanWarning, qname, require_points, unit_name
+from ._common import (
+    RawScan,
+    ScanReadError,
+    ScanWarning,
+    qname,
+    require_points,
+    unit_name,
+)
 
 __all__ = ["read_las", "crs_units", "EPSG_LINEAR_UNITS", "parse_geokeys", "wkt_units"]
 
@@ -206,6 +215,66 @@ def crs_units(header) -> tuple[Optional[object], Optional[float], str]:
     return horiz, vert, where
 
 
+#: A LAZ file decompresses to at most this many times its size; a header declaring more
+#: is corrupt (LASzip reaches about 5-20x on real scans, far more only for constant data).
+_MAX_LAZ_RATIO = 1000
+
+
+def _check_declared_size(path: Path) -> None:
+    """Refuse a LAS header that cannot describe this file, before laspy allocates for it.
+
+    laspy trusts the header: a corrupt one declaring billions of points or VLRs
+    makes it allocate many GiB before it finds out. The public header block is
+    read here (LAS 1.0-1.4: offset to point data at byte 96, VLR count at 100,
+    point format at 104 with bit 7 set for LAZ, record length at 105, legacy point
+    count at 107, 64-bit count at 247 from 1.4) and checked against the file size.
+    """
+    size = path.stat().st_size
+    with open(path, "rb") as fh:
+        head = fh.read(375)
+    bad = None
+    if len(head) < 227 or head[:4] != b"LASF":
+        bad = "no LAS public header (it must start with 'LASF' and be at least 227 bytes)"
+    else:
+        minor = head[25]
+        header_size, = struct.unpack_from("<H", head, 94)
+        offset, n_vlrs = struct.unpack_from("<II", head, 96)
+        fmt, rec = head[104], struct.unpack_from("<H", head, 105)[0]
+        n, = struct.unpack_from("<I", head, 107)
+        if minor >= 4 and len(head) >= 255 and header_size >= 255:
+            n = max(n, struct.unpack_from("<Q", head, 247)[0])
+        compressed = bool(fmt & 0x80)
+        if not 227 <= header_size <= offset <= size:
+            bad = (f"header size {header_size} and offset to point data {offset} do not fit "
+                   f"a {size}-byte file")
+        elif n_vlrs * 54 > offset - header_size:
+            bad = f"{n_vlrs} VLRs declared in {offset - header_size} bytes"
+        elif not compressed and offset + n * rec > size:
+            bad = (f"the header declares {n} points ({offset + n * rec} bytes) but the file "
+                   f"has {size} bytes")
+        elif compressed and n * rec > _MAX_LAZ_RATIO * size:
+            bad = (f"the header declares {n} points ({n * rec / 2**30:.1f} GiB uncompressed), "
+                   f"implausible for a {size}-byte LAZ file")
+    if bad:
+        raise ScanReadError(
+            f"Cannot read {qname(path)} as LAS/LAZ: {bad}; the file is corrupt or truncated, "
+            f"export or download it again."
+        )
+
+
+@contextmanager
+def _laspy_log_silenced():
+    """Mute laspy's own ERROR log records while reading: the failure is raised as a
+    ScanReadError with the same text, and the CLI must print exactly one line."""
+    log = logging.getLogger("laspy")
+    old = log.level
+    log.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        log.setLevel(old)
+
+
 def read_las(path: Path, *, units=None, **_) -> RawScan:
     """Read a LAS/LAZ file: scaled coordinates, classification, intensity.
 
@@ -217,14 +286,19 @@ def read_las(path: Path, *, units=None, **_) -> RawScan:
     """
     import laspy
 
+    _check_declared_size(path)
     try:
-        las = laspy.read(str(path))
+        with _laspy_log_silenced():
+            las = laspy.read(str(path))
+    except PermissionError:
+        raise
     except laspy.errors.LaspyException as exc:
         msg = str(exc)
         fix = ("install the LAZ backend: pip install 'laspy[lazrs]'" if "backend" in msg.lower()
                else "the file is corrupt or truncated; export or download it again")
         raise ScanReadError(f"Cannot read {qname(path)} as LAS/LAZ: {msg}; {fix}.") from None
-    except (ValueError, OSError, EOFError, struct.error) as exc:
+    except (ValueError, OSError, EOFError, struct.error, RuntimeError) as exc:
+        # RuntimeError: lazrs.LazrsError, raised for a truncated or corrupt LAZ chunk.
         raise ScanReadError(
             f"Cannot read {qname(path)} as LAS/LAZ ({type(exc).__name__}: {exc}); "
             f"the file is corrupt or truncated; export or download it again."

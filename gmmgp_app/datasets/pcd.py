@@ -18,7 +18,7 @@ __all__ = ["read_pcd"]
 def _parse_header(path: Path):
     with open(path, "rb") as fh:
         head = fh.read(1 << 16)
-    fields, sizes, counts, n_points, data, header_len = [], [], [], None, None, None
+    fields, sizes, types, counts, n_points, data, header_len = [], [], [], [], None, None, None
     pos = 0
     while pos < len(head):
         nl = head.find(b"\n", pos)
@@ -35,6 +35,8 @@ def _parse_header(path: Path):
                 fields = tok[1:]
             elif key == "SIZE":
                 sizes = [int(t) for t in tok[1:]]
+            elif key == "TYPE":
+                types = [t.upper() for t in tok[1:]]
             elif key == "COUNT":
                 counts = [int(t) for t in tok[1:]]
             elif key == "POINTS":
@@ -54,7 +56,37 @@ def _parse_header(path: Path):
         )
     if not counts:
         counts = [1] * len(fields)
-    return fields, sizes, counts, n_points, data, header_len
+    return fields, sizes, types, counts, n_points, data, header_len
+
+
+_PCD_TYPES = {("F", 4): "<f4", ("F", 8): "<f8", ("I", 1): "i1", ("I", 2): "<i2",
+              ("I", 4): "<i4", ("I", 8): "<i8", ("U", 1): "u1", ("U", 2): "<u2",
+              ("U", 4): "<u4", ("U", 8): "<u8"}
+
+
+def _record_dtype(fields, sizes, types, counts):
+    """numpy dtype of one binary PCD record, or None when the header does not define it."""
+    if not (len(fields) == len(sizes) == len(types) == len(counts)):
+        return None
+    parts = []
+    for i, (name, size, typ, cnt) in enumerate(zip(fields, sizes, types, counts)):
+        code = _PCD_TYPES.get((typ, size))
+        if code is None:
+            return None
+        # PCL pads with fields named "_"; names must be unique for numpy.
+        key = name if name in "xyz" and name not in [p[0] for p in parts] else f"_{i}"
+        parts.append((key, code, (cnt,)) if cnt > 1 else (key, code))
+    return np.dtype(parts)
+
+
+def _ascii_columns(fields, counts):
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(int)
+    return [int(starts[fields.index(c)]) for c in "xyz"]
+
+
+def _count_lines(path: Path, header_len: int) -> int:
+    with open(path, "rb") as fh:
+        return fh.read(header_len).count(b"\n")
 
 
 def read_pcd(path: Path, **_) -> RawScan:
@@ -67,7 +99,7 @@ def read_pcd(path: Path, **_) -> RawScan:
     """
     import open3d as o3d
 
-    fields, sizes, counts, n, data, header_len = _parse_header(path)
+    fields, sizes, types, counts, n, data, header_len = _parse_header(path)
     require_points(n, path)
     size = path.stat().st_size
     if data == "binary" and len(sizes) == len(fields):
@@ -86,6 +118,30 @@ def read_pcd(path: Path, **_) -> RawScan:
                 f"PCD file {qname(path)} is truncated: the header declares {n} points but "
                 f"only {min(len(rows), n)} rows (the last may be cut) follow; export it again."
             )
+    dtype = _record_dtype(fields, sizes, types, counts)
+    if data == "binary" and dtype is not None:
+        # Read here, not by Open3D: it returns zeros for double-precision (SIZE 8) fields.
+        rec = np.fromfile(path, dtype=dtype, count=n, offset=header_len)
+        return RawScan(points=np.stack([rec[c].astype(np.float64) for c in "xyz"], axis=1),
+                       source=str(path))
+    if data == "ascii":
+        cols = _ascii_columns(fields, counts)
+        try:
+            arr = np.loadtxt(path, dtype=np.float64, skiprows=_count_lines(path, header_len),
+                             usecols=cols, ndmin=2, max_rows=n)
+        except ValueError as exc:
+            raise ScanReadError(
+                f"Cannot parse the ascii data of PCD file {qname(path)} "
+                f"({str(exc).splitlines()[0]}); the file is corrupt."
+            ) from None
+        return RawScan(points=np.ascontiguousarray(arr), source=str(path))
+    xyz_sizes = [sizes[fields.index(c)] for c in "xyz"] if len(sizes) == len(fields) else []
+    if any(sz == 8 for sz in xyz_sizes):
+        raise ScanReadError(
+            f"PCD file {qname(path)} stores double-precision x, y, z as binary_compressed, "
+            f"which Open3D misreads; convert it to binary or ascii PCD (e.g. pcl_convert_pcd_"
+            f"ascii_binary) or to PLY."
+        )
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         pc = o3d.io.read_point_cloud(str(path), format="pcd")
     pts = np.asarray(pc.points, dtype=np.float64)

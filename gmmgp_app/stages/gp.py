@@ -74,6 +74,10 @@ class ConstantPrior:
         self.distance = float(distance)
         self.variance = float(variance)
 
+    def params(self) -> dict:
+        """Constructor arguments, for saving a map without pickle."""
+        return {"distance": self.distance, "variance": self.variance}
+
     def predict(self, xyz, return_grad: bool = False):
         """Constant mean (K,), variance (K,)[, zero gradient (K, 3)]."""
         x = _xyz(xyz, "query points")
@@ -382,7 +386,8 @@ class LocalGPField:
 
 
 # ---------------------------------------------------------------- fitting
-def fit_local_gps(points, normals, prior, cfg, *, rng=None) -> LocalGPField:
+def fit_local_gps(points, normals, prior, cfg, *, rng=None, executor=None,
+                  progress=None, min_task_seconds: float = 0.01) -> LocalGPField:
     """Fit the local GPs on residuals of ``prior`` (paper Sec. IV).
 
     Parameters
@@ -401,6 +406,16 @@ def fit_local_gps(points, normals, prior, cfg, *, rng=None) -> LocalGPField:
     rng : numpy.random.Generator, optional
         Subsampling of blocks with more than ``max_block_points`` points
         (default ``np.random.default_rng(0)``).
+    executor : concurrent.futures.Executor, optional
+        Fit the blocks as tasks on this executor (local processes, Dask, ...; see
+        :mod:`gmmgp_app.distributed`), consecutive blocks batched into tasks of at
+        least ``min_task_seconds`` of estimated work. ``None`` (default): a plain
+        loop in this process. Block subsampling always happens here, so every
+        executor fits the same blocks on the same points.
+    progress : callable(done, total), optional
+        Called with the number of blocks fitted so far (one bar across tasks).
+    min_task_seconds : float
+        Smallest estimated work per task (s); Dask tasks cost about 1 ms each.
 
     Returns
     -------
@@ -425,14 +440,20 @@ def fit_local_gps(points, normals, prior, cfg, *, rng=None) -> LocalGPField:
     starts = np.flatnonzero(np.r_[True, bi[1:] != bi[:-1]])
     ends = np.r_[starts[1:], len(bi)]
     blocks, n_cand, n_used = [], [], []
-    for s, e in zip(starts, ends):
-        idx = pi[s:e]
-        n_cand.append(len(idx))
-        if len(idx) > cfg.max_block_points:
-            idx = np.sort(rng.choice(idx, cfg.max_block_points, replace=False))
-        n_used.append(len(idx))
-        blocks.append(fit_block(pts[idx], sigma_p[idx], targets[idx], cfg.length_scale,
-                                cfg.value_noise, cfg.gradient_noise, cfg.jitter))
+    if executor is None:
+        for s, e in zip(starts, ends):
+            idx = pi[s:e]
+            n_cand.append(len(idx))
+            if len(idx) > cfg.max_block_points:
+                idx = np.sort(rng.choice(idx, cfg.max_block_points, replace=False))
+            n_used.append(len(idx))
+            blocks.append(fit_block(pts[idx], sigma_p[idx], targets[idx], cfg.length_scale,
+                                    cfg.value_noise, cfg.gradient_noise, cfg.jitter))
+            if progress is not None:
+                progress(len(blocks), len(starts))
+    else:
+        blocks = _fit_blocks_on(executor, pts, sigma_p, targets, pi, starts, ends, cfg,
+                                rng, n_cand, n_used, progress, min_task_seconds)
     n_cand = np.array(n_cand)
     n_used = np.array(n_used)
     jit = np.array([b.jitter for b in blocks])
@@ -448,6 +469,36 @@ def fit_local_gps(points, normals, prior, cfg, *, rng=None) -> LocalGPField:
     )
     hyper = {k: float(getattr(cfg, k)) for k in _HYPER}
     return LocalGPField(prior, grid, blocks, hyper, info)
+
+
+def _fit_blocks_on(executor, pts, sigma_p, targets, pi, starts, ends, cfg, rng, n_cand,
+                   n_used, progress, min_task_seconds):
+    """The block loop of :func:`fit_local_gps` as batched executor tasks."""
+    from gmmgp_app.distributed import batch_by_cost, gp_block_seconds, map_batched
+
+    # subsample in block order, exactly as the serial loop draws from ``rng``
+    sel = []
+    for s, e in zip(starts, ends):
+        idx = pi[s:e]
+        n_cand.append(len(idx))
+        if len(idx) > cfg.max_block_points:
+            idx = np.sort(rng.choice(idx, cfg.max_block_points, replace=False))
+        n_used.append(len(idx))
+        sel.append(idx)
+    hyper = (float(cfg.length_scale), float(cfg.value_noise), float(cfg.gradient_noise),
+             float(cfg.jitter))
+    batches = batch_by_cost(gp_block_seconds(n_used), min_task_seconds)
+    tasks = [([(pts[sel[b]], sigma_p[sel[b]], targets[sel[b]]) for b in bt], hyper)
+             for bt in batches]
+    out = map_batched(executor, _fit_block_batch, tasks, sizes=[len(b) for b in batches],
+                      progress=progress)
+    return [fit for part in out for fit in part]
+
+
+def _fit_block_batch(task) -> list:
+    """One executor task: :func:`fit_block` on each ``(X, sigma_p, targets)``."""
+    items, (ls, vn, gn, jit) = task
+    return [fit_block(X, sp, t, ls, vn, gn, jit) for X, sp, t in items]
 
 
 @nb.njit(parallel=True, cache=True, fastmath=False)

@@ -47,6 +47,8 @@ _MST_MAX_POINTS = 50_000
 # A neighbourhood whose middle eigenvalue is below this fraction of the largest is
 # a line (or a point): its PCA normal is arbitrary.
 _COLLINEAR_RATIO = 1e-6
+# |cos| of the angle between normal and viewing ray below which a point is edge-on.
+_GRAZING_COS = 1e-6
 
 
 class PrepareError(ValueError):
@@ -171,7 +173,8 @@ def orient_normals(points: np.ndarray, normals: np.ndarray,
     warnings.warn(
         f"Scan has no sensor origins; {len(points)} normals were oriented by '{method}' "
         "(away from the centroid), which is wrong for scans taken from inside a scene; "
-        "give the reader sensor origins (e.g. read_scan(..., origin=(x, y, z))).",
+        "give sensor origins (an .npz with an 'origins' array, an E57 file, or KITTI "
+        "scans with a pose file).",
         OrientationWarning, stacklevel=3)
     return n, method
 
@@ -264,6 +267,12 @@ def prepare(scan: Scan, cfg: MappingConfig, *,
             f"(fewer than 3 neighbours within normal_radius={p.normal_radius} m, or all "
             "points identical/collinear); raise prepare.normal_radius or check the scan."
         )
+    if scan.origins is not None:
+        # A surface seen exactly edge-on (n . view ~ 0) cannot tell its two sides
+        # apart: the sign would come from rounding noise, so such points are dropped.
+        view = scan.origins[keep] - pts[keep]
+        cos = np.abs(np.einsum("ij,ij->i", normals, view))
+        valid &= cos >= _GRAZING_COS * np.linalg.norm(view, axis=1)
     n_no_normal = int((~valid).sum())
     keep = keep[valid]
     hits = pts[keep]

@@ -18,7 +18,7 @@ import numpy as np
 from .._atomic import atomic_path
 from ..types import SurfaceMesh
 
-__all__ = ["extract_surface", "write_mesh_ply", "write_mesh_obj", "read_mesh_ply",
+__all__ = ["extract_surface", "check_grid_size", "write_mesh_ply", "write_mesh_obj", "read_mesh_ply",
            "estimate_grid_nodes", "GridTooLargeError"]
 
 # Refuse grids that would need more than this many field evaluations up front.
@@ -37,6 +37,29 @@ def estimate_grid_nodes(seeds: np.ndarray, voxel_size: float, dilate: int = 1) -
     """
     cells = np.unique(np.floor(np.asarray(seeds) / voxel_size).astype(np.int64), axis=0)
     return int(2 * len(cells) * (2 * dilate + 1) ** 2)
+
+
+def check_grid_size(seeds: np.ndarray, voxel_size: float, dilate: Optional[int] = None) -> int:
+    """Refuse, before any work, a surface grid that would not fit the machine.
+
+    Returns the ``dilate`` that :func:`extract_surface` will use (default: enough
+    cells to bridge the median seed spacing, at least 2).
+
+    Raises
+    ------
+    GridTooLargeError
+        With the estimated number of evaluations and memory.
+    """
+    h = float(voxel_size)
+    if dilate is None:
+        dilate = max(2, int(np.ceil(_median_spacing(seeds) / h)) + 1)
+    bound = estimate_grid_nodes(seeds, h, dilate)
+    if bound > MAX_GRID_NODES:
+        raise GridTooLargeError(
+            f"A surface grid at voxel_size={h} m needs up to {bound:,} field evaluations "
+            f"(~{bound * 8 * 8 / 2**30:.1f} GiB of temporaries), more than the limit of "
+            f"{MAX_GRID_NODES:,}; use a larger voxel size.")
+    return dilate
 
 
 def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.05, *,
@@ -80,14 +103,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     if not voxel_size > 0:
         raise ValueError(f"Expected voxel_size > 0 m, found {voxel_size}.")
     h = float(voxel_size)
-    if dilate is None:
-        dilate = max(2, int(np.ceil(_median_spacing(seeds) / h)) + 1)
-    bound = estimate_grid_nodes(seeds, h, dilate)
-    if bound > MAX_GRID_NODES:
-        raise GridTooLargeError(
-            f"A surface grid at voxel_size={h} m needs up to {bound:,} field evaluations "
-            f"(~{bound * 8 * 8 / 2**30:.1f} GiB of temporaries), more than the limit of "
-            f"{MAX_GRID_NODES:,}; use a larger voxel size.")
+    dilate = check_grid_size(seeds, h, dilate)
 
     # 1. Follow the zero crossing from the seed cells (cells by their lower corner).
     cells = np.unique(np.floor(seeds / h).astype(np.int64), axis=0)
@@ -262,7 +278,9 @@ def _refine_on_edges(v: np.ndarray, vol: np.ndarray):
     hi[np.arange(len(e)), axis[e]] += 1
     v0 = vol[lo[e, 0], lo[e, 1], lo[e, 2]]
     v1 = vol[hi[:, 0], hi[:, 1], hi[:, 2]]
-    t = v0 / (v0 - v1)
+    # Both ends exactly zero (a flat zero patch): any point of the edge is on the level set.
+    den = v0 - v1
+    t = np.divide(v0, den, out=np.full(len(v0), 0.5), where=den != 0)
     out[e, axis[e]] += t
     return lo, axis, out
 

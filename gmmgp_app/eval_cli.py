@@ -1,0 +1,351 @@
+"""``gmmgp eval``: the paper's comparison of methods on one scan, against a reference.
+
+``cli.py`` registers :func:`add_eval_arguments` on the ``eval`` sub-parser and
+dispatches to :func:`cmd_eval`; the functions here raise exceptions (ValueError
+subclasses) and ``cli.py`` turns them into exit codes.
+
+The recipe:
+
+1. load the saved map of ``DIR/map`` and its configuration;
+2. read the scan (``--scan``, or the paths recorded in the map's summary) and
+   prepare it once: its hit points are the binning axis and the query seeds;
+3. queries: hit points moved along their normal by up to the last bin edge;
+4. every method of ``--methods`` (the saved one is reused, the others are built on
+   the same scan and configuration) is predicted at the queries and scored
+   against the reference (:mod:`gmmgp_app.evaluation`);
+5. surfaces (the run's ``mesh_*.ply`` when present, else extracted) are compared
+   with the reference (Chamfer, Hausdorff);
+6. ``metrics.json``, ``metrics.csv``, ``metrics.md`` and PNG figures go to ``--out``
+   (default ``DIR/eval``), each written atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["add_eval_arguments", "cmd_eval", "run_evaluation", "EVAL_METHODS",
+           "EvalInputError"]
+
+EVAL_METHODS = ("gmmgp", "hgmm", "gpis", "loggpis")
+
+EXAMPLES = """examples:
+  gmmgp run assets/demo_street.npz --out out/demo
+  gmmgp eval out/demo --scan assets/demo_street.npz --reference assets/demo_street_mesh.ply
+  gmmgp eval out/demo --scan assets/demo_street.npz --reference ref.ply --methods gmmgp,gpis,loggpis
+  gmmgp eval out/kitti --scan ../shared/data/kitti_odometry_seq00/velodyne/000000.bin \\
+      --reference ../shared/data/kitti_odometry_seq00/velodyne \\
+      --reference-poses ../shared/data/kitti_odometry_seq00/poses_gicp_estimated.txt"""
+
+
+class EvalInputError(ValueError):
+    """Bad arguments to ``gmmgp eval`` (unknown method, missing scan, ...)."""
+
+
+def add_eval_arguments(p) -> None:
+    """Add the ``eval`` arguments to an argparse (sub-)parser."""
+    p.add_argument("directory", help="output folder of 'gmmgp run' (holds map/)")
+    p.add_argument("--reference", required=True,
+                   help="reference surface: a mesh (.ply/.obj/.stl/.off; exact distance) or a "
+                        "dense point cloud / folder of scans (nearest-neighbour distance)")
+    p.add_argument("--methods", default=None,
+                   help="comma-separated subset of gmmgp,hgmm,gpis,loggpis "
+                        "(default: all four)")
+    p.add_argument("--scan", nargs="+",
+                   help="the scan the map was built from (default: the paths recorded in "
+                        "the map, when there are any)")
+    p.add_argument("--out", help="output folder (default: DIRECTORY/eval)")
+    p.add_argument("--queries", type=int, default=20000,
+                   help="number of test points (default 20000)")
+    p.add_argument("--bins", default=None,
+                   help="distance bin edges in metres, e.g. 0,0.05,0.1,0.2,0.3,0.5 "
+                        "(the default, the paper's range)")
+    p.add_argument("--lambda", dest="lam", type=float, default=None,
+                   help="Log-GPIS lambda in 1/m (default sqrt(3) / gp.length_scale)")
+    p.add_argument("--voxel-size", type=float, default=None,
+                   help="voxel size of extracted surfaces (default: the map's surface.voxel_size)")
+    p.add_argument("--no-surface", action="store_true",
+                   help="skip the Chamfer / Hausdorff distances of the surfaces")
+    p.add_argument("--reference-poses",
+                   help="pose file for a folder of reference scans (KITTI 3x4 rows)")
+    p.add_argument("--reference-skip", type=int, default=None,
+                   help="drop the first N scans of a reference folder (e.g. 1 when scan 0 "
+                        "is the training scan)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the query sampling")
+    g = p.add_argument_group("reading the scan")
+    g.add_argument("--units", help="input units of the scan: m, ft, us-ft, or a factor")
+    g.add_argument("--poses", help="pose file for a folder of scans")
+    g.add_argument("--max-scans", type=int, help="use at most this many scans of a folder")
+    p.epilog = EXAMPLES
+
+
+def _parse_methods(text) -> list:
+    if text is None:
+        return list(EVAL_METHODS)
+    names = [m.strip() for m in text.split(",") if m.strip()]
+    bad = [m for m in names if m not in EVAL_METHODS]
+    if bad or not names:
+        raise EvalInputError(f"Unknown method(s) {bad or text!r} in --methods; expected a "
+                             f"comma-separated subset of {','.join(EVAL_METHODS)}.")
+    return list(dict.fromkeys(names))
+
+
+def _parse_bins(text):
+    from .evaluation import DEFAULT_BINS
+
+    if text is None:
+        return list(DEFAULT_BINS)
+    try:
+        edges = [float(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise EvalInputError(f"Expected --bins as numbers like 0,0.05,0.1, found "
+                             f"{text!r}.") from None
+    if len(edges) < 2 or any(b <= a for a, b in zip(edges, edges[1:])) or edges[0] < 0:
+        raise EvalInputError(f"Expected at least two increasing, non-negative --bins edges, "
+                             f"found {text!r}; e.g. 0,0.05,0.1,0.2,0.3,0.5.")
+    return edges
+
+
+def _scan_kwargs(args) -> dict:
+    kw = {}
+    if getattr(args, "units", None):
+        try:
+            kw["units"] = float(args.units)
+        except ValueError:
+            kw["units"] = args.units
+    if getattr(args, "poses", None):
+        kw["poses"] = args.poses
+    if getattr(args, "max_scans", None):
+        kw["max_scans"] = args.max_scans
+    return kw
+
+
+def cmd_eval(args) -> int:
+    """Run ``gmmgp eval`` from parsed arguments; returns the exit code (0)."""
+    quiet = getattr(args, "quiet", False)
+    log = (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))
+    directory = Path(args.directory)
+    methods = _parse_methods(args.methods)
+    bins = _parse_bins(args.bins)
+    if args.queries < 10:
+        raise EvalInputError(f"Expected --queries >= 10, found {args.queries}.")
+    out = Path(args.out) if args.out else directory / "eval"
+
+    from .datasets import read_scan
+    from .evaluation import Reference
+    from .pipeline import load_map
+
+    smap = load_map(directory / "map")
+    scan_paths = args.scan or smap.summary.get("scan", {}).get("paths")
+    if not scan_paths:
+        raise EvalInputError(
+            f"The map in '{directory}' does not record its scan; pass it with --scan "
+            "(the same file(s) given to 'gmmgp run').")
+    scan_kw = _scan_kwargs(args) or dict(smap.summary.get("scan", {}).get("reader", {}))
+    log(f"reading scan {', '.join(map(str, scan_paths))}")
+    scan = read_scan(scan_paths[0] if len(scan_paths) == 1 else list(scan_paths), **scan_kw)
+    n_saved = smap.summary.get("n_scan_points")
+    if n_saved is not None and int(n_saved) != len(scan):
+        raise EvalInputError(
+            f"The scan has {len(scan)} points but the map was built from {n_saved}; pass the "
+            "scan (and reader options) used with 'gmmgp run'.")
+    log(f"reading reference {args.reference}")
+    ref_kw = {}
+    if args.reference_poses:
+        ref_kw["poses"] = args.reference_poses
+    reference = _load_reference(args.reference, ref_kw, args.reference_skip)
+    results = run_evaluation(scan, smap, reference, methods, bins=bins,
+                             n_queries=args.queries, seed=args.seed, lam=args.lam,
+                             surfaces=not args.no_surface, voxel_size=args.voxel_size,
+                             run_dir=directory, log=log)
+    results["scan"] = [str(p) for p in scan_paths]
+    written = write_outputs(results, out)
+    log("wrote " + ", ".join(str(w) for w in written))
+    return 0
+
+
+def _load_reference(path, reader_kwargs, skip):
+    from .evaluation import Reference
+
+    if skip:
+        from .datasets import read_scan
+
+        # a folder of scans minus the training ones: read all, keep the later scans
+        full = read_scan(path, **reader_kwargs)
+        return _reference_without_first(full, path, reader_kwargs, skip)
+    return Reference.load(path, **reader_kwargs)
+
+
+def _reference_without_first(full, path, reader_kwargs, skip):
+    """Reference cloud from a folder of scans without its first ``skip`` scans.
+
+    Scans are told apart by their sensor origin (one pose per scan)."""
+    from .evaluation import Reference, oriented_normals
+
+    if full.origins is None:
+        raise EvalInputError(f"--reference-skip needs scans with poses (sensor origins); "
+                             f"'{path}' has none; pass --reference-poses.")
+    _, first, inv = np.unique(full.origins, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first)                     # scans in reading order
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    keep = rank[inv.reshape(-1)] >= skip
+    if not keep.any():
+        raise EvalInputError(f"--reference-skip {skip} drops all {len(order)} scans of "
+                             f"'{path}'; use a smaller value.")
+    pts = full.points[keep] + full.offset
+    org = full.origins[keep] + full.offset
+    return Reference.from_points(pts, oriented_normals(pts, org),
+                                 description=f"{path} (scans {skip}..{len(order) - 1})")
+
+
+def run_evaluation(scan, smap, reference, methods, *, bins, n_queries: int = 20000,
+                   seed: int = 0, lam=None, surfaces: bool = True, voxel_size=None,
+                   run_dir=None, log=None, surface_samples: int = 50000) -> dict:
+    """Score several methods on one scan against one reference.
+
+    Parameters
+    ----------
+    scan : Scan
+    smap : SurfaceMap or None
+        A saved map to reuse for its own method (others are built).
+    reference : Reference
+        In the scan's original frame (local + offset).
+    methods : list of str
+    bins : bin edges (m)
+    n_queries, seed : test points and their seed
+    lam : float, optional
+        Log-GPIS lambda.
+    surfaces : bool
+        Also compute Chamfer / Hausdorff of each signed method's surface.
+    voxel_size : float, optional
+    run_dir : Path, optional
+        Folder with ``mesh_{method}.ply`` from ``gmmgp run`` (reused when present).
+    log : callable, optional
+
+    Returns
+    -------
+    dict (see :mod:`gmmgp_app.report`)
+    """
+    from .config import MappingConfig
+    from .evaluation import evaluate_field, sample_queries
+    from .pipeline import build_map
+    from .stages.loggpis import build_loggpis_map
+    from .stages.prepare import prepare
+
+    log = log or (lambda *a: None)
+    cfg = smap.config if smap is not None else MappingConfig()
+    offset = scan.offset
+    t0 = time.perf_counter()
+    data = prepare(scan, cfg)
+    prep_s = time.perf_counter() - t0
+    rng = np.random.default_rng(seed)
+    queries = sample_queries(data.points, data.normals, n_queries, max_distance=bins[-1],
+                             tangential=bins[-1] / 10, rng=rng)
+    log(f"ground truth at {n_queries} queries ({reference.kind})")
+    truth = reference.sdf(queries + offset)
+    results = {"reference": {"path": reference.description, "kind": reference.kind},
+               "bins": [[float(a), float(b)] for a, b in zip(bins[:-1], bins[1:])],
+               "n_queries": int(n_queries), "seed": int(seed),
+               "n_scan_points": int(len(scan)), "n_training_points": int(len(data.points)),
+               "config_toml": cfg.to_toml(), "methods": {}}
+    vs = cfg.surface.voxel_size if voxel_size is None else float(voxel_size)
+    for method in methods:
+        log(f"{method}: building")
+        saved = {k: float(v) for k, v in (smap.summary.get("seconds", {}) if smap else {})
+                 .items() if k in ("prepare", "hgmm", "gmr", "gp")}
+        if smap is not None and smap.method == method:
+            model, train = smap, saved
+        elif smap is not None and method == "hgmm" and smap.hgmm is not None:
+            # the saved map's prior is the GMR of the same hierarchy: no need to refit
+            model = _PriorOnly(smap)
+            train = {k: v for k, v in saved.items() if k != "gp"}
+        elif method == "loggpis":
+            model = build_loggpis_map(scan, cfg, lam=lam)
+            train = dict(model.summary["seconds"])
+        else:
+            model = build_map(scan, cfg, method=method)
+            train = {k: float(v) for k, v in model.summary["seconds"].items()}
+        signed = getattr(model, "signed", True)
+        log(f"{method}: predicting")
+        field = evaluate_field(model.predict, reference, queries, data.points, bins,
+                               signed=signed, truth=truth)
+        entry = {"train_seconds": train, "test_seconds": field.pop("test_seconds"),
+                 "signed": bool(signed), "field": field, "surface": None}
+        if method == "loggpis":
+            entry["lambda"] = float(model.field.params.lam)
+        if surfaces and signed and (reference.mesh is not None or reference.points is not None):
+            entry["surface"] = _surface_metrics(model, method, reference, scan, vs, run_dir,
+                                                surface_samples, seed, log)
+        results["methods"][method] = entry
+        a = field["all"]
+        log(f"{method}: RMSE SDF {a['rmse_sdf']:.4f} m, EDF {a['rmse_edf']:.4f} m, "
+            f"LL SDF {a['ll_sdf']:.2f}, EDF {a['ll_edf']:.2f}")
+    results["prepare_seconds_eval"] = prep_s
+    return results
+
+
+class _PriorOnly:
+    """The GMR prior of a saved gmmgp map, as the hgmm method (same hierarchy)."""
+
+    method = "hgmm"
+    signed = True
+
+    def __init__(self, smap):
+        self.smap, self.config, self.seed_points = smap, smap.config, smap.seed_points
+
+    def predict(self, xyz, return_grad: bool = False):
+        return self.smap.prior.predict(np.asarray(xyz, dtype=np.float64),
+                                       return_grad=return_grad)
+
+    def extract_surface(self, voxel_size=None):
+        from .stages.surface import extract_surface
+
+        vs = self.config.surface.voxel_size if voxel_size is None else voxel_size
+        return extract_surface(self.predict, self.seed_points, voxel_size=vs)
+
+
+def _surface_metrics(model, method, reference, scan, voxel_size, run_dir, n, seed, log):
+    from .evaluation import surface_distances
+    from .stages.surface import read_mesh_ply
+
+    saved = Path(run_dir) / f"mesh_{method}.ply" if run_dir is not None else None
+    if saved is not None and saved.is_file() \
+            and np.isclose(voxel_size, model.config.surface.voxel_size):
+        mesh = read_mesh_ply(saved)                       # original frame already
+        verts, source = mesh.vertices, str(saved)
+    else:
+        log(f"{method}: extracting the surface at {voxel_size} m")
+        mesh = _extract(model, method, voxel_size)
+        verts, source = mesh.vertices + scan.offset, f"extracted at {voxel_size} m"
+    if len(mesh.faces) == 0:
+        return None
+    seeds = getattr(model, "seed_points", None)
+    crop = (seeds if seeds is not None and len(seeds) else scan.points) + scan.offset
+    res = surface_distances(verts, mesh.faces, reference, n_samples=n, crop_points=crop,
+                            crop_radius=2 * voxel_size, rng=np.random.default_rng(seed))
+    res.update(mesh=source, vertices=int(len(mesh.vertices)), faces=int(len(mesh.faces)),
+               voxel_size=float(voxel_size))
+    return res
+
+
+def _extract(model, method, voxel_size):
+    return model.extract_surface(voxel_size=voxel_size)
+
+
+def write_outputs(results: dict, out) -> list:
+    """metrics.json, metrics.csv, metrics.md and the figures, atomically, into ``out``."""
+    from ._atomic import atomic_write_text
+    from .report import markdown_table, plot_metrics, write_metrics_csv, write_metrics_json
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    written = [write_metrics_json(results, out / "metrics.json"),
+               write_metrics_csv(results, out / "metrics.csv"),
+               atomic_write_text(out / "metrics.md", markdown_table(results))]
+    written += plot_metrics(results, out)
+    return written
