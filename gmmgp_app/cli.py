@@ -33,7 +33,9 @@ _EXAMPLES = {
   gmmgp run scan.laz --out out/scan --set hgmm.split_threshold=0.02 --set gp.d_m=0.03
   gmmgp run scan.ply --out out/scan --method hgmm          # GMR-only baseline
   gmmgp run assets/demo_street.npz --out out/demo --stage hgmm   # print the HGMM levels
-  gmmgp run scan.npz --out out/scan --config my.toml""",
+  gmmgp run scan.npz --out out/scan --config my.toml
+  gmmgp run scan.laz --out out/scan --workers 2                 # GP blocks on a local Dask cluster
+  gmmgp run scan.laz --out out/scan --scheduler tcp://HOST:8786 # ... or on an existing one""",
     "view": """examples:
   gmmgp view assets/demo_street.npz
   gmmgp view out/demo/map""",
@@ -152,6 +154,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--serve", action="store_true",
                    help="also serve the recording to viewers (bound to 127.0.0.1)")
     p.add_argument("--no-mesh", action="store_true", help="skip surface extraction")
+    g = p.add_argument_group("parallel execution of the GP blocks")
+    g.add_argument("--workers", type=int, default=0,
+                   help="start a local Dask cluster with N single-threaded workers")
+    g.add_argument("--scheduler", help="use an existing Dask cluster, e.g. tcp://HOST:8786")
+    g.add_argument("--processes", action="store_true",
+                   help="with --workers: a local process pool instead of Dask")
     _add_reader_options(p)
     _add_config_options(p)
 
@@ -244,7 +252,14 @@ def cmd_run(args) -> int:
         from .stages.surface import check_grid_size
 
         check_grid_size(surface_seeds(scan, cfg), cfg.surface.voxel_size)
-    smap = build_map(scan, cfg, method=args.method, observer=observer, stop_after=stop)
+    from .distributed import open_executor
+
+    with open_executor(workers=args.workers or None, scheduler=args.scheduler,
+                       kind="processes" if args.processes else "dask") as executor:
+        bar = _TaskBar(console, "GP blocks")
+        smap = build_map(scan, cfg, method=args.method, observer=observer, stop_after=stop,
+                         executor=executor, progress=bar)
+        bar.close()
     smap.summary["seconds"] = {"read": read_s, **smap.summary["seconds"]}
     if args.stage == "hgmm" and smap.hgmm is not None:
         from .stages.hgmm import format_level_history
@@ -326,6 +341,22 @@ def cmd_not_yet(args) -> int:
     raise NotImplementedError(
         f"'gmmgp {args.command}' is not available yet (planned in issue {issue}); "
         "use 'gmmgp run' to build and save a map.")
+
+
+class _TaskBar:
+    """``progress(done, total)`` callback drawing one bar, created on first use."""
+
+    def __init__(self, console, desc):
+        self.console, self.desc, self.bar = console, desc, None
+
+    def __call__(self, done, total):
+        if self.bar is None:
+            self.bar = self.console.progress(total, self.desc)
+        self.bar.update(done - self.bar.n)
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()
 
 
 class _Fanout:

@@ -195,7 +195,8 @@ def load_map(directory) -> SurfaceMap:
 
 # --------------------------------------------------------------------------- recipe
 def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gmmgp",
-              observer=None, *, stop_after: Optional[str] = None) -> SurfaceMap:
+              observer=None, *, stop_after: Optional[str] = None, executor=None,
+              progress=None) -> SurfaceMap:
     """Map a scan into a probabilistic signed distance field.
 
     Parameters
@@ -211,6 +212,11 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
         Receives a :class:`StagePayload` after each stage.
     stop_after : {"prepare", "hgmm", "gmr"}, optional
         Return early (used by ``gmmgp run --stage``); the map then has no GP.
+    executor : concurrent.futures.Executor, optional
+        Fits the GP blocks as batched tasks (see :mod:`gmmgp_app.distributed`);
+        the result equals the serial one.
+    progress : callable(done, total), optional
+        Called as GP block tasks finish.
 
     Returns
     -------
@@ -255,7 +261,8 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
                               seed_points=surface_seeds(scan, cfg), summary=summary)
     pts, nrm = data.points[gp_mask], data.normals[gp_mask]
     if len(pts):
-        gp = stage("gp", lambda: fit_local_gps(pts, nrm, prior, cfg.gp),
+        gp = stage("gp", lambda: fit_local_gps(pts, nrm, prior, cfg.gp, executor=executor,
+                                               progress=progress),
                    counts=lambda g: {k: v for k, v in g.info.items()
                                      if isinstance(v, (int, float))},
                    extra=lambda g: {"points": pts, "normals": nrm})

@@ -1,0 +1,194 @@
+"""City-scale benchmark: time and peak memory vs street length, serial vs Dask.
+
+A synthetic street 1x, 2x, 4x, 8x longer at the same scanner density is written
+to a LAZ file (georeferenced, sensor origins as extra dimensions), then mapped by
+streaming it into tiles (``build_tiled_map_from_las``) in a fresh process per run,
+so that the peak RSS (``ru_maxrss``) of each run is its own. The serial run and a
+Dask ``LocalCluster`` with 2 workers map the same file; their fields are compared
+at random points.
+
+    python scripts/bench_scale.py                        # writes out/bench/bench_scale.json
+    python scripts/bench_scale.py --sizes 1,2 --density 0.01   # quicker
+
+Every process runs with one BLAS thread (as Dask workers do): multithreaded BLAS on
+a loaded 2-core machine slows the blocks' Cholesky factorisations down ~100x.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[_v] = "1"
+
+import numpy as np  # noqa: E402
+
+OFFSET = np.array([500000.0, 5400000.0, 0.0])
+
+
+def _rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def make_laz(path: Path, length: float, density: float, seed: int = 0) -> dict:
+    """Simulate the street and write it as LAZ (child process: its memory is not counted)."""
+    import laspy
+
+    from gmmgp_app.synth import scan_scene
+
+    scan, _ = scan_scene("street", density=density, seed=seed,
+                         scene_params=dict(length=float(length)))
+    hdr = laspy.LasHeader(point_format=3, version="1.4")
+    hdr.offsets = OFFSET
+    hdr.scales = np.array([1e-4, 1e-4, 1e-4])
+    hdr.add_extra_dims([laspy.ExtraBytesParams(name=f"origin_{a}", type=np.float64)
+                        for a in "xyz"])
+    las = laspy.LasData(hdr)
+    p = scan.points + OFFSET
+    las.x, las.y, las.z = p[:, 0], p[:, 1], p[:, 2]
+    for i, a in enumerate("xyz"):
+        las[f"origin_{a}"] = scan.origins[:, i] + OFFSET[i]
+    las.write(str(path))
+    return dict(n_points=len(scan), bytes=path.stat().st_size)
+
+
+def run_map(laz: Path, work: Path, tile: float, overlap: float, workers: int,
+            chunk: int, queries: Path, pred_out: Path) -> dict:
+    """Stream-map one file (child process) and report time, peak RSS, counts."""
+    import gmmgp_app as gm
+    from gmmgp_app.distributed import open_executor
+    from gmmgp_app.tiling import TileSpec, build_tiled_map_from_las
+
+    rss0 = _rss_mb()
+    cfg = gm.MappingConfig()
+    spec = TileSpec(size=tile, overlap=overlap)
+    t_open = time.perf_counter()
+    worker_rss = None
+    with open_executor(workers=workers or None) as ex:
+        client = getattr(ex, "_client", None)
+        if client is not None:
+            # import the package in every worker first: the serial run has it already
+            client.run(_warm_up)
+        t0 = time.perf_counter()
+        tm = build_tiled_map_from_las(laz, cfg, spec, work_dir=work, executor=ex,
+                                      chunk_size=chunk, offset=OFFSET)
+        t1 = time.perf_counter()
+        if client is not None:
+            worker_rss = max(client.run(_rss_mb).values())
+    q = np.load(queries)
+    m, v = tm.predict(q)
+    np.save(pred_out, np.column_stack([m, v]))
+    return dict(seconds=t1 - t0, cluster_start_seconds=t0 - t_open,
+                peak_rss_mb=_rss_mb(), rss_after_imports_mb=rss0,
+                worker_peak_rss_mb=worker_rss,
+                n_tiles=tm.summary["n_tiles"], n_points=tm.summary["n_points"],
+                skipped_tiles=len(tm.summary["skipped_tiles"]))
+
+
+def _warm_up() -> None:
+    import gmmgp_app.pipeline  # noqa: F401
+    import gmmgp_app.stages.gp  # noqa: F401
+    import gmmgp_app.stages.hgmm  # noqa: F401
+
+
+def _child(args) -> None:
+    kw = json.loads(args.child_args)
+    fn = {"make_laz": make_laz, "run_map": run_map}[args.child]
+    for k in ("path", "laz", "work", "queries", "pred_out"):
+        if k in kw:
+            kw[k] = Path(kw[k])
+    print("RESULT " + json.dumps(fn(**kw)))
+
+
+def _spawn(name: str, **kw) -> dict:
+    out = subprocess.run([sys.executable, __file__, "--child", name, "--child-args",
+                          json.dumps({k: str(v) if isinstance(v, Path) else v
+                                      for k, v in kw.items()})],
+                         capture_output=True, text=True)
+    for line in out.stdout.splitlines():
+        if line.startswith("RESULT "):
+            return json.loads(line[7:])
+    raise RuntimeError(f"{name} failed:\n{out.stderr[-3000:]}")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", default="1,2,4,8", help="street length multiples")
+    ap.add_argument("--base-length", type=float, default=25.0, help="1x street length (m)")
+    ap.add_argument("--density", type=float, default=0.02, help="scan_scene density")
+    ap.add_argument("--tile", type=float, default=15.0, help="tile size (m)")
+    ap.add_argument("--overlap", type=float, default=2.0, help="tile overlap (m)")
+    ap.add_argument("--chunk", type=int, default=20000, help="LAS points per chunk")
+    ap.add_argument("--workers", type=int, default=2, help="Dask LocalCluster workers")
+    ap.add_argument("--dask-sizes", default="", help="sizes also run on Dask (default: "
+                    "the largest)")
+    ap.add_argument("--repeat", type=int, default=3, help="runs per setting (median)")
+    ap.add_argument("--out", default="out/bench/bench_scale.json")
+    ap.add_argument("--child", help=argparse.SUPPRESS)
+    ap.add_argument("--child-args", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.child:
+        _child(args)
+        return 0
+    out = Path(args.out)
+    cache = out.parent / "bench_scale_cache"
+    cache.mkdir(parents=True, exist_ok=True)
+    sizes = [int(s) for s in args.sizes.split(",")]
+    dask_sizes = ([int(s) for s in args.dask_sizes.split(",")] if args.dask_sizes
+                  else [max(sizes)])
+    rows = []
+    for k in sizes:
+        length = args.base_length * k
+        laz = cache / f"street_{length:g}m_d{args.density:g}.laz"
+        info = (_spawn("make_laz", path=laz, length=length, density=args.density)
+                if not laz.exists() else dict(n_points=None, bytes=laz.stat().st_size))
+        rng = np.random.default_rng(k)
+        q = np.column_stack([rng.uniform(0, length, 4000), rng.uniform(-8, 8, 4000),
+                             rng.uniform(0, 6, 4000)])
+        qf = cache / f"queries_{k}.npy"
+        np.save(qf, q)
+        row = dict(multiple=k, length_m=length, laz_bytes=info["bytes"])
+        runs = [("serial", 0)] + ([("dask", args.workers)] if k in dask_sizes else [])
+        preds = {}
+        for name, w in runs:
+            pf = cache / f"pred_{k}_{name}.npy"
+            reps = [_spawn("run_map", laz=laz, work=cache / f"work_{k}_{name}_{r}",
+                           tile=args.tile, overlap=args.overlap, workers=w,
+                           chunk=args.chunk, queries=qf, pred_out=pf)
+                    for r in range(args.repeat)]
+            # the machine is shared: medians of fresh-process runs
+            res = dict(reps[0], seconds=float(np.median([r["seconds"] for r in reps])),
+                       seconds_all=[r["seconds"] for r in reps],
+                       peak_rss_mb=float(np.median([r["peak_rss_mb"] for r in reps])))
+            row[name] = res
+            preds[name] = np.load(pf)
+            print(f"{k}x {length:g} m {name}: {res['seconds']:.1f} s, peak RSS "
+                  f"{res['peak_rss_mb']:.0f} MB, {res['n_tiles']} tiles, "
+                  f"{res['n_points']} points", flush=True)
+        if "dask" in preds:
+            d = np.abs(preds["dask"] - preds["serial"])
+            row["dask_vs_serial_max_abs_diff"] = dict(mean=float(d[:, 0].max()),
+                                                      var=float(d[:, 1].max()))
+            row["dask_speedup"] = row["serial"]["seconds"] / row["dask"]["seconds"]
+        rows.append(row)
+    base = rows[0]
+    for r in rows:
+        ratio = r["multiple"] / base["multiple"]
+        r["time_vs_linear"] = r["serial"]["seconds"] / (base["serial"]["seconds"] * ratio)
+        r["rss_vs_1x"] = r["serial"]["peak_rss_mb"] / base["serial"]["peak_rss_mb"]
+    result = dict(settings=vars(args) | {"child": None, "child_args": None},
+                  machine=dict(cpus=os.cpu_count(), load=os.getloadavg()), rows=rows)
+    out.write_text(json.dumps(result, indent=2))
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

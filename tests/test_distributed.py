@@ -1,0 +1,376 @@
+"""Executors, batching, tiles and incremental updates (gmmgp_app.distributed / .tiling)."""
+
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+
+import numpy as np
+import pytest
+
+import gmmgp_app as gm
+from gmmgp_app.config import GPConfig
+from gmmgp_app.distributed import (DistributedError, SerialExecutor, batch_by_cost,
+                                   map_batched, open_executor)
+from gmmgp_app.stages.gp import ConstantPrior, fit_local_gps
+from gmmgp_app.tiling import (TiledMap, TileSpec, TilingError, build_tiled_map,
+                              build_tiled_map_from_las)
+
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_blas_thread():
+    """Multithreaded BLAS on a loaded 2-core machine makes a 480x480 Cholesky 100x
+    slower (measured: 1 s vs 10 ms); Dask workers run with one BLAS thread too."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1):
+        yield
+
+
+# ---------------------------------------------------------------- executors
+
+
+def _square(x):
+    return x * x
+
+
+def _boom(x):
+    raise KeyError(x)
+
+
+def test_serial_executor_runs_inline_and_keeps_exceptions():
+    ex = SerialExecutor()
+    assert ex.submit(_square, 7).result() == 49
+    with pytest.raises(KeyError):
+        ex.submit(_boom, 1).result()
+
+
+def test_map_batched_order_and_one_progress_across_tasks():
+    calls = []
+    out = map_batched(SerialExecutor(), sum, [[1, 2], [3], [4, 5, 6]], sizes=[2, 1, 3],
+                      progress=lambda d, t: calls.append((d, t)))
+    assert out == [3, 3, 15]
+    assert calls[0] == (0, 6) and calls[-1] == (6, 6)
+    assert [d for d, _ in calls] == sorted(d for d, _ in calls)
+
+
+@pytest.mark.parametrize("target", [0.0, 0.01, 0.05, 1.0])
+def test_batch_by_cost_partitions_in_order(target):
+    rng = np.random.default_rng(1)
+    costs = rng.exponential(0.004, size=200)
+    batches = batch_by_cost(costs, target)
+    assert np.array_equal(np.concatenate(batches), np.arange(200))
+    sums = [costs[b].sum() for b in batches]
+    # every batch but the last reaches the target; the last is at least half of it
+    # unless it is the only one
+    assert all(s >= target for s in sums[:-1])
+    assert len(batches) == 1 or sums[-1] >= 0.5 * target
+    if target == 0.0:
+        assert len(batches) == 200
+
+
+def test_batch_by_cost_max_batches():
+    assert len(batch_by_cost(np.full(100, 1e-3), 0.0, max_batches=4)) == 4
+
+
+def test_batch_errors():
+    with pytest.raises(DistributedError, match="min_task_seconds >= 0"):
+        batch_by_cost([1.0], -1)
+    with pytest.raises(DistributedError, match="non-negative item costs"):
+        batch_by_cost([1.0, np.nan], 0.01)
+
+
+def test_open_executor_errors():
+    with pytest.raises(DistributedError, match="kind 'dask' or 'processes'"):
+        with open_executor(2, kind="threads"):
+            pass
+    with pytest.raises(DistributedError, match="workers to be an integer >= 0"):
+        with open_executor(-1):
+            pass
+    with pytest.raises(DistributedError, match="scheduler address like"):
+        with open_executor(scheduler="localhost:8786"):
+            pass
+    with open_executor(0) as ex:
+        assert isinstance(ex, SerialExecutor)
+
+
+# ---------------------------------------------------------------- GP blocks on executors
+
+
+def _plane_points(n=1500, seed=0):
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0, 1.2, size=(n, 2))
+    z = 0.05 * np.sin(3 * xy[:, 0])
+    pts = np.column_stack([xy, z])
+    nrm = np.column_stack([-0.15 * np.cos(3 * xy[:, 0]), np.zeros(n), np.ones(n)])
+    return pts, nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+
+
+def test_fit_local_gps_executor_matches_serial():
+    pts, nrm = _plane_points()
+    cfg = GPConfig(block_size=0.3, max_block_points=120)
+    prior = ConstantPrior(0.1, 0.01)
+    ref = fit_local_gps(pts, nrm, prior, cfg)
+    calls = []
+    ser = fit_local_gps(pts, nrm, prior, cfg, executor=SerialExecutor(),
+                        progress=lambda d, t: calls.append((d, t)))
+    with ThreadPoolExecutor(2) as ex:
+        par = fit_local_gps(pts, nrm, prior, cfg, executor=ex)
+    assert calls[-1] == (ref.info["n_blocks"], ref.info["n_blocks"])
+    assert ref.info == ser.info == par.info
+    q = np.random.default_rng(3).uniform([0, 0, -0.2], [1.2, 1.2, 0.2], size=(500, 3))
+    m0, v0, g0 = ref.predict(q, return_grad=True)
+    m1, v1, g1 = ser.predict(q, return_grad=True)
+    m2, v2, g2 = par.predict(q, return_grad=True)
+    # same process, same arithmetic: bitwise
+    assert np.array_equal(m0, m1) and np.array_equal(v0, v1) and np.array_equal(g0, g1)
+    # other threads may use another BLAS thread split: round-off only
+    assert np.abs(m2 - m0).max() < 1e-9 and np.abs(v2 - v0).max() < 1e-9
+    assert np.abs(g2 - g0).max() < 1e-8
+
+
+# ---------------------------------------------------------------- tiles
+
+
+def test_tilespec_errors():
+    with pytest.raises(TilingError, match="positive tile size"):
+        TileSpec(size=0)
+    with pytest.raises(TilingError, match="overlap <= size / 2"):
+        TileSpec(size=10, overlap=6)
+    with pytest.raises(TilingError, match="blend 'smooth' or 'core'"):
+        TileSpec(blend="linear")
+    with pytest.raises(TilingError, match="min_points >= 10"):
+        TileSpec(min_points=3)
+
+
+def test_assign_brute_force():
+    spec = TileSpec(size=5.0, overlap=1.0)
+    xyz = np.random.default_rng(0).uniform(-12, 12, size=(3000, 3))
+    got = spec.assign(xyz)
+    for key, idx in got.items():
+        lo = np.array(key) * 5.0 - 1.0
+        inside = np.all((xyz[:, :2] >= lo) & (xyz[:, :2] < lo + 7.0), axis=1)
+        assert np.array_equal(idx, np.flatnonzero(inside))
+    assert sum(map(len, got.values())) >= len(xyz)
+
+
+@pytest.mark.parametrize("blend", ["smooth", "core"])
+def test_weights_partition_of_unity_and_gradient(blend):
+    spec = TileSpec(size=4.0, overlap=1.5, blend=blend)
+    xy = np.random.default_rng(2).uniform(-9, 9, size=(2000, 2))
+    total = np.zeros(len(xy))
+    for i in range(-4, 4):
+        for j in range(-4, 4):
+            w, g = spec.weights(xy, (i, j))
+            total += w
+            if blend == "smooth":
+                e = 1e-6
+                for c in range(2):
+                    d = np.zeros(2)
+                    d[c] = e
+                    fd = (spec.weights(xy + d, (i, j))[0] - spec.weights(xy - d, (i, j))[0])
+                    assert np.allclose(fd / (2 * e), g[:, c], atol=1e-6)
+    assert np.allclose(total, 1.0, atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def street():
+    from gmmgp_app.synth import scan_scene
+
+    scan, scene = scan_scene("street", density=0.01, scene_params=dict(length=20.0), seed=0)
+    keep = (scan.points[:, 0] > 0) & (scan.points[:, 0] < 16)
+    scan = scan.select(keep)
+    # shift to x in (16, 32), y in (9, 31): one 100 m tile holds it all, 8 m tiles
+    # meet at x = 24
+    shift = np.array([16.0, 20.0, 0.0])
+    scan = gm.Scan(points=scan.points + shift, origins=scan.origins + shift)
+    return scan, lambda q: scene.sdf(np.asarray(q) - shift)
+
+
+@pytest.fixture(scope="module")
+def tiled(street):
+    scan, _ = street
+    return build_tiled_map(scan, gm.MappingConfig(), TileSpec(size=8.0, overlap=2.0))
+
+
+def test_single_tile_equals_build_map(street):
+    scan, _ = street
+    cfg = gm.MappingConfig()
+    tm = build_tiled_map(scan, cfg, TileSpec(size=100.0, overlap=1.0))
+    order = np.lexsort((scan.points[:, 2], scan.points[:, 1], scan.points[:, 0]))
+    ref = gm.build_map(scan.select(order), cfg)
+    q = scan.points[::7] + 0.03
+    a, b = tm.predict(q, return_grad=True), ref.predict(q, return_grad=True)
+    for x, y in zip(a, b):
+        assert np.abs(x - y).max() == 0, np.abs(x - y).max()
+
+
+def test_smooth_blend_has_no_seam(street, tiled):
+    """Across the tile border x = 24 m the stitched mean is continuous."""
+    scan, sdf = street
+    near = scan.points[np.abs(scan.points[:, 0] - 24.0) < 0.5][::5]
+    left, right = near.copy(), near.copy()
+    left[:, 0], right[:, 0] = 24.0 - 1e-7, 24.0 + 1e-7
+    jump = np.abs(tiled.predict(left)[0] - tiled.predict(right)[0])
+    assert jump.max() < 1e-5
+    core = TiledMap(TileSpec(size=8.0, overlap=2.0, blend="core"), tiled.tiles,
+                    tiled.config, tiled.method)
+    jump_core = np.abs(core.predict(left)[0] - core.predict(right)[0])
+    assert jump_core.max() > 10 * jump.max()
+    # the stitched field is as accurate as its tiles near the surface
+    err = np.abs(tiled.predict(near)[0] - sdf(near))
+    assert np.median(err) < 0.05
+
+
+def test_tiled_gradient_matches_finite_differences(street, tiled):
+    scan, _ = street
+    q = scan.points[np.abs(scan.points[:, 0] - 24.0) < 1.0][::11] + 0.02
+    _, _, g = tiled.predict(q, return_grad=True)
+    e = 1e-6
+    for c in range(3):
+        d = np.zeros(3)
+        d[c] = e
+        fd = (tiled.predict(q + d)[0] - tiled.predict(q - d)[0]) / (2 * e)
+        assert np.allclose(fd, g[:, c], atol=1e-4)
+
+
+def test_tiled_map_errors(street):
+    scan, _ = street
+    with pytest.raises(TilingError, match="at least one tile with"):
+        build_tiled_map(scan.select(np.arange(50)), gm.MappingConfig(),
+                        TileSpec(size=8.0, overlap=2.0, min_points=100))
+
+
+# ---------------------------------------------------------------- incremental update
+
+
+def test_update_with_hgmm_refit_matches_whole_build(street, tiled):
+    """Half the street, then the other half (refit_hgmm=True) == the whole street."""
+    scan, _ = street
+    first = scan.points[:, 0] < 24.0
+    tm = build_tiled_map(scan.select(first), gm.MappingConfig(), tiled.spec)
+    rep = tm.update(scan.select(~first), refit_hgmm=True)
+    assert rep["rebuilt_tiles"]
+    assert tm.keys == tiled.keys
+    q = scan.points[::9] + 0.02
+    a, b = tm.predict(q), tiled.predict(q)
+    # a tile's map depends only on its set of points: equal to round-off
+    assert np.abs(a[0] - b[0]).max() < 1e-9 and np.abs(a[1] - b[1]).max() < 1e-9
+
+
+def test_gp_only_update_changes_only_touched_blocks(street):
+    """Without HGMM refit: far from the new points the field is bitwise unchanged."""
+    scan, sdf = street
+    spec = TileSpec(size=100.0, overlap=1.0)  # one tile: the GP-only path
+    cfg = gm.MappingConfig()
+    old = scan.points[:, 0] < 27.0
+    tm = build_tiled_map(scan, cfg, spec)
+    base = build_tiled_map(scan.select(old), cfg, spec)
+    before_q = scan.points[scan.points[:, 0] < 25.0][::5] + 0.01
+    before = base.predict(before_q)
+    rep = base.update(scan.select(~old), new_space_fraction=None)
+    assert rep["gp_updated_tiles"] == [(0, 0)] and rep["refit_blocks"] > 0
+    after = base.predict(before_q)
+    assert np.array_equal(before[0], after[0]) and np.array_equal(before[1], after[1])
+    # near the new points the updated GP pulls the field onto the surface: median error
+    # within 1 cm of a map built from the whole scan (which also refits the HGMM)
+    new_q = scan.points[scan.points[:, 0] > 28.0][::5]
+    e_upd = np.median(np.abs(base.predict(new_q)[0] - sdf(new_q)))
+    e_all = np.median(np.abs(tm.predict(new_q)[0] - sdf(new_q)))
+    assert e_upd < e_all + 0.01
+
+
+@pytest.mark.slow
+def test_dask_local_cluster_matches_serial(street):
+    scan, _ = street
+    cfg = gm.MappingConfig()
+    spec = TileSpec(size=8.0, overlap=2.0)
+    ref = build_tiled_map(scan, cfg, spec)
+    with open_executor(workers=2) as ex:
+        par = build_tiled_map(scan, cfg, spec, executor=ex)
+        pts, nrm = _plane_points()
+        gcfg = GPConfig(block_size=0.3, max_block_points=120)
+        g0 = fit_local_gps(pts, nrm, ConstantPrior(0.1, 0.01), gcfg)
+        g1 = fit_local_gps(pts, nrm, ConstantPrior(0.1, 0.01), gcfg, executor=ex)
+    q = np.random.default_rng(5).uniform(scan.points.min(0), scan.points.max(0), (3000, 3))
+    a, b = ref.predict(q), par.predict(q)
+    assert np.abs(a[0] - b[0]).max() < 1e-6 and np.abs(a[1] - b[1]).max() < 1e-6
+    assert np.abs(g0.predict(pts)[0] - g1.predict(pts)[0]).max() < 1e-6
+
+
+@pytest.mark.slow
+def test_fit_local_gps_process_pool_matches_serial():
+    pts, nrm = _plane_points()
+    cfg = GPConfig(block_size=0.3, max_block_points=120)
+    prior = ConstantPrior(0.1, 0.01)
+    ref = fit_local_gps(pts, nrm, prior, cfg)
+    with ProcessPoolExecutor(2) as ex:
+        par = fit_local_gps(pts, nrm, prior, cfg, executor=ex)
+    q = np.random.default_rng(3).uniform([0, 0, -0.2], [1.2, 1.2, 0.2], size=(500, 3))
+    assert np.abs(ref.predict(q)[0] - par.predict(q)[0]).max() < 1e-9
+
+
+# ---------------------------------------------------------------- streaming LAS/LAZ
+
+
+def write_laz(path, scan, offset=(500000.0, 5400000.0, 100.0)):
+    """A LAZ file of a scan (georeferenced by ``offset``) with origins as extra dims."""
+    import laspy
+
+    hdr = laspy.LasHeader(point_format=3, version="1.4")
+    hdr.offsets = np.asarray(offset)
+    hdr.scales = np.array([1e-4, 1e-4, 1e-4])
+    hdr.add_extra_dims([laspy.ExtraBytesParams(name=f"origin_{a}", type=np.float64)
+                        for a in "xyz"])
+    las = laspy.LasData(hdr)
+    p = scan.points + np.asarray(offset)
+    las.x, las.y, las.z = p[:, 0], p[:, 1], p[:, 2]
+    for i, a in enumerate("xyz"):
+        las[f"origin_{a}"] = scan.origins[:, i] + offset[i]
+    las.write(str(path))
+
+
+def test_streamed_laz_equals_in_memory_tiles(street, tiled, tmp_path):
+    """Chunked LAZ reading into tiles gives the same tile maps as the in-memory split."""
+    scan, _ = street
+    off = np.array([500000.0, 5400000.0, 100.0])
+    write_laz(tmp_path / "street.laz", scan, off)
+    tm = build_tiled_map_from_las(tmp_path / "street.laz", tiled.config, tiled.spec,
+                                  work_dir=tmp_path / "work", chunk_size=3000, cache_tiles=1,
+                                  offset=off)
+    assert np.array_equal(tm.offset, off)
+    q = scan.points[::9] + 0.02
+    a = tm.predict(q)
+    b = tiled.predict(q)
+    # coordinates went through the LAS 0.1 mm integer grid: equal maps up to that
+    assert tm.keys == tiled.keys
+    assert np.median(np.abs(a[0] - b[0])) < 1e-3
+
+
+def test_update_needs_points(street, tiled):
+    scan, _ = street
+    bare = TiledMap(tiled.spec, tiled.tiles, tiled.config, tiled.method)
+    with pytest.raises(TilingError, match="without keeping its points"):
+        bare.update(scan)
+    with pytest.raises(TilingError, match="Expected the update's offset"):
+        tiled.update(gm.Scan(points=scan.points, offset=[1.0, 0.0, 0.0]))
+
+
+def test_spill_errors(tmp_path):
+    from gmmgp_app.tiling import spill_las_to_tiles
+
+    with pytest.raises(TilingError, match="chunk_size >= 1"):
+        spill_las_to_tiles(tmp_path / "x.laz", TileSpec(), tmp_path, chunk_size=0)
+
+
+def test_update_remaps_tiles_in_new_space(street):
+    """New points far from a tile's old ones trigger a remap, not a GP-only refit."""
+    scan, _ = street
+    spec = TileSpec(size=100.0, overlap=1.0)
+    old = scan.points[:, 0] < 24.0
+    base = build_tiled_map(scan.select(old), gm.MappingConfig(), spec)
+    rep = base.update(scan.select(~old))
+    assert rep["rebuilt_tiles"] == [(0, 0)] and not rep["gp_updated_tiles"]
+    # densifying already-seen space (every other point of the old half) stays GP-only
+    dense = scan.select(np.flatnonzero(old)[::2])
+    base2 = build_tiled_map(scan.select(np.flatnonzero(old)[1::2]), gm.MappingConfig(), spec)
+    rep2 = base2.update(dense, new_space_voxel=2.0)
+    assert rep2["gp_updated_tiles"] == [(0, 0)] and not rep2["rebuilt_tiles"]
