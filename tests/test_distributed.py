@@ -374,3 +374,36 @@ def test_update_remaps_tiles_in_new_space(street):
     base2 = build_tiled_map(scan.select(np.flatnonzero(old)[1::2]), gm.MappingConfig(), spec)
     rep2 = base2.update(dense, new_space_voxel=2.0)
     assert rep2["gp_updated_tiles"] == [(0, 0)] and not rep2["rebuilt_tiles"]
+
+
+@pytest.mark.slow
+def test_tiled_mesh_has_no_cracks_along_tile_borders():
+    """One field, one lattice: the mesh of a tiled map has no extra boundary along the
+    tile borders compared with the untiled map's mesh of the same scan."""
+    import gmmgp_app as gm
+    from gmmgp_app.synth import scan_scene
+    from gmmgp_app.tiling import TileSpec, build_tiled_map
+
+    scan, _ = scan_scene("plane", density=0.05, seed=0)
+    span = np.ptp(scan.points[:, 0])
+    tiled = build_tiled_map(scan, gm.MappingConfig(), TileSpec(size=span / 2.2, overlap=1.0))
+    mesh = tiled.extract_surface(voxel_size=0.1)
+    plain = gm.build_map(scan, gm.MappingConfig()).extract_surface(voxel_size=0.1)
+
+    def boundary_midpoints(m):
+        e = np.sort(np.concatenate([m.faces[:, [0, 1]], m.faces[:, [1, 2]],
+                                    m.faces[:, [2, 0]]]), axis=1)
+        u, c = np.unique(e, axis=0, return_counts=True)
+        return m.vertices[u[c == 1]].mean(axis=1)
+
+    mid_t, mid_p = boundary_midpoints(mesh), boundary_midpoints(plain)
+    assert len(mid_t) < 1.1 * len(mid_p)
+    borders = np.unique(np.concatenate([[k[0] * tiled.spec.size for k in tiled.keys],
+                                        [(k[0] + 1) * tiled.spec.size for k in tiled.keys]]))
+    inner = borders[(borders > scan.points[:, 0].min() + 1) &
+                    (borders < scan.points[:, 0].max() - 1)]
+    assert len(inner) >= 1
+    for b in inner:  # boundary edges in a 0.6 m strip around the border: no crack line
+        near_t = np.sum(np.abs(mid_t[:, 0] - b) < 0.3)
+        near_p = np.sum(np.abs(mid_p[:, 0] - b) < 0.3)
+        assert near_t <= 1.5 * near_p + 20
