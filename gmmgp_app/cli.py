@@ -67,7 +67,8 @@ def _add_reader_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--max-scans", type=int, help="use at most this many scans of a folder")
 
 
-def _reader_kwargs(args) -> dict:
+def reader_kwargs(args) -> dict:
+    """read_scan options from the CLI's reader arguments (missing ones are skipped)."""
     kw = {}
     if getattr(args, "units", None):
         try:
@@ -183,7 +184,7 @@ def build_parser() -> argparse.ArgumentParser:
 def cmd_info(args) -> int:
     from .datasets import read_scan, scan_summary
 
-    scan = read_scan(args.scan[0] if len(args.scan) == 1 else args.scan, **_reader_kwargs(args))
+    scan = read_scan(args.scan[0] if len(args.scan) == 1 else args.scan, **reader_kwargs(args))
     s = scan_summary(scan)
     if args.json:
         print(json.dumps(s, indent=2, default=float))
@@ -229,7 +230,7 @@ def cmd_run(args) -> int:
 
     from ._atomic import atomic_write_text
     from .datasets import read_scan
-    from .pipeline import build_map
+    from .pipeline import FanoutObserver, build_map
     from .progress import ConsoleObserver
 
     out = Path(args.out)
@@ -242,9 +243,9 @@ def cmd_run(args) -> int:
 
         recorder = RerunObserver(args.rrd, spawn=args.spawn, serve=args.serve, config=cfg)
         observers.append(recorder)
-    observer = _Fanout(observers)
+    observer = FanoutObserver(*observers)
     t0 = time.perf_counter()
-    scan = read_scan(args.scan[0] if len(args.scan) == 1 else args.scan, **_reader_kwargs(args))
+    scan = read_scan(args.scan[0] if len(args.scan) == 1 else args.scan, **reader_kwargs(args))
     read_s = time.perf_counter() - t0
     stop = None if args.stage == "all" else args.stage
     if stop is None and not args.no_mesh:  # refuse an impossible grid before fitting
@@ -268,7 +269,7 @@ def cmd_run(args) -> int:
     try:
         out.mkdir(parents=True, exist_ok=True)
         smap.summary["scan"] = {"paths": [str(Path(s).resolve()) for s in args.scan],
-                                "reader": _reader_kwargs(args)}
+                                "reader": reader_kwargs(args)}
         smap.save(out / "map")
         written = [out / "map"]
         if args.stage == "all" and not args.no_mesh:
@@ -357,23 +358,6 @@ class _TaskBar:
     def close(self):
         if self.bar is not None:
             self.bar.close()
-
-
-class _Fanout:
-    """Forward stage events to several observers."""
-
-    def __init__(self, observers):
-        self.observers = observers
-
-    def on_stage_start(self, name):
-        for o in self.observers:
-            f = getattr(o, "on_stage_start", None)
-            if f:
-                f(name)
-
-    def on_stage(self, name, payload):
-        for o in self.observers:
-            o.on_stage(name, payload)
 
 
 def _check_writable(out: Path) -> None:

@@ -21,7 +21,6 @@ The recipe:
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path
@@ -110,20 +109,6 @@ def _parse_bins(text):
     return edges
 
 
-def _scan_kwargs(args) -> dict:
-    kw = {}
-    if getattr(args, "units", None):
-        try:
-            kw["units"] = float(args.units)
-        except ValueError:
-            kw["units"] = args.units
-    if getattr(args, "poses", None):
-        kw["poses"] = args.poses
-    if getattr(args, "max_scans", None):
-        kw["max_scans"] = args.max_scans
-    return kw
-
-
 def cmd_eval(args) -> int:
     """Run ``gmmgp eval`` from parsed arguments; returns the exit code (0)."""
     quiet = getattr(args, "quiet", False)
@@ -136,7 +121,6 @@ def cmd_eval(args) -> int:
     out = Path(args.out) if args.out else directory / "eval"
 
     from .datasets import read_scan
-    from .evaluation import Reference
     from .pipeline import load_map
 
     smap = load_map(directory / "map")
@@ -145,7 +129,9 @@ def cmd_eval(args) -> int:
         raise EvalInputError(
             f"The map in '{directory}' does not record its scan; pass it with --scan "
             "(the same file(s) given to 'gmmgp run').")
-    scan_kw = _scan_kwargs(args) or dict(smap.summary.get("scan", {}).get("reader", {}))
+    from .cli import reader_kwargs
+
+    scan_kw = reader_kwargs(args) or dict(smap.summary.get("scan", {}).get("reader", {}))
     log(f"reading scan {', '.join(map(str, scan_paths))}")
     scan = read_scan(scan_paths[0] if len(scan_paths) == 1 else list(scan_paths), **scan_kw)
     n_saved = smap.summary.get("n_scan_points")

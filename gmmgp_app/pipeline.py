@@ -21,7 +21,7 @@ from ._atomic import atomic_dir
 from .config import MappingConfig
 from .types import GaussianMixture, HGMMLevel, HierarchicalGMM, Scan, SurfaceMesh
 
-__all__ = ["build_map", "SurfaceMap", "load_map", "NullObserver", "METHODS", "MapFormatError"]
+__all__ = ["build_map", "SurfaceMap", "load_map", "NullObserver", "FanoutObserver", "METHODS", "MapFormatError"]
 
 METHODS = ("gmmgp", "hgmm", "gpis")
 MAP_FORMAT_VERSION = 1
@@ -29,6 +29,23 @@ MAP_FORMAT_VERSION = 1
 
 class MapFormatError(ValueError):
     """A saved map folder is missing, incomplete or from an incompatible version."""
+
+
+class FanoutObserver:
+    """Forward stage events to several observers (``None`` entries are skipped)."""
+
+    def __init__(self, *observers):
+        self.observers = [o for o in observers if o is not None]
+
+    def on_stage_start(self, name: str) -> None:
+        for o in self.observers:
+            start = getattr(o, "on_stage_start", None)
+            if start is not None:
+                start(name)
+
+    def on_stage(self, name: str, payload: Any) -> None:
+        for o in self.observers:
+            o.on_stage(name, payload)
 
 
 class NullObserver:

@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .pipeline import FanoutObserver
+
 __all__ = ["SweepError", "add_sweep_arguments", "cmd_sweep", "parse_values", "run_sweep"]
 
 #: Queries for rmse_sdf.
@@ -80,21 +82,6 @@ class _Collect:
     def on_stage(self, name, payload):
         if name == "prepare":
             self.data = payload.result
-
-
-class _Fanout:
-    def __init__(self, *observers):
-        self.observers = [o for o in observers if o is not None]
-
-    def on_stage_start(self, name):
-        for o in self.observers:
-            f = getattr(o, "on_stage_start", None)
-            if f:
-                f(name)
-
-    def on_stage(self, name, payload):
-        for o in self.observers:
-            o.on_stage(name, payload)
 
 
 def _table_markdown(param: str, rows: list) -> str:
@@ -177,7 +164,7 @@ def run_sweep(scan, param: str, values: list, *, base=None, method: str = "gmmgp
             obs.log("world", obs.rr.Clear(recursive=True))
         t0 = time.perf_counter()
         smap = build_map(scan, cfg, method=method,
-                         observer=_Fanout(console, obs, collect))
+                         observer=FanoutObserver(console, obs, collect))
         row = {"step": i, "value": _scalar(value), "param": param}
         seconds = dict(smap.summary.get("seconds", {}))
         if smap.hgmm is not None:
@@ -305,9 +292,9 @@ def cmd_sweep(args) -> int:
     reference = Reference.load(args.reference) if args.reference else None
     kw = {}
     if hasattr(args, "units"):  # reader options were added to the parser
-        from .cli import _reader_kwargs
+        from .cli import reader_kwargs
 
-        kw = _reader_kwargs(args)
+        kw = reader_kwargs(args)
     scan = read_scan(args.scan[0] if len(args.scan) == 1 else args.scan, **kw)
     quiet = getattr(args, "quiet", False)
     console = ConsoleObserver(enabled=not quiet)
