@@ -23,6 +23,8 @@ __all__ = ["extract_surface", "check_grid_size", "write_mesh_ply", "write_mesh_o
 
 # Refuse grids that would need more than this many field evaluations up front.
 MAX_GRID_NODES = 200_000_000
+# Surface following stays within this many median seed spacings (plus half a cell).
+REACH_SPACINGS = 1.0
 
 
 class GridTooLargeError(MemoryError):
@@ -70,9 +72,10 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
 
     The lattice is evaluated only where the surface is: starting from the cells
     that hold a seed point, the zero crossing is followed into a neighbouring cell
-    whenever the shared face changes sign, at most ``dilate`` cells away from the
-    seeds. Nodes that were never evaluated are masked, so no surface is invented
-    far from the data.
+    whenever the shared face changes sign, at most ``dilate`` steps and only into
+    cells whose centre lies within half a cell diagonal plus the median seed
+    spacing of a seed. Nodes that were never evaluated are masked, so no surface
+    is invented far from the data.
 
     Parameters
     ----------
@@ -105,7 +108,13 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     h = float(voxel_size)
     dilate = check_grid_size(seeds, h, dilate)
 
-    # 1. Follow the zero crossing from the seed cells (cells by their lower corner).
+    # 1. Follow the zero crossing from the seed cells (cells by their lower corner), but
+    #    only into cells near a seed: beyond the data a planar component's zero set goes
+    #    on as a "fin", which is not observed surface.
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(seeds)
+    reach = 0.5 * np.sqrt(3.0) * h + REACH_SPACINGS * _median_spacing(seeds)
     cells = np.unique(np.floor(seeds / h).astype(np.int64), axis=0)
     pack = _Packer(cells.min(0) - dilate - block_cells - 2,
                    cells.max(0) + dilate + block_cells + 2)
@@ -123,6 +132,9 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
         grown = np.unique(np.concatenate(grown), axis=0)
         keys = pack(grown)
         new = grown[~_contains(cell_keys, keys)]
+        if len(new):
+            near = tree.query((new + 0.5) * h, k=1, distance_upper_bound=reach)[0] < np.inf
+            new = new[near]
         bar and bar.update(1)
         if len(new) == 0:
             break
