@@ -38,7 +38,8 @@ _EXAMPLES = {
   gmmgp run scan.laz --out out/scan --scheduler tcp://HOST:8786 # ... or on an existing one""",
     "view": """examples:
   gmmgp view assets/demo_street.npz
-  gmmgp view out/demo/map""",
+  gmmgp view out/demo/map
+  xvfb-run -s "-screen 0 1600x1000x24" gmmgp view scan.ply     # on a machine without a display""",
     "eval": """examples:
   gmmgp eval out/demo --reference assets/demo_street_mesh.ply""",
     "sweep": """examples:
@@ -164,8 +165,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_reader_options(p)
     _add_config_options(p)
 
+    from .viz.gui import add_view_arguments
+
     p = add("view", help="open the interactive desktop app", epilog=_EXAMPLES["view"])
-    p.add_argument("target", help="scan file or saved map folder")
+    add_view_arguments(p)
 
     from .eval_cli import add_eval_arguments
 
@@ -337,11 +340,10 @@ def cmd_eval(args) -> int:
     return run(args)
 
 
-def cmd_not_yet(args) -> int:
-    issue = {"view": 7}[args.command]
-    raise NotImplementedError(
-        f"'gmmgp {args.command}' is not available yet (planned in issue {issue}); "
-        "use 'gmmgp run' to build and save a map.")
+def cmd_view(args) -> int:
+    from .viz.gui import cmd_view as run
+
+    return run(args)
 
 
 class _TaskBar:
@@ -377,7 +379,7 @@ def _jsonable(obj):
 
 # --------------------------------------------------------------------------- entry point
 _COMMANDS = {"info": cmd_info, "synth": cmd_synth, "run": cmd_run,
-             "view": cmd_not_yet, "eval": cmd_eval, "sweep": cmd_sweep}
+             "view": cmd_view, "eval": cmd_eval, "sweep": cmd_sweep}
 
 
 def main(argv=None) -> int:

@@ -1,0 +1,1052 @@
+"""``gmmgp view``: the desktop app (Open3D GUI) to inspect every stage and tune the map.
+
+Layout: a 3D scene on the left, a side panel on the right with
+
+* **Stage** selector (scan, prepared rows, HGMM, GMR error, GP points, surface) and
+  an HGMM **level** slider: split nodes of that level are drawn as wireframe
+  ellipsoids, nodes kept as leaves as solid ones, both coloured by c;
+* **Layers**: points, ellipsoids, GP points, octree blocks, mesh, and colouring by the
+  predicted standard deviation, with a colour-bar legend for the active colouring;
+* **Tuning**: split threshold, d_m and surface voxel; **Run** re-computes only the
+  stages a change affects (threshold: HGMM, GMR, GP, surface; d_m: GP, surface;
+  voxel: surface) in a worker thread, with progress;
+* **Probe**: Ctrl+click on anything in the scene to read the SDF mean +- std there;
+* **Screenshot** and **Save map** buttons.
+
+Model / view / controller as in Open3D's online-processing example: the model
+(:mod:`.gui_model`) computes in worker threads and never touches a widget; results
+come back to the main thread through ``post_to_main_thread`` and are dropped when a
+newer run has started (a generation counter); the view is rebuilt from the current
+results, then ``post_redraw``.
+
+Automation (tests, README screenshots): ``--script steps.json`` runs a list of
+steps after the first computation, e.g.::
+
+    [{"stage": "hgmm"}, {"level": 1}, {"screenshot": "hgmm1.png", "window": true},
+     {"threshold": 0.03}, {"run": true}, {"state": "state.json"}, {"quit": true}]
+
+Step keys: stage, level, layer + on, colour_by_variance, threshold, d_m, voxel, run
+(waits unless ``"wait": false``), probe ([x, y, z] or "center"), screenshot (+ window:
+whole window through the X server instead of the 3D view alone), save, state, camera
+(eye, center), sleep, quit.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .gui_model import (STAGE_LABELS, STAGES, Cancelled, StageResults, ViewerError,
+                        ViewerModel, first_affected_stage)
+
+__all__ = ["add_view_arguments", "cmd_view", "ViewerApp", "ViewerError", "run_app"]
+
+LAYERS = ("points", "ellipsoids", "gp_points", "blocks", "mesh")
+LAYER_LABELS = {"points": "Points", "ellipsoids": "Ellipsoids (HGMM level)",
+                "gp_points": "GP points", "blocks": "Octree blocks", "mesh": "Surface mesh"}
+#: Layers switched on when a stage is selected (the user may change them after).
+STAGE_LAYERS = {"scan": {"points"}, "prepare": {"points"}, "hgmm": {"points", "ellipsoids"},
+                "gmr": {"points"}, "gp": {"points", "gp_points", "blocks"},
+                "surface": {"mesh"}}
+#: Most points drawn at once (a fixed-seed subsample beyond); the CPU renderer slows.
+MAX_DRAWN_POINTS = 300_000
+THRESHOLD_RANGE = (1e-3, 0.25)
+DM_RANGE = (0.0, 0.2)
+VOXEL_RANGE = (0.02, 1.0)
+LEGEND_CELLS = 24
+
+
+# --------------------------------------------------------------------------- CLI
+def add_view_arguments(parser) -> None:
+    """Options of ``gmmgp view`` (added to the sub-parser by cli.py)."""
+    parser.add_argument("target", help="scan file, saved map folder (map/) or a "
+                        "'gmmgp run' output folder")
+    parser.add_argument("--voxel", type=float, default=0.1,
+                        help="marching-cubes voxel of the surface in metres (default 0.1; "
+                             "the map's 0.05 is sharper but about 4x slower)")
+    parser.add_argument("--size", default="1600x1000", metavar="WxH",
+                        help="window size in pixels (default 1600x1000)")
+    parser.add_argument("--stage", default=None, choices=STAGES,
+                        help="stage shown first (default: the last one computed)")
+    parser.add_argument("--script", metavar="JSON",
+                        help="run these steps after the first computation (automation and "
+                             "screenshots; see the module docstring of gmmgp_app.viz.gui)")
+    g = parser.add_argument_group("configuration")
+    g.add_argument("--config", help="TOML file with [prepare], [hgmm], [gmr], [gp], [surface]")
+    g.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                   help="override one field, e.g. --set hgmm.split_threshold=0.02 (repeatable)")
+
+
+def cmd_view(args) -> int:
+    """Open the app on ``args.target``; returns the exit code once the window closes."""
+    from ..config import MappingConfig
+
+    check_display()
+    cfg = MappingConfig.from_toml(args.config) if args.config else MappingConfig()
+    cfg = cfg.with_overrides(args.set) if args.set else cfg
+    size = _parse_size(args.size)
+    if not (VOXEL_RANGE[0] <= args.voxel <= VOXEL_RANGE[1]):
+        raise ViewerError(f"Expected --voxel between {VOXEL_RANGE[0]} and {VOXEL_RANGE[1]} m, "
+                          f"found {args.voxel}; the app extracts surfaces interactively.")
+    steps = None
+    if args.script:
+        steps = _load_script(args.script)
+    model = ViewerModel.open(args.target, cfg, voxel_size=args.voxel)
+    return run_app(model, size=size, first_stage=args.stage, script=steps)
+
+
+def check_display() -> None:
+    """Fail early, in one line, where no window can open (Open3D would abort the process)."""
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY")
+                                                 or os.environ.get("WAYLAND_DISPLAY")):
+        raise ViewerError("No display found (DISPLAY and WAYLAND_DISPLAY are unset); run in a "
+                          "desktop session, or headless with 'xvfb-run -s \"-screen 0 "
+                          "1600x1000x24\" gmmgp view ...'.")
+
+
+def _parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        w = h = 0
+    if w < 400 or h < 300:
+        raise ViewerError(f"Expected --size like 1600x1000 (at least 400x300), found {text!r}.")
+    return w, h
+
+
+def _load_script(path) -> list:
+    p = Path(path)
+    try:
+        steps = json.loads(p.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise ViewerError(f"Cannot read the script '{p}' ({e}); expected a JSON list of "
+                          "steps like [{\"stage\": \"hgmm\"}, {\"quit\": true}].") from None
+    if not isinstance(steps, list) or not all(isinstance(s, dict) for s in steps):
+        raise ViewerError(f"Expected a JSON list of step objects in '{p}', found "
+                          f"{type(steps).__name__}.")
+    return steps
+
+
+def run_app(model: ViewerModel, size=(1600, 1000), first_stage=None, script=None) -> int:
+    """Create the window, start the first computation and run the event loop."""
+    import open3d.visualization.gui as gui
+
+    app = gui.Application.instance
+    app.initialize()
+    viewer = ViewerApp(model, size=size, first_stage=first_stage)
+    viewer.start_initial_run()
+    if script is not None:
+        viewer.run_script(script)
+    app.run()
+    return viewer.exit_code
+
+
+# --------------------------------------------------------------------------- the app
+class ViewerApp:
+    """The window (view) and its event handlers (controller) around a ViewerModel.
+
+    All methods except the worker bodies and :meth:`run_script`'s driver run on the
+    GUI main thread.
+    """
+
+    def __init__(self, model: ViewerModel, size=(1600, 1000), first_stage=None):
+        import open3d.visualization.gui as gui
+        import open3d.visualization.rendering as rendering
+
+        self.gui, self.rendering = gui, rendering
+        self.model = model
+        self.app = gui.Application.instance
+        self.exit_code = 0
+        self.errors: list[str] = []
+        self.generation = 0          # bumped by every run; older results are dropped
+        self.dropped_results = 0
+        self.idle = threading.Event()
+        self.idle.set()
+        self.stage = first_stage
+        self._user_stage = first_stage is not None
+        self.level = 0
+        self.layers = set(STAGE_LAYERS[first_stage or "scan"])
+        self.colour_by_variance = False
+        self.pending_cfg = model.results.config
+        self.pending_voxel = model.results.voxel_size
+        self.probe_text = ""
+        self.legend_key = "unpainted"
+        self._std_cache: dict = {}
+        self._camera_set = False
+        self._shown: set[str] = set()
+        self._geom_keys: dict[str, object] = {}
+
+        w, h = size
+        self.window = self.app.create_window(f"gmmgp view - {model.source}", w, h)
+        em = self.window.theme.font_size
+        self.em = em
+        self.scene = gui.SceneWidget()
+        self.scene.scene = rendering.Open3DScene(self.window.renderer)
+        self.scene.scene.set_background([1.0, 1.0, 1.0, 1.0])
+        self.scene.scene.show_axes(False)
+        # Tone mapping would shift the colour maps (and the legend would lie).
+        self.scene.scene.view.set_post_processing(False)
+        self.scene.set_on_mouse(self._on_mouse)
+        self.window.add_child(self.scene)
+        self.panel = self._build_panel(gui, em)
+        self.window.add_child(self.panel)
+        self.window.set_on_layout(self._on_layout)
+        self.window.set_on_close(self._on_close)
+        self._materials(rendering)
+        self._refresh_panel()
+
+    # ------------------------------------------------------------------ building
+    def _materials(self, rendering):
+        def mat(shader, **kw):
+            m = rendering.MaterialRecord()
+            m.shader = shader
+            for k, v in kw.items():
+                setattr(m, k, v)
+            return m
+
+        self.mat = {
+            "points": mat("defaultUnlit", point_size=2.0 * self.window.scaling),
+            "gp_points": mat("defaultUnlit", point_size=5.0 * self.window.scaling),
+            "ellipsoids_leaf": mat("defaultLit"),
+            "ellipsoids_split": mat("unlitLine", line_width=1.5 * self.window.scaling),
+            "blocks": mat("unlitLine", line_width=1.0 * self.window.scaling),
+            "mesh": mat("defaultLit"),
+            "probe": mat("defaultLit", base_color=[1.0, 0.1, 0.1, 1.0]),
+        }
+
+    def _build_panel(self, gui, em):
+        panel = gui.ScrollableVert(0.4 * em, gui.Margins(0.6 * em, 0.6 * em, 0.6 * em, 0.6 * em))
+        self.title_label = gui.Label(Path(self.model.source).name or self.model.source)
+        panel.add_child(self.title_label)
+        self.counts_label = gui.Label("")
+        panel.add_child(self.counts_label)
+
+        # -- stage and level
+        sec = gui.CollapsableVert("Stage", 0.3 * em, gui.Margins(0.3 * em, 0, 0, 0))
+        self.stage_combo = gui.Combobox()
+        for s in STAGES:
+            self.stage_combo.add_item(STAGE_LABELS[s])
+        self.stage_combo.set_on_selection_changed(lambda text, i: self.set_stage(STAGES[i]))
+        sec.add_child(self.stage_combo)
+        sec.add_child(gui.Label("HGMM level"))
+        self.level_slider = gui.Slider(gui.Slider.INT)
+        self.level_slider.set_limits(0, 1)
+        self.level_slider.set_on_value_changed(lambda v: self.set_level(int(v)))
+        sec.add_child(self.level_slider)
+        self.level_label = gui.Label("")
+        sec.add_child(self.level_label)
+        panel.add_child(sec)
+
+        # -- layers and colouring
+        sec = gui.CollapsableVert("Layers", 0.3 * em, gui.Margins(0.3 * em, 0, 0, 0))
+        self.layer_boxes = {}
+        for name in LAYERS:
+            cb = gui.Checkbox(LAYER_LABELS[name])
+            cb.set_on_checked(lambda on, n=name: self.set_layer(n, on))
+            sec.add_child(cb)
+            self.layer_boxes[name] = cb
+        self.variance_box = gui.Checkbox("Colour by predicted std")
+        self.variance_box.set_on_checked(self.set_colour_by_variance)
+        sec.add_child(self.variance_box)
+        self.legend_title = gui.Label("")
+        sec.add_child(self.legend_title)
+
+        # The colour bar is a row of coloured cells, not an ImageWidget: swapping
+        # textures through ImageWidget stalled the CPU renderer for minutes here.
+        bar = gui.Horiz(0)
+        self.legend_cells = []
+        for _ in range(LEGEND_CELLS):
+            cell = gui.Label("   ")
+            bar.add_child(cell)
+            self.legend_cells.append(cell)
+        sec.add_child(bar)
+        self.legend_range = gui.Label("")
+        sec.add_child(self.legend_range)
+        panel.add_child(sec)
+
+        # -- tuning
+        sec = gui.CollapsableVert("Tuning", 0.3 * em, gui.Margins(0.3 * em, 0, 0, 0))
+        cfg = self.model.results.config
+        self.threshold_label = gui.Label("")
+        sec.add_child(self.threshold_label)
+        self.threshold_slider = gui.Slider(gui.Slider.DOUBLE)
+        self.threshold_slider.set_limits(math.log10(THRESHOLD_RANGE[0]),
+                                         math.log10(THRESHOLD_RANGE[1]))
+        self.threshold_slider.double_value = math.log10(
+            min(max(cfg.hgmm.split_threshold, THRESHOLD_RANGE[0]), THRESHOLD_RANGE[1]))
+        self.threshold_slider.set_on_value_changed(
+            lambda v: self.set_threshold(10.0 ** v, from_slider=True))
+        sec.add_child(self.threshold_slider)
+        self.dm_label = gui.Label("")
+        sec.add_child(self.dm_label)
+        self.dm_slider = gui.Slider(gui.Slider.DOUBLE)
+        self.dm_slider.set_limits(*DM_RANGE)
+        self.dm_slider.double_value = min(cfg.gp.d_m, DM_RANGE[1])
+        self.dm_slider.set_on_value_changed(lambda v: self.set_d_m(v, from_slider=True))
+        sec.add_child(self.dm_slider)
+        row = gui.Horiz(0.3 * em)
+        row.add_child(gui.Label("voxel (m)"))
+        self.voxel_edit = gui.NumberEdit(gui.NumberEdit.DOUBLE)
+        self.voxel_edit.set_limits(*VOXEL_RANGE)
+        self.voxel_edit.decimal_precision = 3
+        self.voxel_edit.double_value = self.pending_voxel
+        self.voxel_edit.set_on_value_changed(lambda v: self.set_voxel(v, from_edit=True))
+        row.add_child(self.voxel_edit)
+        sec.add_child(row)
+        self.run_button = gui.Button("Run")
+        self.run_button.set_on_clicked(self.run)
+        sec.add_child(self.run_button)
+        self.progress = gui.ProgressBar()
+        sec.add_child(self.progress)
+        self.status_label = gui.Label("")
+        sec.add_child(self.status_label)
+        panel.add_child(sec)
+
+        # -- probe and export
+        sec = gui.CollapsableVert("Probe and export", 0.3 * em, gui.Margins(0.3 * em, 0, 0, 0))
+        sec.add_child(gui.Label("Ctrl+click the scene: SDF mean +- std"))
+        self.probe_label = gui.Label("(no probe yet)")
+        sec.add_child(self.probe_label)
+        row = gui.Horiz(0.3 * em)
+        b = gui.Button("Screenshot")
+        b.set_on_clicked(self._on_screenshot_button)
+        row.add_child(b)
+        b = gui.Button("Save map")
+        b.set_on_clicked(self._on_save_button)
+        row.add_child(b)
+        b = gui.Button("Reset view")
+        b.set_on_clicked(self.reset_camera)
+        row.add_child(b)
+        sec.add_child(row)
+        panel.add_child(sec)
+        return panel
+
+    def _on_layout(self, ctx):
+        r = self.window.content_rect
+        width = int(22 * self.em)
+        self.scene.frame = self.gui.Rect(r.x, r.y, r.width - width, r.height)
+        self.panel.frame = self.gui.Rect(r.get_right() - width, r.y, width, r.height)
+
+    def _on_close(self):
+        self.generation += 1  # workers see they are stale and stop between stages
+        return True
+
+    # ------------------------------------------------------------------ controller
+    def set_stage(self, stage: str):
+        """Show ``stage``: switches the layers to that stage's preset."""
+        if stage not in STAGES:
+            raise ViewerError(f"Unknown stage {stage!r}; expected one of {', '.join(STAGES)}.")
+        self.stage = stage
+        self._user_stage = True
+        self.layers = set(STAGE_LAYERS[stage])
+        self._refresh()
+
+    def set_level(self, level: int):
+        h = self.model.results.hgmm
+        n = len(h.levels) if h is not None else 1
+        self.level = int(min(max(level, 0), n - 1))
+        if "ellipsoids" not in self.layers:
+            self.layers.add("ellipsoids")
+        self._refresh()
+
+    def set_layer(self, name: str, on: bool):
+        if name not in LAYERS:
+            raise ViewerError(f"Unknown layer {name!r}; expected one of {', '.join(LAYERS)}.")
+        (self.layers.add if on else self.layers.discard)(name)
+        self._refresh()
+
+    def set_colour_by_variance(self, on: bool):
+        self.colour_by_variance = bool(on)
+        self._refresh()
+
+    def set_threshold(self, value: float, from_slider=False):
+        # Sliders hold float32 and fire on programmatic changes too: keep 3 significant
+        # digits so 0.03 stays 0.03 (and does not count as a change).
+        value = float(f"{min(max(value, THRESHOLD_RANGE[0]), THRESHOLD_RANGE[1]):.3g}")
+        if from_slider and value == self.pending_cfg.hgmm.split_threshold:
+            return
+        self.pending_cfg = self.pending_cfg.replace("hgmm.split_threshold", value)
+        if not from_slider:
+            self.threshold_slider.double_value = math.log10(value)
+        self._refresh_panel()
+
+    def set_d_m(self, value: float, from_slider=False):
+        value = round(float(min(max(value, DM_RANGE[0]), DM_RANGE[1])), 4)  # 0.1 mm steps
+        if from_slider and value == self.pending_cfg.gp.d_m:
+            return
+        self.pending_cfg = self.pending_cfg.replace("gp.d_m", value)
+        if not from_slider:
+            self.dm_slider.double_value = value
+        self._refresh_panel()
+
+    def set_voxel(self, value: float, from_edit=False):
+        self.pending_voxel = round(float(min(max(value, VOXEL_RANGE[0]), VOXEL_RANGE[1])), 4)
+        if not from_edit:
+            self.voxel_edit.double_value = self.pending_voxel
+        self._refresh_panel()
+
+    def start_initial_run(self):
+        r = self.model.results
+        start = "prepare" if self.model.can_refit else "surface"
+        self._start(start, r.config, r.voxel_size)
+
+    def run(self):
+        """Re-run the stages the pending settings affect (the Run button)."""
+        r = self.model.results
+        start = first_affected_stage(r, self.pending_cfg, self.pending_voxel)
+        missing = next((s for s in STAGES[1:] if not r.has(s)
+                        and (self.model.can_refit or s == "surface")), None)
+        if missing is not None and (start is None or STAGES.index(missing) < STAGES.index(start)):
+            start = missing
+        if start is None:
+            self.status_label.text = "Nothing changed; move a slider first."
+            return
+        if start != "surface" and not self.model.can_refit:
+            self.status_label.text = "A saved map: only the voxel can change (open the scan)."
+            return
+        self._start(start, self.pending_cfg, self.pending_voxel)
+
+    def _start(self, start, cfg, voxel):
+        self.generation += 1
+        gen = self.generation
+        self.idle.clear()
+        base = self.model.results
+        n_stages = len(STAGES) - STAGES.index(start)
+        self._run_info = {"start": start, "done": 0, "n": n_stages, "t0": time.perf_counter()}
+        self.progress.value = 0.0
+        self.status_label.text = f"running from {STAGE_LABELS[start]} ..."
+        self._refresh_panel()
+
+        def post(fn):
+            self.app.post_to_main_thread(self.window, lambda: self._guarded(fn))
+
+        def on_stage(name, results):
+            post(lambda: self._on_stage_result(gen, name, results))
+
+        def progress(stage, frac):
+            post(lambda: self._on_progress(gen, stage, frac))
+
+        def work():
+            try:
+                self.model.compute(start, cfg, voxel, base=base, on_stage=on_stage,
+                                   cancelled=lambda: gen != self.generation, progress=progress)
+            except Cancelled:
+                pass
+            except Exception as e:  # shown in the panel; the app stays usable
+                msg = f"{type(e).__name__}: {e}"
+                post(lambda: self._on_run_error(gen, msg))
+            post(lambda: self._on_run_finished(gen))
+
+        threading.Thread(target=work, name=f"gmmgp-run-{gen}", daemon=True).start()
+
+    def _guarded(self, fn):
+        """Run a posted callback; an exception is shown, never lost in the event loop."""
+        try:
+            fn()
+        except Exception as e:  # noqa: BLE001 - the app must stay usable
+            import traceback
+
+            traceback.print_exc()
+            msg = f"{type(e).__name__}: {e}"
+            self.errors.append(msg)
+            self.status_label.text = msg[:200]
+
+    def _on_stage_result(self, gen, name, results: StageResults):
+        if gen != self.generation:
+            self.dropped_results += 1
+            return
+        self.model.results = results
+        self._run_info["done"] += 1
+        self.progress.value = self._run_info["done"] / self._run_info["n"]
+        secs = results.seconds.get(name, 0.0)
+        self.status_label.text = f"{STAGE_LABELS[name]} done ({secs:.1f} s)"
+        if not self._user_stage:
+            self.stage = name if name != "prepare" else "prepare"
+            self.layers = set(STAGE_LAYERS[self.stage])
+        if name == "hgmm":
+            self.level = min(self.level, len(results.hgmm.levels) - 1)
+        self._refresh()
+
+    def _on_progress(self, gen, stage, frac):
+        if gen != self.generation:
+            return
+        i = self._run_info
+        self.progress.value = (i["done"] + frac) / i["n"]
+        self.status_label.text = f"{STAGE_LABELS[stage]}: {100 * frac:.0f} %"
+
+    def _on_run_error(self, gen, msg):
+        if gen != self.generation:
+            return
+        self.errors.append(msg)
+        self.status_label.text = msg[:200]
+
+    def _on_run_finished(self, gen):
+        if gen != self.generation:
+            return
+        try:
+            i = self._run_info
+            if not self.errors or not self.status_label.text.startswith(self.errors[-1][:20]):
+                self.status_label.text = (f"done: {i['done']} stage(s) in "
+                                          f"{time.perf_counter() - i['t0']:.1f} s")
+            self.progress.value = 1.0
+            self._refresh_panel()
+        finally:
+            self.idle.set()
+
+    # ------------------------------------------------------------------ probing
+    def _on_mouse(self, event):
+        gui = self.gui
+        if (event.type == gui.MouseEvent.Type.BUTTON_DOWN
+                and event.is_modifier_down(gui.KeyModifier.CTRL)):
+            x = event.x - self.scene.frame.x
+            y = event.y - self.scene.frame.y
+
+            def on_depth(depth_image):
+                depth = float(np.asarray(depth_image)[y, x])
+                if depth >= 1.0:  # the far plane: nothing under the cursor
+                    text = "nothing under the cursor"
+                    self.app.post_to_main_thread(self.window, lambda: self._set_probe(text))
+                    return
+                f = self.scene.frame
+                world = self.scene.scene.camera.unproject(x, y, depth, f.width, f.height)
+                self.app.post_to_main_thread(self.window, lambda: self.probe(world))
+
+            self.scene.scene.scene.render_to_depth_image(on_depth)
+            self.scene.force_redraw()
+            return gui.Widget.EventCallbackResult.HANDLED
+        return gui.Widget.EventCallbackResult.IGNORED
+
+    def probe(self, xyz):
+        """Show the SDF mean +- std at ``xyz`` (local frame) and mark the point."""
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(3)
+        try:
+            mean, std = self.model.probe(xyz)
+        except ViewerError as e:
+            self._set_probe(str(e))
+            return None
+        self._set_probe(f"({xyz[0]:.2f}, {xyz[1]:.2f}, {xyz[2]:.2f}):\n"
+                        f"SDF {mean:+.4f} +- {std:.4f} m")
+        import open3d as o3d
+
+        r = 0.01 * self._extent()
+        s = o3d.geometry.TriangleMesh.create_sphere(radius=r, resolution=10)
+        s.translate(xyz)
+        s.compute_vertex_normals()
+        sc = self.scene.scene
+        if sc.has_geometry("probe"):
+            sc.remove_geometry("probe")
+        sc.add_geometry("probe", s, self.mat["probe"])
+        self.window.post_redraw()
+        return mean, std
+
+    def _set_probe(self, text):
+        self.probe_text = text
+        self.probe_label.text = text
+        self.window.post_redraw()
+
+    # ------------------------------------------------------------------ view
+    def _extent(self) -> float:
+        s = self.model.results.scan
+        if s is None or len(s) == 0:
+            return 1.0
+        return float(np.linalg.norm(np.ptp(s.points, axis=0))) or 1.0
+
+    def reset_camera(self):
+        s = self.model.results.scan
+        if s is None or len(s) == 0:
+            return
+        import open3d as o3d
+
+        pts = s.points
+        lo, hi = np.percentile(pts, 1, axis=0), np.percentile(pts, 99, axis=0)
+        bbox = o3d.geometry.AxisAlignedBoundingBox(lo, hi)
+        centre = 0.5 * (lo + hi)
+        self.scene.setup_camera(50.0, bbox, centre)
+        ext = float(np.linalg.norm(hi - lo))
+        # Oblique view from the side and above: street scans are long in x and z-up.
+        eye = centre + ext * np.array([0.25, -0.75, 0.55])
+        self.scene.look_at(centre, eye, [0.0, 0.0, 1.0])
+        self._camera_set = True
+        self.window.post_redraw()
+
+    def set_camera(self, center, eye, up=(0.0, 0.0, 1.0)):
+        self.scene.look_at(np.asarray(center, float), np.asarray(eye, float),
+                           np.asarray(up, float))
+        self.window.post_redraw()
+
+    def _refresh(self):
+        self._refresh_scene()
+        self._refresh_panel()
+        self.window.post_redraw()
+
+    def _display_points(self, pts):
+        if len(pts) <= MAX_DRAWN_POINTS:
+            return np.arange(len(pts))
+        return np.sort(np.random.default_rng(0).choice(len(pts), MAX_DRAWN_POINTS, replace=False))
+
+    def _layer_geometry(self, name):
+        """(key, build, material, legend) of a layer for the current state.
+
+        ``key`` identifies what would be drawn, so an unchanged layer is not rebuilt;
+        ``build()`` makes the geometry (or a dict name -> geometry); ``material`` None
+        means "the material named like each part".
+        """
+        from . import gui_geometry as G
+
+        r = self.model.results
+        stage = self.stage or "scan"
+        if name == "points":
+            if stage == "prepare" and r.data is not None:
+                rows, s = r.data.rows, r.data.spacing
+                idx = self._display_points(rows)
+                return (("rows", id(r.data)),
+                        lambda: G.point_cloud(rows[idx, :3], G.row_colors(rows[idx, 3], s)[0]),
+                        "points", ("d", -s, s))
+            if stage == "gmr" and r.gmr_error is not None:
+                col, lo, hi = G.error_colors(r.gmr_error, r.config.gp.d_m)
+                return (("gmr", id(r.gmr_error)), lambda: G.point_cloud(r.data.points, col),
+                        "points", ("error", lo, hi))
+            if r.scan is None:
+                return None, None, "points", None
+            pts = r.scan.points
+            idx = self._display_points(pts)
+            if self.colour_by_variance and (r.smap is not None or r.prior is not None):
+                key = ("std", id(r))
+                var = self._std_cache.get(key)
+                if var is not None:
+                    col, lo, hi = G.std_colors(var)
+                    return key, lambda: G.point_cloud(pts[idx], col), "points", ("std", lo, hi)
+                self._predict_std_async(key, r, pts[idx])  # grey until it arrives
+            if stage in ("hgmm", "gp", "surface"):
+                return (("grey", id(r.scan)),
+                        lambda: G.point_cloud(pts[idx], np.full((len(idx), 3), 0.72)),
+                        "points", None)
+            col, lo, hi = G.scan_colors(pts[idx])
+            return (("height", id(r.scan)), lambda: G.point_cloud(pts[idx], col), "points",
+                    ("height", lo, hi))
+        if name == "ellipsoids":
+            if r.hgmm is None:
+                return None, None, None, None
+            level = min(self.level, len(r.hgmm.levels) - 1)
+            lv = r.hgmm.levels[level]
+
+            def build():
+                col = G.complexity_colors(lv.complexity)[0]
+                split = np.asarray(lv.split, bool)
+                m, g = lv.mixture, {}
+                if (~split).any():
+                    g["ellipsoids_leaf"] = G.ellipsoid_mesh(
+                        m.means[~split], m.covariances[~split], col[~split])
+                if split.any():
+                    g["ellipsoids_split"] = G.ellipsoid_wireframe(
+                        m.means[split], m.covariances[split], col[split])
+                return g
+            return ("ell", id(r.hgmm), level), build, None, ("c", 0.0, None)
+        if name == "gp_points":
+            if r.gp_points is None or len(r.gp_points) == 0:
+                return None, None, "gp_points", None
+            gp = r.gp_points
+            return (("gp", id(gp)),
+                    lambda: G.point_cloud(gp, np.tile([0.85, 0.05, 0.05], (len(gp), 1))),
+                    "gp_points", None)
+        if name == "blocks":
+            if r.gp is None:
+                return None, None, "blocks", None
+            grid = r.gp.grid
+            return (("blocks", id(r.gp)),
+                    lambda: G.block_boxes(grid.centres, grid.block_size / 2), "blocks", None)
+        if name == "mesh":
+            if r.mesh is None or len(r.mesh.faces) == 0:
+                return None, None, "mesh", None
+            by_var = self.colour_by_variance
+            col, lo, hi = G.std_colors(r.mesh.vertex_variance)
+            if not by_var:
+                col = np.full((len(r.mesh.vertices), 3), 0.75)
+            mesh = r.mesh
+            return (("mesh", id(mesh), by_var),
+                    lambda: G.triangle_mesh(mesh.vertices, mesh.faces, col), "mesh",
+                    ("std", lo, hi) if by_var else None)
+        raise ViewerError(f"Unknown layer {name!r}; expected one of {', '.join(LAYERS)}.")
+
+    def _predict_std_async(self, key, results, pts):
+        """Predict the std at the drawn points in a worker (seconds on large scans)."""
+        if self._std_cache.get("pending") == key:
+            return
+        self._std_cache["pending"] = key
+        field_ = results.smap if results.smap is not None else results.prior
+
+        def work():
+            try:
+                var = field_.predict(pts)[1]
+            except Exception as e:  # noqa: BLE001
+                msg = f"{type(e).__name__}: {e}"
+                self.app.post_to_main_thread(self.window, lambda: self._on_run_error(
+                    self.generation, msg))
+                return
+
+            def done():
+                if self.model.results is results:
+                    self._std_cache = {key: var}
+                    self._refresh()
+            self.app.post_to_main_thread(self.window, lambda: self._guarded(done))
+
+        threading.Thread(target=work, daemon=True).start()
+
+    def _refresh_scene(self):
+        sc = self.scene.scene
+        legend = None
+        for name in LAYERS:
+            if name not in self.layers:
+                for g in self._names_of(name):
+                    if sc.has_geometry(g):
+                        sc.show_geometry(g, False)
+                continue
+            key, build, mat, leg = self._layer_geometry(name)
+            if key is None:
+                for g in self._names_of(name):
+                    if sc.has_geometry(g):
+                        sc.remove_geometry(g)
+                self._geom_keys.pop(name, None)
+                continue
+            if self._geom_keys.get(name) != key:
+                for g in self._names_of(name):
+                    if sc.has_geometry(g):
+                        sc.remove_geometry(g)
+                geom = build()
+                parts = geom if isinstance(geom, dict) else {name: geom}
+                for gname, gg in parts.items():
+                    sc.add_geometry(gname, gg, self.mat[gname if mat is None else mat])
+                self._geom_keys[name] = key
+            for g in self._names_of(name):
+                if sc.has_geometry(g):
+                    sc.show_geometry(g, True)
+            if leg is not None and (legend is None or name in ("ellipsoids", "mesh")):
+                legend = leg
+        self._set_legend(legend)
+        if not self._camera_set and self.model.results.scan is not None:
+            self.reset_camera()
+
+    @staticmethod
+    def _names_of(layer):
+        return ("ellipsoids_leaf", "ellipsoids_split") if layer == "ellipsoids" else (layer,)
+
+    def _set_legend(self, legend):
+        from .gui_geometry import LEGENDS
+
+        if legend is None:
+            if self.legend_key is not None:
+                self._paint_legend(None)
+            self.legend_key = None
+            self.legend_title.text = "(no colour scale for the shown layers)"
+            self.legend_range.text = ""
+            return
+        kind, lo, hi = legend
+        title, cmap = LEGENDS[kind]
+        if kind == "c":
+            from .rerun_observer import C_MAX
+
+            t = self.model.results.config.hgmm.split_threshold
+            lo, hi = 0.0, C_MAX
+            self.legend_range.text = (f"0 ... {hi:.2f}   (threshold {t:.4g})\n"
+                                      "wireframe: split, solid: leaf")
+        else:
+            self.legend_range.text = f"{lo:.3g} ... {hi:.3g}"
+        self.legend_title.text = title
+        if self.legend_key != kind:
+            self._paint_legend(cmap)
+            self.legend_key = kind
+
+    def _paint_legend(self, cmap):
+        from .gui_geometry import colormap
+
+        gui = self.gui
+        if cmap is None:
+            cols = np.full((LEGEND_CELLS, 3), 0.16)  # the panel's background
+        else:
+            cols = colormap(np.linspace(0, 1, LEGEND_CELLS), cmap)
+        for cell, c in zip(self.legend_cells, cols):
+            cell.background_color = gui.Color(float(c[0]), float(c[1]), float(c[2]), 1.0)
+
+    def _refresh_panel(self):
+        r = self.model.results
+        c = r.counts()
+        parts = []
+        for k, label in (("scan_points", "points"), ("training_rows", "rows"),
+                         ("levels", "levels"), ("leaves", "leaves"), ("gp_points", "GP points"),
+                         ("gp_blocks", "GP blocks"), ("faces", "faces")):
+            if k in c:
+                parts.append(f"{label} {c[k]:,}")
+        if "gmr_rms_error" in c:
+            parts.append(f"GMR rms {1000 * c['gmr_rms_error']:.1f} mm")
+        lines, line = [], ""
+        for p in parts:  # wrap: the panel is narrow
+            if len(line) + len(p) > 34 and line:
+                lines.append(line)
+                line = ""
+            line = f"{line} | {p}" if line else p
+        lines.append(line)
+        self.counts_label.text = "\n".join(lines)
+        stage = self.stage or "scan"
+        self.stage_combo.selected_index = STAGES.index(stage)
+        for name, cb in self.layer_boxes.items():
+            cb.checked = name in self.layers
+        self.variance_box.checked = self.colour_by_variance
+        h = r.hgmm
+        if h is not None:
+            n = len(h.levels)
+            self.level_slider.set_limits(0, max(n - 1, 1))
+            self.level_slider.int_value = min(self.level, n - 1)
+            lv = h.levels[min(self.level, n - 1)]
+            ns = int(np.sum(lv.split))
+            self.level_label.text = (f"level {self.level} of {n - 1}: "
+                                     f"{lv.mixture.n_components} nodes\n"
+                                     f"{ns} split (wireframe), "
+                                     f"{lv.mixture.n_components - ns} leaves (solid)")
+        else:
+            self.level_label.text = "(HGMM not fitted yet)"
+        t = self.pending_cfg.hgmm.split_threshold
+        changed = " *" if t != r.config.hgmm.split_threshold else ""
+        self.threshold_label.text = f"split threshold c* {t:.4f}{changed}"
+        dm = self.pending_cfg.gp.d_m
+        changed = " *" if dm != r.config.gp.d_m else ""
+        self.dm_label.text = f"d_m {dm:.3f} m{changed}"
+        refit = self.model.can_refit
+        self.threshold_slider.enabled = refit
+        self.dm_slider.enabled = refit
+        # Multi-line labels change height: lay the panel out again.
+        self.window.set_needs_layout()
+
+    # ------------------------------------------------------------------ export
+    def screenshot(self, path, on_done=None):
+        """Write the 3D view to ``path`` (PNG); ``on_done(path)`` runs on the main thread."""
+        import open3d as o3d
+
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+
+        def cb(image):
+            o3d.io.write_image(str(path), image)
+            if on_done is not None:
+                self.app.post_to_main_thread(self.window, lambda: on_done(path))
+
+        self.scene.scene.scene.render_to_image(cb)
+        # The request is served by the next frame; with nothing else changing there
+        # would be none (the widget caches the scene), so ask for one.
+        self.scene.force_redraw()
+        self.window.post_redraw()
+
+    def _redraw_now(self):
+        self.scene.force_redraw()
+        self.window.post_redraw()
+
+    def window_frame(self):
+        """(x, y, width, height) of the window on the screen, in pixels."""
+        f = self.window.os_frame
+        return f.x, f.y, f.width, f.height
+
+    def save_map(self, directory, on_done=None):
+        """Save the current map in a worker thread; reports on the status line."""
+        def work():
+            try:
+                out = self.model.save(directory)
+                msg = f"map saved to {out}"
+            except Exception as e:
+                msg = f"{type(e).__name__}: {e}"
+                self.errors.append(msg)
+
+            def show():
+                self.status_label.text = msg
+                if on_done is not None:
+                    on_done(msg)
+            self.app.post_to_main_thread(self.window, show)
+
+        threading.Thread(target=work, daemon=True).start()
+
+    def _file_dialog(self, mode, title, filt, on_done):
+        gui = self.gui
+        dlg = gui.FileDialog(mode, title, self.window.theme)
+        if filt:
+            dlg.add_filter(*filt)
+        dlg.set_on_cancel(self.window.close_dialog)
+
+        def done(path):
+            self.window.close_dialog()
+            on_done(path)
+        dlg.set_on_done(done)
+        self.window.show_dialog(dlg)
+
+    def _on_screenshot_button(self):
+        self._file_dialog(self.gui.FileDialog.SAVE, "Save screenshot", (".png", "PNG images"),
+                          lambda p: self.screenshot(p, lambda q: setattr(
+                              self.status_label, "text", f"screenshot {q}")))
+
+    def _on_save_button(self):
+        self._file_dialog(self.gui.FileDialog.OPEN_DIR, "Save map into folder", None,
+                          lambda p: self.save_map(Path(p) / "map"))
+
+    # ------------------------------------------------------------------ state / script
+    def state(self) -> dict:
+        """What the panel shows, for scripts and tests."""
+        return {"stage": self.stage, "level": self.level, "layers": sorted(self.layers),
+                "colour_by_variance": self.colour_by_variance,
+                "counts": self.model.results.counts(),
+                "counts_label": self.counts_label.text, "level_label": self.level_label.text,
+                "status": self.status_label.text, "probe": self.probe_text,
+                "legend": self.legend_title.text, "legend_range": self.legend_range.text,
+                "threshold": self.model.results.config.hgmm.split_threshold,
+                "d_m": self.model.results.config.gp.d_m,
+                "generation": self.generation, "dropped_results": self.dropped_results,
+                "seconds": self.model.results.seconds, "errors": list(self.errors)}
+
+    def run_script(self, steps, settle: float = 0.8, timeout: float = 600.0):
+        """Run automation steps in a driver thread (each step executes on the main thread)."""
+        def on_main(fn):
+            done, box = threading.Event(), {}
+
+            def call():
+                try:
+                    box["value"] = fn()
+                except Exception as e:  # noqa: BLE001 - reported, then the app quits
+                    box["error"] = e
+                done.set()
+            self.app.post_to_main_thread(self.window, call)
+            if not done.wait(timeout):
+                raise TimeoutError("a GUI step did not run within the timeout")
+            if "error" in box:
+                raise box["error"]
+            return box.get("value")
+
+        def wait_idle():
+            if not self.idle.wait(timeout):
+                raise TimeoutError(f"the computation did not finish within {timeout:.0f} s")
+
+        def drive():
+            try:
+                wait_idle()
+                on_main(lambda: None)  # let the last stage's refresh land
+                for step in steps:
+                    self._script_step(step, on_main, wait_idle, settle)
+            except Exception as e:  # noqa: BLE001
+                msg = f"script failed: {type(e).__name__}: {e}"
+                print(msg, file=sys.stderr, flush=True)
+                self.errors.append(msg)
+                self.exit_code = 1
+                self.app.post_to_main_thread(self.window, self.app.quit)
+
+        threading.Thread(target=drive, name="gmmgp-script", daemon=True).start()
+
+    def _script_step(self, step, on_main, wait_idle, settle):
+        if os.environ.get("GMMGP_GUI_TRACE"):
+            print(f"[gmmgp view] {time.strftime('%H:%M:%S')} step {json.dumps(step)}",
+                  file=sys.stderr, flush=True)
+        if "stage" in step:
+            on_main(lambda: self.set_stage(step["stage"]))
+        if "level" in step:
+            on_main(lambda: self.set_level(int(step["level"])))
+        if "layer" in step:
+            on_main(lambda: self.set_layer(step["layer"], bool(step.get("on", True))))
+        if "colour_by_variance" in step:
+            on_main(lambda: self.set_colour_by_variance(bool(step["colour_by_variance"])))
+        if "threshold" in step:
+            on_main(lambda: self.set_threshold(float(step["threshold"])))
+        if "d_m" in step:
+            on_main(lambda: self.set_d_m(float(step["d_m"])))
+        if "voxel" in step:
+            on_main(lambda: self.set_voxel(float(step["voxel"])))
+        if "camera" in step:
+            cam = step["camera"]
+            on_main(lambda: self.set_camera(cam["center"], cam["eye"], cam.get("up", (0, 0, 1))))
+        if step.get("run"):
+            on_main(self.run)
+            if step.get("wait", True):
+                wait_idle()
+                on_main(lambda: None)
+        if "probe" in step:
+            p = step["probe"]
+            if p == "center":
+                p = np.median(self.model.results.scan.points, axis=0).tolist()
+            on_main(lambda: self.probe(p))
+        if "screenshot" in step:
+            path = Path(step["screenshot"])
+            time.sleep(settle)  # let the window draw the last change
+            ev = threading.Event()
+            on_main(lambda: self.screenshot(path.with_suffix(".scene.png")
+                                            if step.get("window") else path,
+                                            lambda q: ev.set()))
+            # The read-back completes a frame or two later, and frames are only drawn
+            # on demand: keep asking for frames until the image arrives.
+            t_end = time.monotonic() + 180
+            while not ev.wait(0.25):
+                if time.monotonic() > t_end:
+                    raise TimeoutError(f"screenshot {path} was not rendered within 180 s")
+                self.app.post_to_main_thread(self.window, self._redraw_now)
+            if step.get("window"):
+                self._grab_when_drawn(path, on_main, settle)
+                path.with_suffix(".scene.png").unlink(missing_ok=True)
+        if "save" in step:
+            ev, box = threading.Event(), {}
+            on_main(lambda: self.save_map(step["save"], lambda m: (box.update(msg=m), ev.set())))
+            if not ev.wait(120):
+                raise TimeoutError("saving the map took more than 120 s")
+        if "state" in step:
+            st = on_main(self.state)
+            Path(step["state"]).write_text(json.dumps(st, indent=2, default=float))
+        if "sleep" in step:
+            time.sleep(float(step["sleep"]))
+        if step.get("quit"):
+            on_main(self.app.quit)
+
+
+    def _grab_when_drawn(self, path: Path, on_main, settle: float, rounds: int = 6):
+        """Grab the window from the X server once its pixels have settled.
+
+        Presented frames reach the X server a frame or two late (the Vulkan swapchain
+        holds several images), so draw two frames per round and grab until two grabs
+        (almost) agree; each frame costs seconds on a CPU renderer, so few rounds.
+        """
+        previous = None
+        for _ in range(rounds):
+            for _ in range(2):
+                on_main(self._redraw_now)
+                time.sleep(settle / 2)
+            img = _grab_window(on_main(self.window_frame))
+            if previous is not None:
+                a, b = np.asarray(img), np.asarray(previous)
+                if a.shape == b.shape and np.mean(np.any(a != b, axis=2)) < 1e-3:
+                    break
+            previous = img
+        img.save(path)
+
+
+def _grab_window(frame):
+    """The window's pixels (panel included) from the X server, as a PIL image."""
+    from PIL import ImageGrab
+
+    x, y, w, h = frame
+    return ImageGrab.grab(bbox=(x, y, x + w, y + h), xdisplay=os.environ.get("DISPLAY"))
+
+
+def main(argv=None) -> int:
+    """``python -m gmmgp_app.viz.gui TARGET [options]`` (same as ``gmmgp view``)."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m gmmgp_app.viz.gui",
+                                     description="The gmmgp desktop app (gmmgp view).")
+    add_view_arguments(parser)
+    args = parser.parse_args(argv)
+    try:
+        return cmd_view(args)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,324 @@
+"""The model of the desktop app: stage results and partial re-runs, without any GUI.
+
+The app (:mod:`gmmgp_app.viz.gui`) keeps one :class:`ViewerModel`. Its
+:meth:`ViewerModel.compute` runs the pipeline from a given stage on, in a worker
+thread, reusing the results of the stages before it; it never touches a widget
+and reports each finished stage through a callback, so the controller can hand
+the result to the main thread (and drop it if a newer run has started).
+
+Which stages a setting invalidates (:data:`RERUN_FROM`)::
+
+    hgmm.split_threshold -> hgmm, gmr, gp, surface
+    gp.d_m               -> gp, surface
+    surface voxel size   -> surface
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+
+from ..config import MappingConfig
+from ..types import HierarchicalGMM, Scan, SurfaceMesh, TrainingSet
+
+__all__ = ["STAGES", "STAGE_LABELS", "RERUN_FROM", "ViewerError", "StageResults",
+           "ViewerModel", "first_affected_stage"]
+
+#: Stages in pipeline order; "surface" is marching cubes on the final field.
+STAGES = ("scan", "prepare", "hgmm", "gmr", "gp", "surface")
+STAGE_LABELS = {"scan": "Scan", "prepare": "Prepared rows", "hgmm": "HGMM",
+                "gmr": "GMR error", "gp": "GP points", "surface": "Surface"}
+#: First stage to recompute when a setting changes.
+RERUN_FROM = {"hgmm.split_threshold": "hgmm", "gp.d_m": "gp", "surface.voxel_size": "surface"}
+
+
+class ViewerError(ValueError):
+    """The viewer cannot open its target or cannot do what was asked."""
+
+
+class Cancelled(Exception):
+    """A computation was abandoned because a newer one superseded it."""
+
+
+@dataclass(frozen=True)
+class StageResults:
+    """Everything the app shows; replaced as a whole, never mutated (thread safety).
+
+    Attributes
+    ----------
+    config : MappingConfig
+        The settings these results were computed with.
+    voxel_size : float
+        Marching-cubes voxel of ``mesh`` (m).
+    scan : Scan or None
+        Input points (for a loaded map: the map's surface seed points).
+    data : TrainingSet or None
+    hgmm : HierarchicalGMM or None
+    prior : object or None
+        The GMR field (``predict(xyz) -> mean, var``).
+    gmr_error : (H,) float64 or None
+        m(x) at the hit points ``data.points`` (the GMR's error there, true SDF is 0).
+    gp_points : (P, 3) float64 or None
+    gp : LocalGPField or None
+    smap : SurfaceMap or None
+        The map of these results (predicts the SDF, saves).
+    mesh : SurfaceMesh or None
+    seconds : dict
+        Wall time per stage.
+    """
+
+    config: MappingConfig
+    voxel_size: float
+    scan: Optional[Scan] = None
+    data: Optional[TrainingSet] = None
+    hgmm: Optional[HierarchicalGMM] = None
+    prior: object = None
+    gmr_error: Optional[np.ndarray] = None
+    gp_points: Optional[np.ndarray] = None
+    gp: object = None
+    smap: object = None
+    mesh: Optional[SurfaceMesh] = None
+    seconds: dict = field(default_factory=dict)
+
+    def has(self, stage: str) -> bool:
+        """Whether ``stage`` has a result to show."""
+        return {"scan": self.scan is not None, "prepare": self.data is not None,
+                "hgmm": self.hgmm is not None, "gmr": self.gmr_error is not None,
+                "gp": self.gp_points is not None, "surface": self.mesh is not None}[stage]
+
+    def counts(self) -> dict:
+        """Counts shown in the panel (and written by the app's ``state`` script step)."""
+        c = {}
+        if self.scan is not None:
+            c["scan_points"] = len(self.scan)
+        if self.data is not None:
+            c["training_rows"] = len(self.data.rows)
+        if self.hgmm is not None:
+            c["levels"] = len(self.hgmm.levels)
+            c["leaves"] = int(self.hgmm.leaves.n_components)
+        if self.gmr_error is not None:
+            c["gmr_rms_error"] = float(np.sqrt(np.mean(self.gmr_error ** 2)))
+        if self.gp_points is not None:
+            c["gp_points"] = len(self.gp_points)
+        if self.gp is not None:
+            c["gp_blocks"] = int(self.gp.grid.n_blocks)
+        if self.mesh is not None:
+            c["vertices"] = len(self.mesh.vertices)
+            c["faces"] = len(self.mesh.faces)
+        return c
+
+
+def first_affected_stage(old: StageResults, cfg: MappingConfig, voxel_size: float) -> Optional[str]:
+    """First stage whose result the new settings change, or None if nothing changed.
+
+    Parameters
+    ----------
+    old : StageResults
+        What is shown now.
+    cfg : MappingConfig
+        The requested settings.
+    voxel_size : float
+        The requested surface voxel (m).
+    """
+    if old.config.hgmm != cfg.hgmm or old.config.gmr != cfg.gmr:
+        return "hgmm"
+    if old.config.gp != cfg.gp:
+        return "gp"
+    if old.mesh is None or abs(old.voxel_size - voxel_size) > 1e-12 \
+            or old.config.surface != cfg.surface:
+        return "surface"
+    return None
+
+
+class ViewerModel:
+    """Holds the current results and computes new ones (no GUI).
+
+    Parameters
+    ----------
+    results : StageResults
+    source : str
+        What was opened (shown in the title).
+    """
+
+    def __init__(self, results: StageResults, source: str = ""):
+        self.results = results
+        self.source = source
+
+    # ------------------------------------------------------------------ opening
+    @classmethod
+    def open(cls, target, cfg: Optional[MappingConfig] = None,
+             voxel_size: float = 0.1) -> "ViewerModel":
+        """Open a scan file or a saved map folder (``map/`` or a ``gmmgp run`` output).
+
+        A scan opens with no results beyond the scan itself; call :meth:`compute`
+        from "prepare". A map opens with its hierarchy, GP and field; only the
+        surface is left to compute.
+        """
+        from ..pipeline import load_map
+
+        path = Path(target)
+        if not path.exists():
+            raise ViewerError(f"'{path}' does not exist; give a scan file or a map folder "
+                              "written by 'gmmgp run SCAN --out DIR'.")
+        if path.is_dir():
+            mapdir = path / "map" if (path / "map" / "map.json").is_file() else path
+            smap = load_map(mapdir)
+            gp_pts = smap.gp_points if smap.gp is not None else None
+            res = StageResults(config=smap.config, voxel_size=voxel_size,
+                               scan=Scan(smap.seed_points, offset=smap.offset,
+                                         source=f"{mapdir} (surface seeds)"),
+                               hgmm=smap.hgmm, prior=smap.prior, gp_points=gp_pts,
+                               gp=smap.gp, smap=smap)
+            return cls(res, source=str(mapdir))
+        from ..datasets import read_scan
+
+        scan = read_scan(path)
+        cfg = MappingConfig() if cfg is None else cfg
+        return cls(StageResults(config=cfg, voxel_size=voxel_size, scan=scan),
+                   source=str(path))
+
+    @property
+    def can_refit(self) -> bool:
+        """Whether the HGMM and GP can be re-fitted (needs the scan, not a loaded map)."""
+        return self.results.data is not None or (
+            self.results.smap is None and self.results.scan is not None)
+
+    # ------------------------------------------------------------------ compute
+    def compute(self, start: str, cfg: MappingConfig, voxel_size: float,
+                base: Optional[StageResults] = None,
+                on_stage: Optional[Callable[[str, StageResults], None]] = None,
+                cancelled: Callable[[], bool] = lambda: False,
+                progress: Optional[Callable[[str, float], None]] = None) -> StageResults:
+        """Recompute the stages from ``start`` on; safe to call from a worker thread.
+
+        Parameters
+        ----------
+        start : {"prepare", "hgmm", "gmr", "gp", "surface"}
+        cfg : MappingConfig
+        voxel_size : float
+            Marching-cubes voxel (m).
+        base : StageResults, optional
+            Results to reuse for the stages before ``start`` (default: current).
+        on_stage : callable(name, StageResults), optional
+            Called after each stage with the results so far.
+        cancelled : callable() -> bool
+            Polled between stages; when True the run stops with :class:`Cancelled`.
+        progress : callable(stage, fraction), optional
+            Fraction of the marching-cubes blocks done (surface stage).
+
+        Returns
+        -------
+        StageResults
+        """
+        from ..pipeline import SurfaceMap, _surface_seeds
+        from ..stages.gmr import GMRField
+        from ..stages.gp import fit_local_gps, select_gp_points
+        from ..stages.hgmm import fit_hgmm
+        from ..stages.prepare import prepare
+
+        r = self.results if base is None else base
+        if start not in STAGES[1:]:
+            raise ViewerError(f"Cannot start a run at stage {start!r}; expected one of "
+                              f"{', '.join(STAGES[1:])}.")
+        if STAGES.index(start) < STAGES.index("surface") and not self.can_refit:
+            raise ViewerError(
+                f"Re-running from '{start}' needs the scan, but '{self.source}' is a saved "
+                "map; open the scan with 'gmmgp view SCAN' to tune the threshold and d_m.")
+        if r.smap is None and start == "surface" and r.prior is None:
+            start = "prepare"
+        order = STAGES[STAGES.index(start):]
+        seconds = dict(r.seconds)
+        # Drop everything downstream of start so a failure never shows stale results.
+        keep = {"prepare": ("data",), "hgmm": ("hgmm", "prior"), "gmr": ("gmr_error",),
+                "gp": ("gp_points", "gp", "smap"), "surface": ("mesh",)}
+        clear = {k: None for s in order for k in keep[s]}
+        if start == "surface":
+            clear.pop("smap", None)
+        r = dataclasses.replace(r, config=cfg, voxel_size=voxel_size, **clear)
+
+        def done(name, **kw):
+            nonlocal r
+            r = dataclasses.replace(r, seconds=dict(seconds), **kw)
+            if on_stage is not None:
+                on_stage(name, r)
+            if cancelled():
+                raise Cancelled(name)
+
+        import time
+
+        for name in order:
+            if cancelled():
+                raise Cancelled(name)
+            t0 = time.perf_counter()
+            if name == "prepare":
+                data = prepare(r.scan, cfg)
+                seconds[name] = time.perf_counter() - t0
+                done(name, data=data)
+            elif name == "hgmm":
+                h = fit_hgmm(r.data.rows, cfg.hgmm)
+                prior = GMRField.from_config(h.leaves, cfg.gmr)
+                seconds[name] = time.perf_counter() - t0
+                done(name, hgmm=h, prior=prior)
+            elif name == "gmr":
+                m = r.prior.predict(r.data.points)[0]
+                seconds[name] = time.perf_counter() - t0
+                done(name, gmr_error=m)
+            elif name == "gp":
+                mask = select_gp_points(r.gmr_error, cfg.gp.d_m)
+                pts, nrm = r.data.points[mask], r.data.normals[mask]
+                gp = fit_local_gps(pts, nrm, r.prior, cfg.gp) if len(pts) else None
+                smap = SurfaceMap("gmmgp", cfg, r.scan.offset, r.prior, hgmm=r.hgmm, gp=gp,
+                                  gp_points=pts, gp_normals=nrm,
+                                  seed_points=_surface_seeds(r.scan, cfg))
+                seconds[name] = time.perf_counter() - t0
+                done(name, gp_points=pts, gp=gp, smap=smap)
+            elif name == "surface":
+                bar = _ProgressBar(progress) if progress is not None else None
+                mesh = r.smap.extract_surface(voxel_size, progress=bar)
+                seconds[name] = time.perf_counter() - t0
+                done(name, mesh=mesh)
+        return r
+
+    # ------------------------------------------------------------------ queries
+    def probe(self, xyz) -> tuple[float, float]:
+        """SDF mean and standard deviation at one point (m).
+
+        Uses the final field (GP over GMR) when there is one, else the GMR prior.
+        """
+        r = self.results
+        field_ = r.smap if r.smap is not None else r.prior
+        if field_ is None:
+            raise ViewerError("No field to probe yet (the HGMM has not been fitted); "
+                              "wait for the run to reach the HGMM stage.")
+        q = np.asarray(xyz, dtype=np.float64).reshape(1, 3)
+        mean, var = field_.predict(q)[:2]
+        return float(mean[0]), float(np.sqrt(max(var[0], 0.0)))
+
+    def save(self, directory) -> Path:
+        """Save the current map (``SurfaceMap.save``) to ``directory``."""
+        if self.results.smap is None:
+            raise ViewerError("No map to save yet (the GP stage has not finished); wait for "
+                              "the run to finish, then save.")
+        return self.results.smap.save(directory)
+
+
+class _ProgressBar:
+    """Adapts extract_surface's tqdm-like ``progress(total, desc)`` to a fraction callback."""
+
+    def __init__(self, report):
+        self.report = report
+
+    def __call__(self, total, desc=""):
+        self.total, self.done = max(int(total), 1), 0
+        return self
+
+    def update(self, n=1):
+        self.done += n
+        self.report("surface", min(self.done / self.total, 1.0))
+
+    def close(self):
+        pass
