@@ -223,6 +223,28 @@ def predict_block(fit: BlockFit, xs, sigma_s, length_scale: float, with_grad: bo
     return kv @ fit.alpha, reduction, None
 
 
+def blend_blocks(qi, dm, vb, n: int):
+    """Inverse-variance blend of per-block predictions at the same queries.
+
+    Parameters
+    ----------
+    qi : (P,) query index of each (query, block) pair
+    dm, vb : (P,) block mean and variance of each pair
+    n : number of queries
+
+    Returns
+    -------
+    mbar (n,) blended mean, spread (n,) mixture variance (law of total variance, so
+    disagreeing blocks widen it), covered (n,) bool, w (P,) normalised pair weights.
+    """
+    w = 1.0 / vb
+    wsum = np.bincount(qi, weights=w, minlength=n)
+    w = w / wsum[qi]
+    mbar = np.bincount(qi, weights=w * dm, minlength=n)
+    spread = np.bincount(qi, weights=w * (vb + (dm - mbar[qi]) ** 2), minlength=n)
+    return mbar, spread, wsum > 0, w
+
+
 # --------------------------------------------------------------- the field
 class LocalGPField:
     """Prior + blended local GP posteriors (paper eqs. gpm2, gpv2).
@@ -290,12 +312,7 @@ class LocalGPField:
                                      math.sqrt(3.0) / self.hyper["length_scale"], return_grad)
         # eq. gpv2; clipped at the noise floor against round-off in k^T K^-1 k
         vb = np.maximum(v[qi] - red, 0.0) + noise
-        w = 1.0 / vb
-        wsum = np.bincount(qi, weights=w, minlength=len(x))
-        w = w / wsum[qi]
-        covered = wsum > 0
-        mbar = np.bincount(qi, weights=w * dm, minlength=len(x))
-        spread = np.bincount(qi, weights=w * (vb + (dm - mbar[qi]) ** 2), minlength=len(x))
+        mbar, spread, covered, w = blend_blocks(qi, dm, vb, len(x))
         m = m + mbar
         # block disagreement widens the variance, but never beyond what the prior
         # alone plus the noise would claim (the bound of eq. gpv2 for one block)

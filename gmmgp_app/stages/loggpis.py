@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import cho_solve, solve_triangular
 
+from gmmgp_app.stages.gp import blend_blocks
 from gmmgp_app.stages.kernels import matern32_value
 from gmmgp_app.stages.octree import BlockGrid
 
@@ -176,12 +177,7 @@ class LogGPISField:
             dm[s:e] = kv @ alpha
             w = solve_triangular(L, kv.T, lower=True, check_finite=False)
             vb[s:e] = np.maximum(s2 - np.einsum("ij,ij->j", w, w), 0.0) + noise
-        w = 1.0 / vb
-        wsum = np.bincount(qi, weights=w, minlength=len(x))
-        w = w / wsum[qi]
-        covered = wsum > 0
-        mbar = np.bincount(qi, weights=w * dm, minlength=len(x))
-        spread = np.bincount(qi, weights=w * (vb + (dm - mbar[qi]) ** 2), minlength=len(x))
+        mbar, spread, covered, _ = blend_blocks(qi, dm, vb, len(x))
         mu = np.where(covered, mbar, 0.0)
         var = np.where(covered, np.minimum(spread, s2 + noise), var)
         return mu, var
