@@ -124,6 +124,9 @@ class TrainingSet:
     n_dropped_normals : int
         Subsampled hit points removed because no normal could be estimated
         (too few neighbours, or a collinear neighbourhood).
+    groups : (M,) int64 or None
+        Index into ``points`` of the hit point each row was made from (a hit
+        point and its virtual points share it); the HGMM ties their components.
     """
 
     rows: np.ndarray
@@ -133,6 +136,7 @@ class TrainingSet:
     spacing: float
     n_dropped_virtual: int = 0
     n_dropped_normals: int = 0
+    groups: Optional[np.ndarray] = None
 
 
 @dataclass(frozen=True)

@@ -94,8 +94,9 @@ def test_loggpis_lambda_defaults_to_the_gp_length_scale():
     from gmmgp_app import MappingConfig
 
     p = LogGPISParams.from_config(MappingConfig())
-    assert p.lam == pytest.approx(math.sqrt(3) / 0.08)
-    assert p.length_scale == pytest.approx(0.08)
+    ell = MappingConfig().gp.length_scale
+    assert p.lam == pytest.approx(math.sqrt(3) / ell)
+    assert p.length_scale == pytest.approx(ell)
     assert p.margin == pytest.approx(4 / p.lam)
 
 
@@ -138,7 +139,7 @@ def test_gpis_is_the_papers_stationary_setup():
     # 5 cm), so the mean is 0.2 (1 - 0.84) = 0.03 m above the odd (gradient) part.
     assert abs(m[0]) < 5e-3
     assert m[1] == pytest.approx(0.05, abs=0.02) and -0.05 < m[2] < 0.0
-    assert (m[1] + m[2]) / 2 == pytest.approx(0.2 * (1 - _plane_value_decay(0.05)), abs=0.01)
+    assert (m[1] + m[2]) / 2 == pytest.approx(0.2 * (1 - _plane_value_decay(0.05, cfg.gp.length_scale)), abs=0.01)
     # far away the constant prior stands
     m, v = smap.predict(np.array([[0.0, 0.0, 5.0]]))
     assert m[0] == pytest.approx(0.2) and v[0] == pytest.approx(0.04)

@@ -133,7 +133,7 @@ def test_save_load_round_trip(tmp_path, sphere_scene):
     q = np.random.default_rng(0).uniform(-1.2, 1.2, size=(500, 3))
     for a, b in zip(field.predict(q, return_grad=True), loaded.predict(q, return_grad=True)):
         np.testing.assert_array_equal(a, b)
-    with pytest.raises(GPError, match="fitted with length_scale=0.08, the config has 0.1"):
+    with pytest.raises(GPError, match="fitted with length_scale=0.15, the config has 0.1"):
         LocalGPField.from_arrays(field.to_arrays(), prior, GPConfig(block_size=0.4,
                                                                     length_scale=0.1))
     arrays = field.to_arrays()

@@ -346,3 +346,100 @@ def test_diagnostics_and_level_table():
     table = format_level_history(h)
     assert table.splitlines()[0].split()[:4] == ["level", "nodes", "split", "leaves"]
     assert len(table.splitlines()) == 2 + len(h.levels) + 1
+
+
+# ------------------------------------------------------------------ tied EM
+def np_tied_responsibilities(X, gptr, gm, group_weights):
+    """Group responsibilities by brute force: log pi_k + sum of row log N (scipy)."""
+    lp = np_weighted_log_prob(X, GaussianMixture(np.full(gm.n_components, 1.0 / gm.n_components),
+                                                 gm.means, gm.covariances))
+    lp -= np.log(1.0 / gm.n_components)  # plain log N(x | k)
+    G = len(gptr) - 1
+    lg = np.stack([lp[gptr[g]:gptr[g + 1]].sum(0) for g in range(G)]) + np.log(group_weights)
+    return np.exp(lg - logsumexp(lg, axis=1, keepdims=True)), logsumexp(lg, axis=1)
+
+
+def test_tied_e_step_matches_numpy_reference():
+    rng = np.random.default_rng(7)
+    gm = random_mixture(rng, K=4)
+    X = sample_mixture(gm, 300, rng)
+    sizes = rng.integers(1, 4, size=150)
+    gptr = np.concatenate([[0], np.cumsum(sizes)])
+    gptr = gptr[gptr <= len(X)]
+    X = np.ascontiguousarray(X[:gptr[-1]])
+    gw = rng.dirichlet(np.ones(4))
+    P, lc = terms(GaussianMixture(gw, gm.means, gm.covariances))
+    nk, gk, sx, sxx, ll, worst, worst_i = ek.accumulate_groups(X, gptr, gm.means, P, lc,
+                                                               np.log(gw))
+    resp_g, ll_g = np_tied_responsibilities(X, gptr, gm, gw)
+    resp_rows = np.repeat(resp_g, np.diff(gptr), axis=0)
+    np.testing.assert_allclose(gk, resp_g.sum(0), rtol=1e-10)
+    np.testing.assert_allclose(nk, resp_rows.sum(0), rtol=1e-10)
+    np.testing.assert_allclose(ll, ll_g.sum(), rtol=1e-12)
+    np.testing.assert_allclose(sx, np.einsum("nk,nkd->kd", resp_rows,
+                                             X[:, None, :] - gm.means[None]), atol=1e-9)
+    np.testing.assert_allclose(ek.group_log_likelihood(X, gptr, gm.means, P, lc, np.log(gw)),
+                               ll_g, rtol=1e-12)
+    assert worst_i == gptr[np.argmin(ll_g)]
+    np.testing.assert_array_equal(ek.assign_groups(X, gptr, gm.means, P, lc, np.log(gw)),
+                                  resp_g.argmax(1))
+
+
+def test_tied_em_with_singleton_groups_is_plain_em():
+    rng = np.random.default_rng(3)
+    gm = random_mixture(rng, K=3)
+    X = sample_mixture(gm, 900, rng)
+    init = GaussianMixture(gm.weights, gm.means + 0.5, gm.covariances)
+    a, ia = fit_gmm(X, 3, init=init, max_iter=30, tol=0.0)
+    b, ib = fit_gmm(X, 3, init=init, max_iter=30, tol=0.0,
+                    group_ptr=np.arange(len(X) + 1))
+    np.testing.assert_allclose(b.means, a.means, atol=1e-10)
+    np.testing.assert_allclose(b.covariances, a.covariances, atol=1e-10)
+    np.testing.assert_allclose(b.weights, a.weights, atol=1e-10)
+    np.testing.assert_allclose(ib["lower_bound"], ia["lower_bound"], rtol=1e-12)
+
+
+def test_tied_em_lower_bound_never_decreases():
+    rng = np.random.default_rng(5)
+    gm = random_mixture(rng, K=3, scale=1.5)
+    X = sample_mixture(gm, 600, rng)
+    gptr = np.arange(0, 601, 3)
+    bounds = [fit_gmm(X, 3, init=GaussianMixture(np.full(3, 1 / 3), gm.means[::-1].copy(),
+                                                 gm.covariances), max_iter=it, tol=0.0,
+                      group_ptr=gptr)[1]["lower_bound"] for it in range(1, 15)]
+    assert np.all(np.diff(bounds) >= -1e-12), bounds
+
+
+def sphere_triplets(rng, n=1500, radius=1.0, s=0.25, noise=0.002):
+    """Rows of a unit sphere: hits (d = 0) and virtual points at +-s, one group per hit."""
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    p = radius * u + noise * rng.normal(size=(n, 1)) * u
+    rows = np.concatenate([np.c_[p, np.zeros(n)], np.c_[p + s * u, np.full(n, s)],
+                           np.c_[p - s * u, np.full(n, -s)]])
+    return rows, np.tile(np.arange(n), 3)
+
+
+def test_tied_hierarchy_keeps_every_leaf_across_the_surface():
+    """Untied EM puts the three sheets of a 1 m sphere into separate leaves (d constant, so
+    a zero SDF gradient); tied EM never does: every leaf spans d = -s .. +s."""
+    rows, groups = sphere_triplets(np.random.default_rng(0))
+    cfg = HGMMConfig(split_threshold=0.01)
+    free = fit_hgmm(rows, cfg)
+    tied = fit_hgmm(rows, cfg, groups=groups)
+    sd_d = lambda h: np.sqrt(h.leaves.covariances[:, 3, 3])  # noqa: E731
+    assert free.leaves.weights[sd_d(free) < 0.05].sum() > 0.3
+    assert np.all(sd_d(tied) > 0.15)
+    assert tied.info["tied_groups"] == 1500
+    np.testing.assert_allclose(tied.leaves.weights.sum(), 1.0)
+    # rows of one hit point never end up in different children of a split
+    assert fit_hgmm(rows, cfg, groups=groups).leaves.means.tobytes() == \
+        tied.leaves.means.tobytes()
+
+
+def test_bad_groups_raise():
+    rows, groups = sphere_triplets(np.random.default_rng(0), n=50)
+    with pytest.raises(HGMMError, match="Expected groups as"):
+        fit_hgmm(rows, HGMMConfig(), groups=groups[:-1])
+    with pytest.raises(HGMMError, match="Expected group_ptr"):
+        fit_gmm(rows, 2, group_ptr=np.array([0, 5, 3, len(rows)]))

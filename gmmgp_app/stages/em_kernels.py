@@ -31,6 +31,10 @@ __all__ = [
     "em_loop",
     "assign",
     "kmeanspp",
+    "group_log_likelihood",
+    "assign_groups",
+    "accumulate_groups",
+    "em_loop_groups",
 ]
 
 LOG_2PI = float(np.log(2.0 * np.pi))
@@ -443,3 +447,157 @@ def nearest_center(X, centers):
                 best = k
         out[n] = best
     return out
+
+
+# ------------------------------------------------------------- tied (grouped) EM
+# The training rows of one hit point -- the hit (d = 0) and its virtual points at
+# +-s -- are one observation of the surface: they are drawn from the *same*
+# component. Rows are sorted so that every group is contiguous, ``gptr`` (G + 1,)
+# holds the group boundaries. The latent label is per group:
+#
+#     log r_gk = log pi_k + sum_{n in g} log N(x_n | mu_k, Sigma_k) - log Z_g
+#
+# with pi_k the fraction of *groups* of component k. Free EM on the rows instead
+# separates the three sheets (d = -s, 0, +s) into different components wherever
+# the surface bends within s (a 1 m sphere, poles, corners): such a component has
+# d constant, so its regression has zero gradient and the zero level set between
+# sheets is ill-defined. Tied labels keep each component a slab across the surface.
+# Contract of the kernels below: ``logconst`` comes from :func:`component_terms`
+# called with the *group* weights, and ``logw`` is their log.
+
+
+@njit(cache=True, inline="always")
+def _group_logprob(X, a, b, means, pchol, logconst, logw, lp, tmp):
+    """lp[k] = log pi_k + sum_{n in [a, b)} log N(x_n | k) (logconst holds log pi_k once per row)."""
+    K = means.shape[0]
+    for k in range(K):
+        lp[k] = -(b - a - 1) * logw[k]
+    for n in range(a, b):
+        _row_logprob(X, n, means, pchol, logconst, tmp)
+        for k in range(K):
+            lp[k] += tmp[k]
+
+
+@njit(cache=True)
+def group_log_likelihood(X, gptr, means, pchol, logconst, logw):
+    """Per-group log-likelihood ``log sum_k pi_k prod_n N(x_n | k)``, (G,)."""
+    G = gptr.shape[0] - 1
+    K = means.shape[0]
+    out = np.empty(G)
+    lp = np.empty(K)
+    tmp = np.empty(K)
+    for g in range(G):
+        _group_logprob(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp, tmp)
+        out[g] = _lse(lp)
+    return out
+
+
+@njit(cache=True)
+def assign_groups(X, gptr, means, pchol, logconst, logw):
+    """Hard assignment of every group to its most likely component, (G,) int64."""
+    G = gptr.shape[0] - 1
+    K = means.shape[0]
+    out = np.empty(G, dtype=np.int64)
+    lp = np.empty(K)
+    tmp = np.empty(K)
+    for g in range(G):
+        _group_logprob(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp, tmp)
+        best = 0
+        for k in range(1, K):
+            if lp[k] > lp[best]:
+                best = k
+        out[g] = best
+    return out
+
+
+@njit(cache=True)
+def accumulate_groups(X, gptr, means, pchol, logconst, logw):
+    """Tied E-step fused with the M-step statistics (about the current means).
+
+    Returns
+    -------
+    nk : (K,) sum over rows of their group's responsibility
+    gk : (K,) sum over groups of the responsibility
+    sx, sxx : as :func:`accumulate`
+    ll : float, sum of group log-likelihoods
+    worst, worst_i : lowest group log-likelihood and the first row of that group
+    """
+    G = gptr.shape[0] - 1
+    K, D = means.shape
+    nk = np.zeros(K)
+    gk = np.zeros(K)
+    sx = np.zeros((K, D))
+    sxx = np.zeros((K, D, D))
+    lp = np.empty(K)
+    tmp = np.empty(K)
+    diff = np.empty(D)
+    ll = 0.0
+    worst = np.inf
+    worst_i = -1
+    for g in range(G):
+        a, b = gptr[g], gptr[g + 1]
+        _group_logprob(X, a, b, means, pchol, logconst, logw, lp, tmp)
+        lse = _lse(lp)
+        ll += lse
+        if lse < worst:
+            worst = lse
+            worst_i = a
+        for k in range(K):
+            r = np.exp(lp[k] - lse)
+            if r < RESP_FLOOR:
+                continue
+            gk[k] += r
+            nk[k] += r * (b - a)
+            for n in range(a, b):
+                for i in range(D):
+                    diff[i] = X[n, i] - means[k, i]
+                    sx[k, i] += r * diff[i]
+                for i in range(D):
+                    ri = r * diff[i]
+                    for j in range(i + 1):
+                        sxx[k, i, j] += ri * diff[j]
+    return nk, gk, sx, sxx, ll, worst, worst_i
+
+
+@njit(cache=True)
+def em_loop_groups(X, gptr, weights, means, covs, max_iter, tol, reg_covar, min_nk):
+    """Tied EM in place; same contract as :func:`em_loop`.
+
+    ``weights`` are group fractions on entry and on return (the caller converts
+    them to row fractions for the density over rows). ``lower_bound`` is the sum
+    of group log-likelihoods divided by the number of rows.
+    """
+    N, D = X.shape
+    K = means.shape[0]
+    pchol = np.empty((K, D, D))
+    logconst = np.empty(K)
+    logw = np.empty(K)
+    prev = -np.inf
+    lb = -np.inf
+    worst_i = -1
+    row_w = np.empty(K)
+    for it in range(max_iter):
+        bad = component_terms(weights, covs, pchol, logconst)
+        if bad >= 0:
+            return it, False, 1, bad, lb, worst_i
+        for k in range(K):
+            logw[k] = np.log(weights[k])
+        nk, gk, sx, sxx, ll, worst, worst_i = accumulate_groups(X, gptr, means, pchol,
+                                                                logconst, logw)
+        lb = ll / N
+        if not np.isfinite(lb):
+            return it, False, 1, -1, lb, worst_i
+        for k in range(K):
+            if nk[k] < min_nk:
+                return it, False, 2, k, lb, worst_i
+        old = means.copy()
+        _mstep_from_stats(N, nk, sx, sxx, old, reg_covar, row_w, means, covs)
+        total = 0.0
+        for k in range(K):
+            total += gk[k] + EPS10
+        for k in range(K):
+            weights[k] = (gk[k] + EPS10) / total
+        if abs(lb - prev) < tol:
+            return it + 1, True, 0, -1, lb, worst_i
+        prev = lb
+    return max_iter, False, 0, -1, lb, worst_i

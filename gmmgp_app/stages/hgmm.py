@@ -35,6 +35,8 @@ __all__ = [
     "score_samples",
     "score",
     "predict_labels",
+    "predict_group_labels",
+    "group_boundaries",
     "hgmm_diagnostics",
     "format_level_history",
 ]
@@ -149,6 +151,7 @@ def fit_gmm(
     on_empty: str = "reseed",
     min_component_rows: float = 1.0,
     parallel: bool = False,
+    group_ptr: Optional[np.ndarray] = None,
 ) -> tuple[GaussianMixture, dict]:
     """Flat EM for a full-covariance Gaussian mixture (E and M steps in numba).
 
@@ -176,6 +179,11 @@ def fit_gmm(
     parallel : bool
         Run the E/M pass over rows with numba threads (worth it on an idle
         machine with large N; off by default, see em_kernels.accumulate).
+    group_ptr : (G + 1,) int64, optional
+        Tied EM: rows ``group_ptr[g]:group_ptr[g + 1]`` share one latent component
+        (a hit point and its virtual points, see ``em_kernels.em_loop_groups``).
+        The returned weights are still row fractions (the density over rows);
+        ``info["group_weights"]`` holds the group fractions.
 
     Returns
     -------
@@ -194,6 +202,7 @@ def fit_gmm(
     X = _check_rows(X, min_rows=n_components)
     rng = np.random.default_rng(0) if rng is None else rng
     N, D = X.shape
+    gptr = _check_group_ptr(group_ptr, N)
     info = dict(n_iter=0, converged=False, lower_bound=-np.inf, reseeded=[], dropped=[],
                 n_init_components=n_components)
 
@@ -208,6 +217,9 @@ def fit_gmm(
         idx = ek.kmeanspp(X, n_components, rng.random(n_components))
         info["n_init_components"] = len(idx)
         labels = ek.nearest_center(X, X[idx])
+        if gptr is not None:
+            # a group starts on the centre nearest to its first row (the hit point)
+            labels = np.repeat(labels[gptr[:-1]], np.diff(gptr))
         w, m, c = _init_from_labels(X, labels, len(idx), reg_covar)
     else:
         a = np.ascontiguousarray(np.asarray(init, dtype=np.float64))
@@ -223,12 +235,20 @@ def fit_gmm(
                 f"({N}, {n_components}), found {a.shape}."
             )
 
+    if gptr is not None:
+        w = _group_fractions(X, gptr, w, m, c)
     budget = n_components if on_empty == "reseed" else 0
     it_done = 0
+    n_units = N if gptr is None else len(gptr) - 1
     while True:
-        n_iter, conv, status, bad_k, lb, worst_i = ek.em_loop(
-            X, w, m, c, int(max_iter - it_done), float(tol), float(reg_covar),
-            float(min_component_rows), bool(parallel))
+        if gptr is None:
+            n_iter, conv, status, bad_k, lb, worst_i = ek.em_loop(
+                X, w, m, c, int(max_iter - it_done), float(tol), float(reg_covar),
+                float(min_component_rows), bool(parallel))
+        else:
+            n_iter, conv, status, bad_k, lb, worst_i = ek.em_loop_groups(
+                X, gptr, w, m, c, int(max_iter - it_done), float(tol), float(reg_covar),
+                float(min_component_rows))
         it_done += n_iter
         info["lower_bound"] = float(lb)
         if status == 0:
@@ -246,7 +266,7 @@ def fit_gmm(
             cov_avg = np.einsum("k,kij->ij", w[others] / w[others].sum(), c[others])
             m[bad_k] = X[worst_i] if worst_i >= 0 else X[rng.integers(N)]
             c[bad_k] = cov_avg
-            w[bad_k] = 1.0 / N
+            w[bad_k] = 1.0 / n_units
             w /= w.sum()
         elif len(w) > 1:
             info["dropped"].append((it_done, int(bad_k)))
@@ -260,12 +280,60 @@ def fit_gmm(
             )
         if it_done >= max_iter:
             break
+    if gptr is not None:
+        info["group_weights"] = w.copy()
+        w = _row_fractions(X, gptr, w, m, c)
     # A stop on max_iter right after a re-seed leaves parameters that were never
     # checked; make sure what we hand out is usable.
     gm = GaussianMixture(w, m, c)
     _terms(gm)
     info["n_iter"] = int(it_done)
     return gm, info
+
+
+def _check_group_ptr(group_ptr, N: int):
+    if group_ptr is None:
+        return None
+    g = np.ascontiguousarray(np.asarray(group_ptr, dtype=np.int64))
+    if g.ndim != 1 or len(g) < 2 or g[0] != 0 or g[-1] != N or np.any(np.diff(g) <= 0):
+        raise HGMMError(f"Expected group_ptr to be increasing boundaries from 0 to {N} "
+                        f"(one group per hit point), found shape {g.shape}; build it with "
+                        "group_boundaries(groups).")
+    return g
+
+
+def group_boundaries(groups: np.ndarray) -> np.ndarray:
+    """Boundaries ``(G + 1,)`` of the runs of equal values in a sorted group array."""
+    groups = np.asarray(groups)
+    starts = np.flatnonzero(np.diff(groups)) + 1
+    return np.concatenate([[0], starts, [len(groups)]]).astype(np.int64)
+
+
+def _group_fractions(X, gptr, w, m, c) -> np.ndarray:
+    """Group fractions from hard labels of groups (used to start tied EM)."""
+    gm = GaussianMixture(w, m, c)
+    pchol, logconst = _terms(gm)
+    lab = ek.assign_groups(X, gptr, m, pchol, logconst, np.log(w))
+    frac = np.bincount(lab, minlength=len(w)).astype(np.float64) + 1.0
+    return frac / frac.sum()
+
+
+def _row_fractions(X, gptr, gw, m, c) -> np.ndarray:
+    """Row fractions (weights of the density over rows) of a tied mixture: sum_g r_gk |g| / N."""
+    pchol, logconst = _terms(GaussianMixture(gw, m, c))
+    nk = ek.accumulate_groups(X, gptr, m, pchol, logconst, np.log(gw))[0]
+    nk = nk + ek.EPS10
+    return nk / nk.sum()
+
+
+def predict_group_labels(gm: GaussianMixture, group_weights, X, group_ptr) -> np.ndarray:
+    """Hard assignment of whole groups (tied EM), expanded to rows, (N,) int64."""
+    X = _check_rows(X)
+    gptr = _check_group_ptr(group_ptr, len(X))
+    gw = np.asarray(group_weights, dtype=np.float64)
+    pchol, logconst = _terms(GaussianMixture(gw, gm.means, gm.covariances))
+    lab = ek.assign_groups(X, gptr, gm.means, pchol, logconst, np.log(gw))
+    return np.repeat(lab, np.diff(gptr))
 
 
 def score_samples(gm: GaussianMixture, X: np.ndarray) -> np.ndarray:
@@ -291,7 +359,8 @@ def predict_labels(gm: GaussianMixture, X: np.ndarray) -> np.ndarray:
 
 # ----------------------------------------------------------------- hierarchy
 def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
-             rng: Optional[np.random.Generator] = None) -> HierarchicalGMM:
+             rng: Optional[np.random.Generator] = None,
+             groups: Optional[np.ndarray] = None) -> HierarchicalGMM:
     """Fit the top-down hierarchical GMM (paper Sec. III-A).
 
     Parameters
@@ -304,6 +373,10 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
         ``complexity_metric``.
     rng : numpy Generator, optional
         Defaults to ``np.random.default_rng(hcfg.seed)``.
+    groups : (M,) int, optional
+        ``TrainingSet.groups``: the hit point each row belongs to. When given (and
+        ``hcfg.tie_virtual``), every EM of the hierarchy is tied: a hit point and its
+        virtual points share one component, and nodes are split by whole groups.
 
     Returns
     -------
@@ -318,13 +391,33 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
     _check_not_identical(X)
     rng = np.random.default_rng(hcfg.seed) if rng is None else rng
     D = X.shape[1]
+    gsorted = None
+    if groups is not None and getattr(hcfg, "tie_virtual", True):
+        groups = np.asarray(groups)
+        if groups.shape != (len(X),) or not np.issubdtype(groups.dtype, np.integer):
+            raise HGMMError(f"Expected groups as ({len(X)},) integers (the hit point of "
+                            f"each row), found {groups.dtype} {groups.shape}; pass "
+                            "TrainingSet.groups.")
+        # Rows of a group made contiguous; node row lists stay sorted, so groups
+        # stay contiguous inside every node.
+        order = np.argsort(groups, kind="stable")
+        X = np.ascontiguousarray(X[order])
+        gsorted = groups[order]
+
+    def fit(Xrows, idx, k):
+        if gsorted is None:
+            g = fit_gmm(Xrows, k, rng=rng, on_empty="drop",
+                        min_component_rows=float(D), **em_kw)
+            return g + (predict_labels(g[0], Xrows),)
+        gptr = group_boundaries(gsorted if idx is None else gsorted[idx])
+        g = fit_gmm(Xrows, k, rng=rng, on_empty="drop", min_component_rows=float(D),
+                    group_ptr=gptr, **em_kw)
+        return g + (predict_group_labels(g[0], g[1]["group_weights"], Xrows, gptr),)
     normalize = getattr(hcfg, "complexity_metric", "correlation") == "correlation"
     em_kw = dict(max_iter=hcfg.max_iter, tol=hcfg.tol, reg_covar=hcfg.reg_covar)
     min_child_rows = _ROWS_PER_CHILD_PER_DIM * D
 
-    gm0, info0 = fit_gmm(X, hcfg.initial_components, rng=rng, on_empty="drop",
-                         min_component_rows=float(D), **em_kw)
-    labels = predict_labels(gm0, X)
+    gm0, info0, labels = fit(X, None, hcfg.initial_components)
     # Current level: arrays of node parameters and the row indices of each node.
     weights, means, covs = gm0.weights, gm0.means, gm0.covariances
     parents = np.full(len(weights), -1, dtype=np.int64)
@@ -356,15 +449,18 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
             if np.all(Xj.max(axis=0) == Xj.min(axis=0)):
                 stats["failed_splits"] += 1
                 continue
-            gmj, infoj = fit_gmm(Xj, k, rng=rng, on_empty="drop",
-                                 min_component_rows=float(D), **em_kw)
+            if gsorted is not None and len(np.unique(gsorted[idx])) < k:
+                k = len(np.unique(gsorted[idx]))
+                if k < 2:
+                    stats["failed_splits"] += 1
+                    continue
+            gmj, infoj, lab = fit(Xj, idx, k)
             stats["n_fits"] += 1
             stats["em_iter"] += infoj["n_iter"]
             stats["dropped"] += len(infoj["dropped"])
             stats["not_converged"] += int(not infoj["converged"])
-            lab = predict_labels(gmj, Xj)
-            groups = _group(lab, gmj.n_components)
-            alive = [g for g in range(gmj.n_components) if len(groups[g]) > 0]
+            child_rows = _group(lab, gmj.n_components)
+            alive = [g for g in range(gmj.n_components) if len(child_rows[g]) > 0]
             if len(alive) < 2:
                 # EM put everything in one child: it would equal its parent.
                 stats["failed_splits"] += 1
@@ -375,7 +471,7 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
                 nxt_m.append(gmj.means[g])
                 nxt_c.append(gmj.covariances[g])
                 nxt_p.append(j)
-                nxt_rows.append(idx[groups[g]])
+                nxt_rows.append(idx[child_rows[g]])
         levels.append(HGMMLevel(
             mixture=GaussianMixture(weights, means, covs), parent=parents,
             complexity=np.asarray(c, dtype=np.float64), split=split, n_rows=n_rows))
@@ -397,6 +493,7 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
     info = dict(
         reg_covar=hcfg.reg_covar,
         complexity_metric="correlation" if normalize else "covariance",
+        tied_groups=None if gsorted is None else int(len(group_boundaries(gsorted)) - 1),
         n_rows=int(len(X)),
         n_leaves=int(leaves.n_components),
         level_fits=level_info,

@@ -282,11 +282,13 @@ def prepare(scan: Scan, cfg: MappingConfig, *,
     rows = virtual_points(hits, normals, s)
     H = len(hits)
     kinds = np.concatenate([np.zeros(H, np.int8), np.ones(H, np.int8), -np.ones(H, np.int8)])
+    groups = np.tile(np.arange(H, dtype=np.int64), 3)
     n_dropped = 0
     if p.drop_inconsistent_virtual:
         bad = np.zeros(3 * H, dtype=bool)
         bad[H:] = inconsistent_virtual(rows[H:, :3], tree, s, p.virtual_margin)
         n_dropped = int(bad.sum())
-        rows, kinds = rows[~bad], kinds[~bad]
+        rows, kinds, groups = rows[~bad], kinds[~bad], groups[~bad]
     return TrainingSet(rows=rows, kinds=kinds, points=hits, normals=normals, spacing=s,
-                       n_dropped_virtual=n_dropped, n_dropped_normals=n_no_normal)
+                       n_dropped_virtual=n_dropped, n_dropped_normals=n_no_normal,
+                       groups=groups)
