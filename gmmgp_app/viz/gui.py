@@ -134,13 +134,18 @@ def _load_script(path) -> list:
     return steps
 
 
-def run_app(model: ViewerModel, size=(1600, 1000), first_stage=None, script=None) -> int:
-    """Create the window, start the first computation and run the event loop."""
+def run_app(model: ViewerModel, size=(1600, 1000), first_stage=None, script=None,
+            hard_exit: bool = True) -> int:
+    """Create the window, start the first computation and run the event loop.
+
+    With ``hard_exit`` (the CLI), closing the window ends the process at once (see
+    :meth:`ViewerApp.quit`) and this function does not return.
+    """
     import open3d.visualization.gui as gui
 
     app = gui.Application.instance
     app.initialize()
-    viewer = ViewerApp(model, size=size, first_stage=first_stage)
+    viewer = ViewerApp(model, size=size, first_stage=first_stage, hard_exit=hard_exit)
     viewer.start_initial_run()
     if script is not None:
         viewer.run_script(script)
@@ -156,7 +161,8 @@ class ViewerApp:
     GUI main thread.
     """
 
-    def __init__(self, model: ViewerModel, size=(1600, 1000), first_stage=None):
+    def __init__(self, model: ViewerModel, size=(1600, 1000), first_stage=None,
+                 hard_exit: bool = False):
         import open3d.visualization.gui as gui
         import open3d.visualization.rendering as rendering
 
@@ -164,6 +170,8 @@ class ViewerApp:
         self.model = model
         self.app = gui.Application.instance
         self.exit_code = 0
+        self.hard_exit = hard_exit
+        self._savers: list[threading.Thread] = []
         self.errors: list[str] = []
         self.generation = 0          # bumped by every run; older results are dropped
         self.dropped_results = 0
@@ -335,8 +343,24 @@ class ViewerApp:
         self.panel.frame = self.gui.Rect(r.get_right() - width, r.y, width, r.height)
 
     def _on_close(self):
-        self.generation += 1  # workers see they are stale and stop between stages
+        self.quit()
         return True
+
+    def quit(self):
+        """Stop workers, let map saves finish, then end the event loop (or the process).
+
+        With ``hard_exit`` the process ends here: Open3D's renderer teardown (Filament
+        on Mesa's CPU Vulkan driver) was seen to rasterise for minutes at 100 % CPU
+        after the window closed, with nothing left to show or save.
+        """
+        self.generation += 1  # workers see they are stale and stop between stages
+        for t in self._savers:
+            t.join(timeout=120)
+        if self.hard_exit:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(self.exit_code)
+        self.app.quit()
 
     # ------------------------------------------------------------------ controller
     def set_stage(self, stage: str):
@@ -867,7 +891,9 @@ class ViewerApp:
                     on_done(msg)
             self.app.post_to_main_thread(self.window, show)
 
-        threading.Thread(target=work, daemon=True).start()
+        t = threading.Thread(target=work, name="gmmgp-save", daemon=True)
+        self._savers = [s for s in self._savers if s.is_alive()] + [t]
+        t.start()
 
     def _file_dialog(self, mode, title, filt, on_done):
         gui = self.gui
@@ -938,7 +964,7 @@ class ViewerApp:
                 print(msg, file=sys.stderr, flush=True)
                 self.errors.append(msg)
                 self.exit_code = 1
-                self.app.post_to_main_thread(self.window, self.app.quit)
+                self.app.post_to_main_thread(self.window, self.quit)
 
         threading.Thread(target=drive, name="gmmgp-script", daemon=True).start()
 
@@ -976,20 +1002,12 @@ class ViewerApp:
         if "screenshot" in step:
             path = Path(step["screenshot"])
             time.sleep(settle)  # let the window draw the last change
-            ev = threading.Event()
-            on_main(lambda: self.screenshot(path.with_suffix(".scene.png")
-                                            if step.get("window") else path,
-                                            lambda q: ev.set()))
-            # The read-back completes a frame or two later, and frames are only drawn
-            # on demand: keep asking for frames until the image arrives.
-            t_end = time.monotonic() + 180
-            while not ev.wait(0.25):
-                if time.monotonic() > t_end:
-                    raise TimeoutError(f"screenshot {path} was not rendered within 180 s")
-                self.app.post_to_main_thread(self.window, self._redraw_now)
             if step.get("window"):
-                self._grab_when_drawn(path, on_main, settle)
-                path.with_suffix(".scene.png").unlink(missing_ok=True)
+                self._grab_when_drawn(path, on_main)
+            else:
+                ev = threading.Event()
+                on_main(lambda: self.screenshot(path, lambda q: ev.set()))
+                self._wait_for_frame(ev, f"screenshot {path}")
         if "save" in step:
             ev, box = threading.Event(), {}
             on_main(lambda: self.save_map(step["save"], lambda m: (box.update(msg=m), ev.set())))
@@ -1001,27 +1019,57 @@ class ViewerApp:
         if "sleep" in step:
             time.sleep(float(step["sleep"]))
         if step.get("quit"):
-            on_main(self.app.quit)
+            on_main(self.quit)
 
 
-    def _grab_when_drawn(self, path: Path, on_main, settle: float, rounds: int = 6):
-        """Grab the window from the X server once its pixels have settled.
+    def _wait_for_frame(self, ev: threading.Event, what: str, timeout: float = 180.0):
+        """Wait (driver thread) for ``ev``, set once a requested frame has been drawn.
+
+        Frames are drawn on demand, and a request can miss the frame in flight, so ask
+        again when none came -- with back-off: on a CPU renderer under load one frame
+        takes seconds, and re-asking every 0.25 s queued frames faster than they were
+        drawn (stalls of minutes, also at exit while the queue drained).
+        """
+        t_end = time.monotonic() + timeout
+        delay = 1.0
+        while not ev.wait(delay):
+            if time.monotonic() > t_end:
+                raise TimeoutError(f"{what} was not rendered within {timeout:.0f} s")
+            self.app.post_to_main_thread(self.window, self._redraw_now)
+            delay = min(2.0 * delay, 8.0)
+
+    def _frame_fence(self, on_main):
+        """Return once the window has drawn one more complete frame.
+
+        A read-back of the 3D view is served by the next frame, so its callback is a
+        fence: frames are drawn one at a time, never queued ahead of the renderer.
+        """
+        ev = threading.Event()
+
+        def request():
+            self.scene.scene.scene.render_to_image(lambda _img: ev.set())
+            self._redraw_now()
+        on_main(request)
+        self._wait_for_frame(ev, "a frame")
+
+    def _grab_when_drawn(self, path: Path, on_main, rounds: int = 6):
+        """Grab the whole window (panel included) from the X server once it is drawn.
 
         Presented frames reach the X server a frame or two late (the Vulkan swapchain
-        holds several images), so draw two frames per round and grab until two grabs
-        (almost) agree; each frame costs seconds on a CPU renderer, so few rounds.
+        holds several images), so draw two complete frames per round and grab until
+        two grabs (almost) agree.
         """
         previous = None
         for _ in range(rounds):
             for _ in range(2):
-                on_main(self._redraw_now)
-                time.sleep(settle / 2)
+                self._frame_fence(on_main)
             img = _grab_window(on_main(self.window_frame))
             if previous is not None:
                 a, b = np.asarray(img), np.asarray(previous)
                 if a.shape == b.shape and np.mean(np.any(a != b, axis=2)) < 1e-3:
                     break
             previous = img
+        path.parent.mkdir(parents=True, exist_ok=True)
         img.save(path)
 
 
