@@ -3,9 +3,10 @@
 
 For each scene (a synthetic street, and KITTI odometry 00 scan 000000 when
 ../shared/data is present) the scan is prepared into 4D rows, split 90/10 with
-a seed, and:
+a seed by hit point (a hit point and its virtual points stay on one side), and:
 
-* the HGMM is fitted on the 90 % (default config), timing it;
+* the HGMM is fitted on the 90 % (default config: tied EM), timing it; the same
+  hierarchy with free EM (``hgmm.tie_virtual = false``) is fitted too and scored;
 * scikit-learn ``GaussianMixture(covariance_type="full")`` with as many
   components as the HGMM has leaves is fitted on the same rows (``max_iter``,
   default k-means init, same seed), timing it;
@@ -176,11 +177,26 @@ def read_kitti(path=KITTI):
 
 
 # ------------------------------------------------------------------ helpers
-def split_rows(rows, seed, frac=0.1):
+def split_rows(rows, groups, seed, frac=0.1):
+    """Hold out ``frac`` of the hit points with all their rows (a group stays whole).
+
+    Returns train rows, their groups, test rows.
+    """
     rng = np.random.default_rng(seed)
-    perm = rng.permutation(len(rows))
-    n_test = int(round(frac * len(rows)))
-    return rows[perm[n_test:]], rows[perm[:n_test]]
+    ids = np.unique(groups)
+    test_ids = rng.choice(ids, int(round(frac * len(ids))), replace=False)
+    test = np.isin(groups, test_ids)
+    return rows[~test], groups[~test], rows[test]
+
+
+def sample_groups(rows, groups, n_rows, seed):
+    """About ``n_rows`` rows made of whole groups drawn at random, (rows, groups)."""
+    ids = np.unique(groups)
+    per = len(rows) / len(ids)
+    pick = np.random.default_rng(seed).choice(ids, min(len(ids), int(round(n_rows / per))),
+                                              replace=False)
+    keep = np.isin(groups, pick)
+    return rows[keep], groups[keep]
 
 
 def label_error(data, scene):
@@ -194,21 +210,32 @@ def label_error(data, scene):
                 frac_sign_wrong=float(np.mean(sign_wrong)))
 
 
-def bench_scene(name, rows, hcfg, seed, sk_max_rows, sk_max_iter, run_sklearn=True):
+def bench_scene(name, rows, groups, hcfg, seed, sk_max_rows, sk_max_iter, run_sklearn=True):
     from gmmgp_app.stages.hgmm import fit_hgmm, format_level_history, hgmm_diagnostics, score
 
-    train, test = split_rows(rows, seed)
+    train, train_groups, test = split_rows(rows, groups, seed)
     t = time.perf_counter()
-    h = fit_hgmm(train, hcfg)
+    h = fit_hgmm(train, hcfg, groups=train_groups)
     t_h = time.perf_counter() - t
     diag = hgmm_diagnostics(h, test)
+    # The same hierarchy with free (untied) EM, for the record: it is the better
+    # density, the worse regression prior (see HGMMConfig.tie_virtual).
+    t = time.perf_counter()
+    h_free = fit_hgmm(train, hcfg)
+    t_free = time.perf_counter() - t
+    free = dict(seconds=t_free, n_leaves=h_free.leaves.n_components,
+                heldout_mean_loglik=score(h_free.leaves, test))
+    print(f"[{name}] untied HGMM: {t_free:.2f} s, {free['n_leaves']} leaves, held-out "
+          f"{free['heldout_mean_loglik']:.4f}")
     print(f"[{name}] {len(train)} train rows: HGMM {t_h:.2f} s, {h.leaves.n_components} leaves, "
           f"held-out {diag['heldout_mean_loglik']:.4f}")
     print(format_level_history(h))
     out = dict(n_rows=len(rows), n_train=len(train), n_test=len(test),
                hgmm=dict(seconds=t_h, heldout_mean_loglik=diag["heldout_mean_loglik"],
                          diagnostics=diag, level_fits=h.info["level_fits"],
-                         level_history=format_level_history(h).splitlines()))
+                         tied_groups=h.info.get("tied_groups"),
+                         level_history=format_level_history(h).splitlines()),
+               hgmm_untied=free)
     if not run_sklearn:
         return out
     from sklearn.mixture import GaussianMixture as SKGMM
@@ -295,13 +322,13 @@ def main(argv=None):
     scan, scene, street_src = get_street(args.street_points, args.seed)
     data = prepare(scan, cfg)
     res["street"] = dict(source=street_src, n_points=len(scan),
-                         **bench_scene("street", data.rows, cfg.hgmm, args.seed,
+                         **bench_scene("street", data.rows, data.groups, cfg.hgmm, args.seed,
                                        args.sk_max_rows, args.sk_max_iter))
     if KITTI.exists() and not args.no_kitti:
         kscan, ksrc = read_kitti()
         kdata = prepare(kscan, cfg)
         res["kitti_000000"] = dict(source=ksrc, n_points=len(kscan),
-                                   **bench_scene("kitti", kdata.rows, cfg.hgmm, args.seed,
+                                   **bench_scene("kitti", kdata.rows, kdata.groups, cfg.hgmm, args.seed,
                                                  args.sk_max_rows, args.sk_max_iter))
     else:
         res["kitti_000000"] = dict(skipped=f"{KITTI} not found or --no-kitti")
@@ -311,13 +338,11 @@ def main(argv=None):
     bigdata = prepare(big, cfg.replace("prepare.subsample_rate", 1.0))
     scaling = []
     for n in args.sizes:
-        rows = bigdata.rows[np.random.default_rng(n).choice(len(bigdata.rows),
-                                                            min(n, len(bigdata.rows)),
-                                                            replace=False)]
+        rows, groups = sample_groups(bigdata.rows, bigdata.groups, n, n)
         times, leaves = [], []
         for r in range(args.repeats):
             t = time.perf_counter()
-            h = fit_hgmm(rows, cfg.hgmm)
+            h = fit_hgmm(rows, cfg.hgmm, groups=groups)
             times.append(time.perf_counter() - t)
             leaves.append(h.leaves.n_components)
         scaling.append(dict(rows=len(rows), seconds_median=float(np.median(times)),

@@ -87,3 +87,25 @@ def test_bad_arguments():
     spread = np.random.default_rng(0).uniform(-1e4, 1e4, size=(50000, 3))
     with pytest.raises(GridTooLargeError, match="use a larger voxel size"):
         extract_surface(_sphere_field, spread, voxel_size=0.001)
+
+
+@pytest.mark.slow
+def test_scanned_sphere_mesh_is_accurate_and_tied_em_is_what_makes_it_so():
+    """A 1 m sphere scanned by four stations with 8 mm range noise (52k points, a quarter
+    of scripts/bench_sphere.py's density): the gmmgp mesh at 2.5 cm voxels lies within
+    8 mm RMSE of the exact sphere (the benchmark's full-density figure is the issue's
+    5 mm criterion); with free (untied) EM the same map is several times worse."""
+    import gmmgp_app as gm
+    from gmmgp_app.synth import scan_scene
+
+    scan, _ = scan_scene("sphere", density=0.25, seed=0, range_noise=0.008)
+
+    def mesh_rmse(cfg):
+        smap = gm.build_map(scan, cfg, method="gmmgp")
+        v = smap.extract_surface(0.025).vertices + smap.offset
+        return float(np.sqrt(np.mean((np.linalg.norm(v, axis=1) - 1.0) ** 2)))
+
+    tied = mesh_rmse(gm.MappingConfig())
+    free = mesh_rmse(gm.MappingConfig().replace("hgmm.tie_virtual", False))
+    assert tied < 0.008
+    assert free > 2 * tied
