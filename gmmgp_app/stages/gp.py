@@ -306,10 +306,13 @@ class LocalGPField:
             return (m, v, g) if return_grad else (m, v)
         sig = np.sqrt(np.maximum(v, 0.0))
         noise = self.hyper["value_noise"]
-        flat = self._flat()
-        dm, red, dg = _predict_pairs(x, sig, qi, bi, flat["ptr"], flat["X"], flat["sp"],
-                                     flat["L"], flat["Loff"], flat["alpha"],
-                                     math.sqrt(3.0) / self.hyper["length_scale"], return_grad)
+        a = math.sqrt(3.0) / self.hyper["length_scale"]
+        if return_grad:
+            flat = self._flat()
+            dm, red, dg = _predict_pairs(x, sig, qi, bi, flat["ptr"], flat["X"], flat["sp"],
+                                         flat["L"], flat["Loff"], flat["alpha"], a, True)
+        else:
+            dm, red = self._value_pairs(x, sig, qi, bi, a)
         # eq. gpv2; clipped at the noise floor against round-off in k^T K^-1 k
         vb = np.maximum(v[qi] - red, 0.0) + noise
         mbar, spread, covered, w = blend_blocks(qi, dm, vb, len(x))
@@ -322,6 +325,30 @@ class LocalGPField:
                 g[:, c] += np.bincount(qi, weights=w * dg[:, c], minlength=len(x))
             return m, v, g
         return m, v
+
+    def _value_pairs(self, x, sig, qi, bi, a):
+        """Value posterior for (query, block) pairs sorted by block, one BLAS solve per block.
+
+        The same numbers as :func:`_predict_pairs` without gradients (a test checks
+        it); all queries of a block share one triangular solve with many right-hand
+        sides (``trsm``), about 10x faster than one forward substitution per pair once
+        a block has tens of queries, which the surface lattice always gives.
+        """
+        dm = np.empty(len(qi))
+        red = np.empty(len(qi))
+        cuts = np.flatnonzero(np.diff(bi)) + 1
+        starts = np.concatenate([[0], cuts])
+        ends = np.concatenate([cuts, [len(bi)]])
+        for s, e in zip(starts, ends):
+            blk = self.blocks[bi[s]]
+            kv = _value_cross(x, sig, qi[s:e], blk.X, blk.sigma_p, a)   # (q, 4n)
+            dm[s:e] = kv @ blk.alpha
+            # L v = k*  <=>  (L^T)^T v = k*: L^T of a C-ordered L is Fortran-ordered,
+            # and kv^T too, so LAPACK gets both without a copy.
+            v = solve_triangular(np.ascontiguousarray(blk.L).T, kv.T, trans="T", lower=False,
+                                 check_finite=False, overwrite_b=True)
+            red[s:e] = np.einsum("ij,ij->j", v, v)
+        return dm, red
 
     def _flat(self) -> dict:
         """All blocks as flat arrays for the compiled predictor (built once)."""
@@ -516,6 +543,29 @@ def _fit_block_batch(task) -> list:
     """One executor task: :func:`fit_block` on each ``(X, sigma_p, targets)``."""
     items, (ls, vn, gn, jit) = task
     return [fit_block(X, sp, t, ls, vn, gn, jit) for X, sp, t in items]
+
+
+@nb.njit(cache=True)
+def _value_cross(x, sig, q, X, sp, a):
+    """Scaled cross-covariance rows ``k*`` of query values with a block's value+gradient
+    observations (eqs. kernel2, kernel_j), (len(q), 4n); as in :func:`_predict_pairs`."""
+    n = X.shape[0]
+    out = np.empty((len(q), 4 * n))
+    for p in range(len(q)):
+        i0 = q[p]
+        for i in range(n):
+            d0 = x[i0, 0] - X[i, 0]
+            d1 = x[i0, 1] - X[i, 1]
+            d2 = x[i0, 2] - X[i, 2]
+            r = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            ex = math.exp(-a * r)
+            sc = sig[i0] * sp[i]
+            a2e = sc * a * a * ex
+            out[p, 4 * i] = sc * (1.0 + a * r) * ex
+            out[p, 4 * i + 1] = a2e * d0
+            out[p, 4 * i + 2] = a2e * d1
+            out[p, 4 * i + 3] = a2e * d2
+    return out
 
 
 @nb.njit(parallel=True, cache=True, fastmath=False)
