@@ -10,7 +10,8 @@ a seed by hit point (a hit point and its virtual points stay on one side), and:
 * scikit-learn ``GaussianMixture(covariance_type="full")`` with as many
   components as the HGMM has leaves is fitted on the same rows (``max_iter``,
   default k-means init, same seed), timing it;
-* both are scored on the held-out 10 % (mean log-likelihood per row).
+* both are scored on the held-out 10 % (mean log-likelihood per row), and by the
+  held-out log-likelihood of d given xyz under each mixture's GMR.
 
 scikit-learn costs O(rows x leaves x iterations) and takes minutes with
 hundreds of components: its fit is bounded by ``--sk-max-rows`` (rows drawn
@@ -210,6 +211,19 @@ def label_error(data, scene):
                 frac_sign_wrong=float(np.mean(sign_wrong)))
 
 
+def conditional_loglik(mixture, rows) -> float:
+    """Mean log N(d | m(x), sigma^2(x)) over rows under the GMR of a mixture.
+
+    On held-out *training-style* rows (hits at d = 0, virtual points at exactly +-s):
+    a mixture that gives each sheet its own component predicts these rows best, which
+    says little about the field between the sheets (see bench_accuracy / bench_sphere).
+    """
+    from gmmgp_app.stages.gmr import GMRField
+
+    m, v = GMRField(mixture, far_variance_growth=0.0).predict(rows[:, :3])
+    return float(np.mean(-0.5 * np.log(2 * np.pi * v) - 0.5 * (rows[:, 3] - m) ** 2 / v))
+
+
 def bench_scene(name, rows, groups, hcfg, seed, sk_max_rows, sk_max_iter, run_sklearn=True):
     from gmmgp_app.stages.hgmm import fit_hgmm, format_level_history, hgmm_diagnostics, score
 
@@ -224,7 +238,8 @@ def bench_scene(name, rows, groups, hcfg, seed, sk_max_rows, sk_max_iter, run_sk
     h_free = fit_hgmm(train, hcfg)
     t_free = time.perf_counter() - t
     free = dict(seconds=t_free, n_leaves=h_free.leaves.n_components,
-                heldout_mean_loglik=score(h_free.leaves, test))
+                heldout_mean_loglik=score(h_free.leaves, test),
+                heldout_conditional_loglik=conditional_loglik(h_free.leaves, test))
     print(f"[{name}] untied HGMM: {t_free:.2f} s, {free['n_leaves']} leaves, held-out "
           f"{free['heldout_mean_loglik']:.4f}")
     print(f"[{name}] {len(train)} train rows: HGMM {t_h:.2f} s, {h.leaves.n_components} leaves, "
@@ -232,6 +247,7 @@ def bench_scene(name, rows, groups, hcfg, seed, sk_max_rows, sk_max_iter, run_sk
     print(format_level_history(h))
     out = dict(n_rows=len(rows), n_train=len(train), n_test=len(test),
                hgmm=dict(seconds=t_h, heldout_mean_loglik=diag["heldout_mean_loglik"],
+                         heldout_conditional_loglik=conditional_loglik(h.leaves, test),
                          diagnostics=diag, level_fits=h.info["level_fits"],
                          tied_groups=h.info.get("tied_groups"),
                          level_history=format_level_history(h).splitlines()),
@@ -251,10 +267,13 @@ def bench_scene(name, rows, groups, hcfg, seed, sk_max_rows, sk_max_iter, run_sk
     sk.fit(sk_rows)
     t_sk = time.perf_counter() - t
     ll_sk = float(sk.score(test))
+    from gmmgp_app.types import GaussianMixture as GM
+    sk_mix = GM(sk.weights_, sk.means_, sk.covariances_)
     ll_h = diag["heldout_mean_loglik"]
     out["sklearn"] = dict(seconds=t_sk, n_components=K, n_rows=len(sk_rows),
                           max_iter=sk_max_iter, n_iter=int(sk.n_iter_),
                           converged=bool(sk.converged_), heldout_mean_loglik=ll_sk,
+                          heldout_conditional_loglik=conditional_loglik(sk_mix, test),
                           init="kmeans (sklearn default), random_state=seed")
     out["time_ratio_sklearn_over_hgmm"] = t_sk / t_h
     out["time_ratio_per_row"] = (t_sk / len(sk_rows)) / (t_h / len(train))
@@ -263,7 +282,10 @@ def bench_scene(name, rows, groups, hcfg, seed, sk_max_rows, sk_max_iter, run_sk
     out["score_hgmm_on_its_leaves"] = score(h.leaves, test)
     print(f"[{name}] sklearn K={K} on {len(sk_rows)} rows: {t_sk:.1f} s ({sk.n_iter_} it), "
           f"held-out {ll_sk:.4f}; ratio {t_sk / t_h:.1f}x (per row "
-          f"{out['time_ratio_per_row']:.1f}x), shortfall {out['heldout_rel_shortfall']:+.4f}")
+          f"{out['time_ratio_per_row']:.1f}x), shortfall {out['heldout_rel_shortfall']:+.4f}; "
+          f"log p(d | x): HGMM {out['hgmm']['heldout_conditional_loglik']:.3f}, untied "
+          f"{free['heldout_conditional_loglik']:.3f}, sklearn "
+          f"{out['sklearn']['heldout_conditional_loglik']:.3f}")
     return out
 
 
