@@ -41,9 +41,13 @@ __all__ = [
     "format_level_history",
 ]
 
-# A child of a split needs at least this many rows per dimension to carry a
-# full covariance that is more than reg_covar; fewer rows => fewer children.
-_ROWS_PER_CHILD_PER_DIM = 2
+# A child of a split needs at least this many rows per dimension (24 rows, about
+# 8 hit points with their virtual points in 4D); fewer rows => fewer children.
+# With 8 rows (2 per dimension) the last level was full of 3-hit-point slabs whose
+# orientation is noise: street2 log-likelihood at 0.2-0.3 m +1.23, with 24 rows
+# +2.40 and RMSE at 0.05-0.1 m 18.2 -> 12.3 mm (scripts/bench_accuracy.py); 40 rows
+# gave the same as 24.
+_ROWS_PER_CHILD_PER_DIM = 6
 
 
 class HGMMError(ValueError):
