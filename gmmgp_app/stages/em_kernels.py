@@ -174,6 +174,19 @@ def assign(X, means, pchol, logconst):
     return out
 
 
+@njit(cache=True, inline="always")
+def _add_row_stats(X, n, means, k, r, sx, sxx, diff):
+    """Add row n with responsibility r to component k's shifted sums (lower triangle)."""
+    D = X.shape[1]
+    for i in range(D):
+        diff[i] = X[n, i] - means[k, i]
+        sx[k, i] += r * diff[i]
+    for i in range(D):
+        ri = r * diff[i]
+        for j in range(i + 1):
+            sxx[k, i, j] += ri * diff[j]
+
+
 @njit(cache=True)
 def _accumulate_range(X, start, end, means, pchol, logconst, nk, sx, sxx, lp):
     """E-step for rows [start, end) fused with the M-step sufficient statistics.
@@ -201,13 +214,7 @@ def _accumulate_range(X, start, end, means, pchol, logconst, nk, sx, sxx, lp):
             if r < RESP_FLOOR:
                 continue
             nk[k] += r
-            for i in range(D):
-                diff[i] = X[n, i] - means[k, i]
-                sx[k, i] += r * diff[i]
-            for i in range(D):
-                ri = r * diff[i]
-                for j in range(i + 1):
-                    sxx[k, i, j] += ri * diff[j]
+            _add_row_stats(X, n, means, k, r, sx, sxx, diff)
     return ll, worst, worst_i
 
 
@@ -549,13 +556,7 @@ def accumulate_groups(X, gptr, means, pchol, logconst, logw):
             gk[k] += r
             nk[k] += r * (b - a)
             for n in range(a, b):
-                for i in range(D):
-                    diff[i] = X[n, i] - means[k, i]
-                    sx[k, i] += r * diff[i]
-                for i in range(D):
-                    ri = r * diff[i]
-                    for j in range(i + 1):
-                        sxx[k, i, j] += ri * diff[j]
+                _add_row_stats(X, n, means, k, r, sx, sxx, diff)
     return nk, gk, sx, sxx, ll, worst, worst_i
 
 
