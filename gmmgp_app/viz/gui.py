@@ -201,6 +201,10 @@ class ViewerApp:
         self.scene.scene.show_axes(False)
         # Tone mapping would shift the colour maps (and the legend would lie).
         self.scene.scene.view.set_post_processing(False)
+        # No shadow-map pass: it adds nothing to reading the map and costs every frame
+        # on a CPU renderer (software Vulkan), where frames take seconds under load.
+        self.scene.scene.set_lighting(rendering.Open3DScene.LightingProfile.NO_SHADOWS,
+                                      np.array([0.577, -0.577, -0.577], np.float32))
         self.scene.set_on_mouse(self._on_mouse)
         self.window.add_child(self.scene)
         self.panel = self._build_panel(gui, em)
@@ -958,7 +962,11 @@ class ViewerApp:
                 wait_idle()
                 on_main(lambda: None)  # let the last stage's refresh land
                 for step in steps:
+                    t0 = time.perf_counter()
                     self._script_step(step, on_main, wait_idle, settle)
+                    if os.environ.get("GMMGP_GUI_TRACE"):
+                        print(f"[gmmgp view]   took {time.perf_counter() - t0:.2f} s",
+                              file=sys.stderr, flush=True)
             except Exception as e:  # noqa: BLE001
                 msg = f"script failed: {type(e).__name__}: {e}"
                 print(msg, file=sys.stderr, flush=True)
