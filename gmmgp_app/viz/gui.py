@@ -272,10 +272,14 @@ class ViewerApp:
 
         # The colour bar is a row of coloured cells, not an ImageWidget: swapping
         # textures through ImageWidget stalled the CPU renderer for minutes here.
+        # Buttons, because a Label never paints its background colour.
         bar = gui.Horiz(0)
         self.legend_cells = []
         for _ in range(LEGEND_CELLS):
-            cell = gui.Label("   ")
+            cell = gui.Button(" ")
+            cell.horizontal_padding_em = 0.35
+            cell.vertical_padding_em = 0.1
+            cell.enabled = False
             bar.add_child(cell)
             self.legend_cells.append(cell)
         sec.add_child(bar)
