@@ -350,7 +350,8 @@ def main(argv=None):
         kscan, ksrc = read_kitti()
         kdata = prepare(kscan, cfg)
         res["kitti_000000"] = dict(source=ksrc, n_points=len(kscan),
-                                   **bench_scene("kitti", kdata.rows, kdata.groups, cfg.hgmm, args.seed,
+                                   **bench_scene("kitti", kdata.rows, kdata.groups, cfg.hgmm,
+                                                 args.seed,
                                                  args.sk_max_rows, args.sk_max_iter))
     else:
         res["kitti_000000"] = dict(skipped=f"{KITTI} not found or --no-kitti")

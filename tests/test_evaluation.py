@@ -372,6 +372,7 @@ def test_eval_cli_sparse_box_within_10cm_rmse_and_5cm_chamfer(tiny_run):
     assert cmd_eval(args) == 0
     res = json.loads((out / "metrics.json").read_text())
     g = res["methods"]["gmmgp"]
-    # (0.062 m and 0.019 m; were 0.17 m and 0.075 m before the HGMM tied a hit point's virtual points to
-    # its component: free EM split the box's faces into one-sheet components)
+    # (0.062 m and 0.019 m; were 0.17 m and 0.075 m before the HGMM tied a hit point's
+    # virtual points to its component: free EM split the box's faces into one-sheet
+    # components)
     assert g["field"]["all"]["rmse_sdf"] < 0.1 and g["surface"]["chamfer"] < 0.05

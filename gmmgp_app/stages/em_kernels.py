@@ -475,7 +475,10 @@ def nearest_center(X, centers):
 
 @njit(cache=True, inline="always")
 def _group_logprob(X, a, b, means, pchol, logconst, logw, lp, tmp):
-    """lp[k] = log pi_k + sum_{n in [a, b)} log N(x_n | k) (logconst holds log pi_k once per row)."""
+    """lp[k] = log pi_k + sum_{n in [a, b)} log N(x_n | k).
+
+    ``logconst`` holds log pi_k once per row, hence the ``-(b - a - 1) log pi_k``.
+    """
     K = means.shape[0]
     for k in range(K):
         lp[k] = -(b - a - 1) * logw[k]
