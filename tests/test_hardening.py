@@ -809,9 +809,9 @@ def test_surface_grid_too_large_is_refused_before_fitting(tmp_path, capsys, monk
 
 
 # --------------------------------------------------------------------------- corpus G: interruptions
-def _start_run(scan, out, rrd):
+def _start_run(scan, out, rrd, args=FAST):
     return subprocess.Popen([PY, "-m", "gmmgp_app.cli", "run", str(scan), "--out", str(out),
-                             "--rrd", str(rrd), *FAST],
+                             "--rrd", str(rrd), *args],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
@@ -855,7 +855,8 @@ def medium(tmp_path_factory):
 def test_interrupted_run_leaves_no_half_written_outputs(sig, tmp_path, medium):
     pytest.importorskip("rerun")
     out, rrd = tmp_path / "out", tmp_path / "run.rrd"
-    proc = _start_run(medium, out, rrd)
+    # 3 cm surface voxels: the stages after the signal last seconds, not 0.1 s
+    proc = _start_run(medium, out, rrd, ["--set", "surface.voxel_size=0.03"])
     try:
         _wait_for(proc, "[gmr] running")  # every observer has logged hgmm by then
         proc.send_signal(sig)
