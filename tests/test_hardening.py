@@ -855,8 +855,8 @@ def medium(tmp_path_factory):
 def test_interrupted_run_leaves_no_half_written_outputs(sig, tmp_path, medium):
     pytest.importorskip("rerun")
     out, rrd = tmp_path / "out", tmp_path / "run.rrd"
-    # 3 cm surface voxels: the stages after the signal last seconds, not 0.1 s
-    proc = _start_run(medium, out, rrd, ["--set", "surface.voxel_size=0.03"])
+    # 1 cm surface voxels: the stages after the signal last seconds, not 0.1 s
+    proc = _start_run(medium, out, rrd, ["--set", "surface.voxel_size=0.01"])
     try:
         _wait_for(proc, "[gmr] running")  # every observer has logged hgmm by then
         proc.send_signal(sig)
