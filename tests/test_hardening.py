@@ -809,9 +809,15 @@ def test_surface_grid_too_large_is_refused_before_fitting(tmp_path, capsys, monk
 
 
 # --------------------------------------------------------------------------- corpus G: interruptions
+def _default_sigint():
+    # A job started in the background by a non-interactive shell (nohup ... &) inherits
+    # SIGINT as ignored, and Python then never raises KeyboardInterrupt: restore it.
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start_run(scan, out, rrd, args=FAST):
     return subprocess.Popen([PY, "-m", "gmmgp_app.cli", "run", str(scan), "--out", str(out),
-                             "--rrd", str(rrd), *args],
+                             "--rrd", str(rrd), *args], preexec_fn=_default_sigint,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
