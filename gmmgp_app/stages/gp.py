@@ -336,10 +336,7 @@ class LocalGPField:
         """
         dm = np.empty(len(qi))
         red = np.empty(len(qi))
-        cuts = np.flatnonzero(np.diff(bi)) + 1
-        starts = np.concatenate([[0], cuts])
-        ends = np.concatenate([cuts, [len(bi)]])
-        for s, e in zip(starts, ends):
+        for s, e in zip(*_runs(bi)):
             blk = self.blocks[bi[s]]
             kv = _value_cross(x, sig, qi[s:e], blk.X, blk.sigma_p, a)   # (q, 4n)
             dm[s:e] = kv @ blk.alpha
@@ -481,25 +478,27 @@ def fit_local_gps(points, normals, prior, cfg, *, rng=None, executor=None,
                       "the prior cannot scale the kernel (eq. kernel2).")
     grid = BlockGrid.from_points(pts, cfg.block_size, cfg.block_overlap)
     pi, bi = grid.cover(pts)
-    starts = np.flatnonzero(np.r_[True, bi[1:] != bi[:-1]])
-    ends = np.r_[starts[1:], len(bi)]
-    blocks, n_cand, n_used = [], [], []
+    # Training points per block, capped by a draw in block order (the executor path
+    # gets exactly the same selection as the serial one).
+    sel, n_cand = [], []
+    for s, e in zip(*_runs(bi)):
+        idx = pi[s:e]
+        n_cand.append(len(idx))
+        if len(idx) > cfg.max_block_points:
+            idx = np.sort(rng.choice(idx, cfg.max_block_points, replace=False))
+        sel.append(idx)
+    n_cand = np.array(n_cand)
+    n_used = np.array([len(idx) for idx in sel])
     if executor is None:
-        for s, e in zip(starts, ends):
-            idx = pi[s:e]
-            n_cand.append(len(idx))
-            if len(idx) > cfg.max_block_points:
-                idx = np.sort(rng.choice(idx, cfg.max_block_points, replace=False))
-            n_used.append(len(idx))
+        blocks = []
+        for idx in sel:
             blocks.append(fit_block(pts[idx], sigma_p[idx], targets[idx], cfg.length_scale,
                                     cfg.value_noise, cfg.gradient_noise, cfg.jitter))
             if progress is not None:
-                progress(len(blocks), len(starts))
+                progress(len(blocks), len(sel))
     else:
-        blocks = _fit_blocks_on(executor, pts, sigma_p, targets, pi, starts, ends, cfg,
-                                rng, n_cand, n_used, progress, min_task_seconds)
-    n_cand = np.array(n_cand)
-    n_used = np.array(n_used)
+        blocks = _fit_blocks_on(executor, pts, sigma_p, targets, sel, n_used, cfg, progress,
+                                min_task_seconds)
     jit = np.array([b.jitter for b in blocks])
     info = dict(
         n_points=len(pts), n_blocks=len(blocks),
@@ -515,20 +514,18 @@ def fit_local_gps(points, normals, prior, cfg, *, rng=None, executor=None,
     return LocalGPField(prior, grid, blocks, hyper, info)
 
 
-def _fit_blocks_on(executor, pts, sigma_p, targets, pi, starts, ends, cfg, rng, n_cand,
-                   n_used, progress, min_task_seconds):
+def _runs(keys):
+    """(starts, ends) of the runs of equal values in a sorted key array."""
+    starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]]) if len(keys) else \
+        np.zeros(0, dtype=np.int64)
+    return starts, np.r_[starts[1:], len(keys)].astype(np.int64)
+
+
+def _fit_blocks_on(executor, pts, sigma_p, targets, sel, n_used, cfg, progress,
+                   min_task_seconds):
     """The block loop of :func:`fit_local_gps` as batched executor tasks."""
     from gmmgp_app.distributed import batch_by_cost, gp_block_seconds, map_batched
 
-    # subsample in block order, exactly as the serial loop draws from ``rng``
-    sel = []
-    for s, e in zip(starts, ends):
-        idx = pi[s:e]
-        n_cand.append(len(idx))
-        if len(idx) > cfg.max_block_points:
-            idx = np.sort(rng.choice(idx, cfg.max_block_points, replace=False))
-        n_used.append(len(idx))
-        sel.append(idx)
     hyper = (float(cfg.length_scale), float(cfg.value_noise), float(cfg.gradient_noise),
              float(cfg.jitter))
     batches = batch_by_cost(gp_block_seconds(n_used), min_task_seconds)
