@@ -166,16 +166,9 @@ class TriangleDistance:
     def __init__(self, vertices, faces):
         import open3d as o3d
 
-        v = np.ascontiguousarray(np.asarray(vertices, dtype=np.float64))
-        f = np.ascontiguousarray(np.asarray(faces, dtype=np.int64))
-        if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
-            raise EvaluationError(
-                f"Expected a triangle mesh with vertices (V, 3) and faces (F, 3), F >= 1, "
-                f"found {v.shape} and {f.shape}; pass a mesh with triangles.")
-        if f.min() < 0 or f.max() >= len(v):
-            raise EvaluationError(
-                f"Expected face indices in [0, {len(v) - 1}], found [{f.min()}, {f.max()}]; "
-                "the faces do not match the vertices.")
+        from .synth.meshsdf import triangle_arrays
+
+        v, f = triangle_arrays(vertices, faces, EvaluationError)
         self.v, self.f = v, f
         e1, e2 = v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]
         n = np.cross(e1, e2)

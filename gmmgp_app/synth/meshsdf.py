@@ -309,6 +309,22 @@ def _query(p, v, f, fn, en, vn, sph, start, items, lo, h, dims, out_d, out_tri, 
 # public API
 
 
+def triangle_arrays(vertices, faces, error=MeshError):
+    """Contiguous float64 vertices (V, 3) and int64 faces (F >= 1, 3) indexing them.
+
+    Raises ``error`` (a ValueError subclass) naming the bad shape or index range.
+    """
+    v = np.ascontiguousarray(np.asarray(vertices, dtype=np.float64))
+    f = np.ascontiguousarray(np.asarray(faces, dtype=np.int64))
+    if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
+        raise error(f"Expected vertices (V, 3) and faces (F, 3) with F >= 1, found "
+                    f"{v.shape} and {f.shape}; pass a triangle mesh.")
+    if f.min() < 0 or f.max() >= len(v):
+        raise error(f"Expected face indices in [0, {len(v) - 1}], found [{f.min()}, "
+                    f"{f.max()}]; the faces do not match the vertices.")
+    return v, f
+
+
 class MeshDistance:
     """Signed distance to a closed, outward-oriented triangle mesh (free space > 0).
 
@@ -333,16 +349,7 @@ class MeshDistance:
     """
 
     def __init__(self, vertices, faces, cell_size: float | None = None):
-        v = np.ascontiguousarray(np.asarray(vertices, dtype=np.float64))
-        f = np.ascontiguousarray(np.asarray(faces, dtype=np.int64))
-        if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
-            raise MeshError(
-                f"Expected vertices (V, 3) and faces (F, 3) with F >= 1, found "
-                f"{v.shape} and {f.shape}; pass a triangle mesh.")
-        if f.min() < 0 or f.max() >= len(v):
-            raise MeshError(
-                f"Expected face indices in [0, {len(v) - 1}], found [{f.min()}, {f.max()}]; "
-                "the faces do not match the vertices.")
+        v, f = triangle_arrays(vertices, faces)
         if not np.all(np.isfinite(v)):
             raise MeshError("Expected finite vertex coordinates, found NaN or inf; "
                             "clean the mesh first.")
