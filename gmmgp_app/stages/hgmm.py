@@ -408,20 +408,24 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
         X = np.ascontiguousarray(X[order])
         gsorted = groups[order]
 
-    def fit(Xrows, idx, k):
+    def group_ptr(idx):
+        """Group boundaries of the rows ``idx`` (all rows: None), or None untied."""
         if gsorted is None:
-            g = fit_gmm(Xrows, k, rng=rng, on_empty="drop",
-                        min_component_rows=float(D), **em_kw)
-            return g + (predict_labels(g[0], Xrows),)
-        gptr = group_boundaries(gsorted if idx is None else gsorted[idx])
+            return None
+        return group_boundaries(gsorted if idx is None else gsorted[idx])
+
+    def fit(Xrows, gptr, k):
+        """EM with k components, then hard labels per row (per group when tied)."""
         g = fit_gmm(Xrows, k, rng=rng, on_empty="drop", min_component_rows=float(D),
                     group_ptr=gptr, **em_kw)
+        if gptr is None:
+            return g + (predict_labels(g[0], Xrows),)
         return g + (predict_group_labels(g[0], g[1]["group_weights"], Xrows, gptr),)
     normalize = getattr(hcfg, "complexity_metric", "correlation") == "correlation"
     em_kw = dict(max_iter=hcfg.max_iter, tol=hcfg.tol, reg_covar=hcfg.reg_covar)
     min_child_rows = _ROWS_PER_CHILD_PER_DIM * D
 
-    gm0, info0, labels = fit(X, None, hcfg.initial_components)
+    gm0, info0, labels = fit(X, group_ptr(None), hcfg.initial_components)
     # Current level: arrays of node parameters and the row indices of each node.
     weights, means, covs = gm0.weights, gm0.means, gm0.covariances
     parents = np.full(len(weights), -1, dtype=np.int64)
@@ -453,12 +457,13 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
             if np.all(Xj.max(axis=0) == Xj.min(axis=0)):
                 stats["failed_splits"] += 1
                 continue
-            if gsorted is not None and len(np.unique(gsorted[idx])) < k:
-                k = len(np.unique(gsorted[idx]))
+            gptr = group_ptr(idx)
+            if gptr is not None and len(gptr) - 1 < k:
+                k = len(gptr) - 1  # no more children than hit points
                 if k < 2:
                     stats["failed_splits"] += 1
                     continue
-            gmj, infoj, lab = fit(Xj, idx, k)
+            gmj, infoj, lab = fit(Xj, gptr, k)
             stats["n_fits"] += 1
             stats["em_iter"] += infoj["n_iter"]
             stats["dropped"] += len(infoj["dropped"])
