@@ -19,6 +19,12 @@ width ``overlap`` centred on the core borders (so the blend happens well inside
 both tiles' training regions); the mean is continuous and C1 across borders.
 ``blend="core"`` assigns each query to the tile whose core contains it (a step).
 
+A tile with fewer than ``TileSpec.min_points`` points (a thin strip at the edge of
+the scan) is not mapped on its own: its points join the nearest mapped tile (the
+*owner*, most points among equally near ones), which then also answers for the
+small tile's square, weight included. No point is dropped because it fell into a
+sparse tile.
+
 Points are sorted canonically inside a tile before mapping, so a tile's map
 depends on its *set* of points only, not on the order they arrived in (chunks of
 a LAS file, scans added by :meth:`TiledMap.update`).
@@ -36,6 +42,7 @@ from .config import MappingConfig
 from .types import Scan
 
 __all__ = ["TilingError", "TileSpec", "TiledMap", "build_tiled_map", "split_into_tiles",
+           "tile_owners",
            "update_gp_blocks", "spill_las_to_tiles", "build_tiled_map_from_las"]
 
 
@@ -57,7 +64,8 @@ class TileSpec:
     blend : {"smooth", "core"}
         Stitching of predictions (see the module docstring).
     min_points : int
-        Tiles with fewer scan points are not mapped (their queries go to neighbours).
+        Tiles with fewer scan points are not mapped on their own: their points and
+        their square go to the nearest mapped tile (see :func:`tile_owners`).
     """
 
     size: float = 20.0
@@ -151,6 +159,60 @@ def _canonical(points, origins):
     return points[order], (None if origins is None else origins[order])
 
 
+def tile_owners(counts: dict, min_points: int) -> dict:
+    """Which mapped tile takes over each tile with fewer than ``min_points`` points.
+
+    Parameters
+    ----------
+    counts : dict ``{(i, j): number of points}``
+    min_points : int
+
+    Returns
+    -------
+    dict ``{small key: owner key}``: the owner is a tile with at least
+    ``min_points`` points whose square is nearest (Euclidean distance between the
+    keys, so a neighbour across an edge comes before one across a corner, whose
+    data would not reach along the whole shared side), the one with the most points
+    among equally near ones. Empty when no tile is big enough.
+    """
+    big = sorted(k for k, n in counts.items() if n >= min_points)
+    owners = {}
+    for k, n in sorted(counts.items()):
+        if n >= min_points or not big:
+            continue
+        owners[k] = min(big, key=lambda b: ((b[0] - k[0]) ** 2 + (b[1] - k[1]) ** 2,
+                                            -counts[b], b))
+    return owners
+
+
+def _members(owners: dict, key) -> list:
+    """The tile ``key`` and the small tiles it owns, sorted."""
+    return [key] + sorted(k for k, o in owners.items() if o == key)
+
+
+def _as_void(points: np.ndarray) -> np.ndarray:
+    """Rows of an (N, 3) float64 array as one opaque value each (exact row matching)."""
+    a = np.ascontiguousarray(points, dtype=np.float64)
+    return a.view(np.dtype((np.void, a.dtype.itemsize * a.shape[1]))).ravel()
+
+
+def _union(parts) -> tuple:
+    """Point sets of several tiles as one, without the points their overlap margins
+    share: ``[(points, origins or None), ...]`` -> (points, origins), canonical order.
+
+    A point already in an earlier tile's set is dropped from a later one; repeated
+    points inside one tile's set are kept (as a single tile would keep them).
+    """
+    keep_pts, keep_org = [parts[0][0]], [parts[0][1]]
+    for pts, org in parts[1:]:
+        new = ~np.isin(_as_void(pts), _as_void(np.concatenate(keep_pts)))
+        keep_pts.append(pts[new])
+        keep_org.append(None if org is None else org[new])
+    has_org = all(o is not None for o in keep_org)
+    return _canonical(np.concatenate(keep_pts),
+                      np.concatenate(keep_org) if has_org else None)
+
+
 def split_into_tiles(scan: Scan, spec: TileSpec) -> dict:
     """Cut a scan into the tiles of ``spec``: ``{(i, j): Scan}`` (canonical order)."""
     out = {}
@@ -167,16 +229,22 @@ def _build_tile(task):
     from .pipeline import build_map
 
     if isinstance(points, (list, tuple)):  # spilled chunks on disk (streaming input)
-        points = np.concatenate([np.load(p) for p in points])
-        origins = (None if not origins else np.concatenate([np.load(p) for p in origins]))
-    pts, org = _canonical(np.asarray(points, dtype=np.float64), origins)
+        # per tile (the tile, then the small tiles it owns): its point and origin files
+        parts = [(np.concatenate([np.load(f) for f in pf]),
+                  np.concatenate([np.load(f) for f in of]) if of else None)
+                 for pf, of in points]
+        pts, org = _union(parts)
+    else:
+        pts, org = _canonical(np.asarray(points, dtype=np.float64), origins)
+    from .stages.hgmm import HGMMError
     from .stages.prepare import PrepareError
 
     try:
         smap = build_map(Scan(points=pts, origins=org, source=f"tile {key}"), cfg, method)
-    except PrepareError as exc:
-        # a border strip too sparse for normals: its neighbours answer its queries
-        return key, str(exc)
+    except (PrepareError, HGMMError) as exc:
+        # too sparse for normals, or too few hit points with one for the HGMM: its
+        # neighbours answer its queries (reported in ``skipped_tiles``)
+        return key, f"{type(exc).__name__}: {exc}"
     return key, _map_to_bytes(smap)
 
 
@@ -228,12 +296,16 @@ class TiledMap:
     offset : (3,) float64
         Local-frame shift shared by all tiles (original = local + offset).
     tile_points : dict, optional
-        ``{(i, j): (points, origins)}`` the tiles were built from (needed by
-        :meth:`update`).
+        ``{(i, j): (points, origins)}`` of every tile, small ones included (needed
+        by :meth:`update`).
+    owners : dict, optional
+        ``{small key: mapped key}`` (:func:`tile_owners`): the mapped tile that
+        trained on a small tile's points and answers for its square.
     """
 
     def __init__(self, spec: TileSpec, tiles: dict, config: MappingConfig, method: str,
-                 offset=None, tile_points: Optional[dict] = None, summary=None):
+                 offset=None, tile_points: Optional[dict] = None, summary=None,
+                 owners: Optional[dict] = None):
         self.spec = spec
         self.tiles = tiles if isinstance(tiles, _TileStore) else dict(tiles)
         self.config = config
@@ -241,6 +313,14 @@ class TiledMap:
         self.offset = np.zeros(3) if offset is None else np.asarray(offset, float).reshape(3)
         self.tile_points = dict(tile_points or {})
         self.summary = dict(summary or {})
+        self.owners = dict(owners or {})
+
+    def _owner(self, key):
+        """The mapped tile answering for square ``key`` (itself or its owner), or None."""
+        if key in self.tiles:
+            return key
+        owner = self.owners.get(key)
+        return owner if owner is not None and owner in self.tiles else None
 
     @property
     def keys(self) -> list:
@@ -265,27 +345,37 @@ class TiledMap:
         Wm2 = np.zeros(K)
         gW = np.zeros((K, 2))
         gWm = np.zeros((K, 3))
+        # weight of each mapped tile per query: its own square's plus those it owns
+        parts: dict = {}
         for key_arr in self.spec.candidate_keys(x[:, :2]):
-            for key in {tuple(k) for k in map(tuple, np.unique(key_arr, axis=0))}:
-                tile = self.tiles.get(key)
-                if tile is None:
+            for key in map(tuple, np.unique(key_arr, axis=0).tolist()):
+                owner = self._owner(key)
+                if owner is None:
                     continue
                 rows = np.flatnonzero(np.all(key_arr == np.array(key), axis=1))
                 w, dw = self.spec.weights(x[rows, :2], key)
                 keep = w > 0
-                rows, w, dw = rows[keep], w[keep], dw[keep]
-                if len(rows) == 0:
-                    continue
-                out = tile.predict(x[rows], return_grad=return_grad)
-                m, v = out[0], out[1]
-                W[rows] += w
-                Wm[rows] += w * m
-                Wv[rows] += w * v
-                Wm2[rows] += w * m * m
-                if return_grad:
-                    gW[rows] += dw
-                    gWm[rows] += w[:, None] * out[2]
-                    gWm[rows, :2] += m[:, None] * dw
+                if keep.any():
+                    parts.setdefault(owner, []).append((rows[keep], w[keep], dw[keep]))
+        for owner, pieces in sorted(parts.items()):
+            if len(pieces) == 1:
+                rows, w, dw = pieces[0]
+            else:  # one prediction per query even when several squares weigh it
+                rows, inv = np.unique(np.concatenate([r for r, _, _ in pieces]),
+                                      return_inverse=True)
+                w = np.bincount(inv, np.concatenate([q for _, q, _ in pieces]), len(rows))
+                dwc = np.concatenate([d for _, _, d in pieces])
+                dw = np.column_stack([np.bincount(inv, dwc[:, a], len(rows)) for a in (0, 1)])
+            out = self.tiles[owner].predict(x[rows], return_grad=return_grad)
+            m, v = out[0], out[1]
+            W[rows] += w
+            Wm[rows] += w * m
+            Wv[rows] += w * v
+            Wm2[rows] += w * m * m
+            if return_grad:
+                gW[rows] += dw
+                gWm[rows] += w[:, None] * out[2]
+                gWm[rows, :2] += m[:, None] * dw
         mean = np.zeros(K)
         var = np.zeros(K)
         grad = np.zeros((K, 3))
@@ -313,12 +403,19 @@ class TiledMap:
             if return_grad:
                 grad[r] = out[2]
 
+    def _weighs(self, key, xyz) -> np.ndarray:
+        """Where mapped tile ``key`` has a non-zero weight (its square or one it owns)."""
+        w = np.zeros(len(xyz))
+        for k in _members(self.owners, key):
+            w += self.spec.weights(xyz[:, :2], k)[0]
+        return w > 0
+
     def extract_surface(self, voxel_size: Optional[float] = None, max_std=None,
                         progress=None):
         """Marching cubes on the stitched field (seamless: one field, one lattice)."""
         from .stages.surface import extract_surface
 
-        seeds = [t.seed_points[self.spec.weights(t.seed_points[:, :2], k)[0] > 0]
+        seeds = [t.seed_points[self._weighs(k, t.seed_points)]
                  if self.spec.blend == "smooth" else t.seed_points
                  for k, t in self.tiles.items()]
         seeds = np.unique(np.concatenate(seeds), axis=0) if seeds else np.zeros((0, 3))
@@ -361,7 +458,8 @@ class TiledMap:
                               "(streamed input or keep_points=False), found none to update "
                               "from; rebuild it with build_tiled_map(..., keep_points=True).")
         parts = self.spec.assign(scan.points)
-        rebuild, report = [], dict(rebuilt_tiles=[], gp_updated_tiles=[], refit_blocks=0)
+        old_points = dict(self.tile_points)
+        new_points = {}
         for key, idx in parts.items():
             new_p = scan.points[idx]
             new_o = None if scan.origins is None else scan.origins[idx]
@@ -370,11 +468,26 @@ class TiledMap:
             all_o = (None if (old_o is None and len(old_p)) or new_o is None
                      else np.concatenate([old_o if old_o is not None else np.zeros((0, 3)),
                                           new_o]))
-            all_p, all_o = _canonical(all_p, all_o)
-            self.tile_points[key] = (all_p, all_o)
-            if len(all_p) < self.spec.min_points:
-                continue
-            if (refit_hgmm or key not in self.tiles or self.tiles[key].gp is None
+            self.tile_points[key] = _canonical(all_p, all_o)
+            new_points[key] = new_p
+        counts = {k: len(p) for k, (p, _) in self.tile_points.items()}
+        owners = tile_owners(counts, self.spec.min_points)
+        # mapped tiles whose training set changed: new points in their square or in a
+        # small square they own, or a change in which small squares they own
+        touched = {k if counts[k] >= self.spec.min_points else owners.get(k) for k in parts}
+        moved = {t for t in set(owners.values()) | set(self.owners.values())
+                 if _members(owners, t) != _members(self.owners, t)}
+        touched = sorted(t for t in touched | moved
+                         if t is not None and counts.get(t, 0) >= self.spec.min_points)
+        rebuild, report = [], dict(rebuilt_tiles=[], gp_updated_tiles=[], refit_blocks=0)
+        for key in touched:
+            members = _members(owners, key)
+            all_p, all_o = _union([self.tile_points[k] for k in members])
+            new_p = np.concatenate([new_points.get(k, np.zeros((0, 3))) for k in members])
+            old_p = np.concatenate([old_points.get(k, (np.zeros((0, 3)), None))[0]
+                                    for k in members])
+            if (refit_hgmm or key in moved or key not in self.tiles
+                    or self.tiles[key].gp is None
                     or _new_space(old_p, new_p, new_space_voxel) > (
                         np.inf if new_space_fraction is None else new_space_fraction)):
                 rebuild.append((key, all_p, all_o, self.config, self.method))
@@ -383,6 +496,8 @@ class TiledMap:
                                                       self.config, executor=executor)
                 report["gp_updated_tiles"].append(key)
                 report["refit_blocks"] += n
+        self.owners = owners
+        self.summary["absorbed_tiles"] = {str(k): str(o) for k, o in owners.items()}
         maps, skipped = _run_tiles(executor, rebuild, progress)
         report["skipped_tiles"] = skipped
         for key, smap in maps.items():
@@ -544,8 +659,13 @@ def build_tiled_map(scan: Scan, cfg: Optional[MappingConfig] = None,
     cfg = MappingConfig() if cfg is None else cfg
     spec = TileSpec() if spec is None else spec
     tiles = split_into_tiles(scan, spec)
-    tasks = [(k, t.points, t.origins, cfg, method) for k, t in tiles.items()
-             if len(t) >= spec.min_points]
+    owners = tile_owners({k: len(t) for k, t in tiles.items()}, spec.min_points)
+    tasks = []
+    for k, t in tiles.items():
+        if len(t) < spec.min_points:
+            continue
+        pts, org = _union([(tiles[m].points, tiles[m].origins) for m in _members(owners, k)])
+        tasks.append((k, pts, org, cfg, method))
     if not tasks:
         raise TilingError(f"Expected at least one tile with {spec.min_points} points, found "
                           f"{max((len(t) for t in tiles.values()), default=0)}; use larger "
@@ -556,7 +676,9 @@ def build_tiled_map(scan: Scan, cfg: Optional[MappingConfig] = None,
                           f"first: {next(iter(skipped.values()))}")
     kept = {k: (t.points, t.origins) for k, t in tiles.items()} if keep_points else None
     return TiledMap(spec, maps, cfg, method, offset=scan.offset, tile_points=kept,
+                    owners=owners,
                     summary=dict(n_tiles=len(maps), n_points=len(scan),
+                                 absorbed_tiles={str(k): str(o) for k, o in owners.items()},
                                  skipped_tiles={str(k): v for k, v in skipped.items()}))
 
 
@@ -700,12 +822,15 @@ def build_tiled_map_from_las(path, cfg: Optional[MappingConfig] = None,
     spec = TileSpec() if spec is None else spec
     work_dir = Path(work_dir)
     pieces, off, n = spill_las_to_tiles(path, spec, work_dir / "pieces", chunk_size, offset)
+    counts = {key: sum(int(np.load(f, mmap_mode="r").shape[0]) for f in pfiles)
+              for key, (pfiles, _) in pieces.items()}
+    owners = tile_owners(counts, spec.min_points)
     tasks = []
-    for key, (pfiles, ofiles) in sorted(pieces.items()):
-        count = sum(int(np.load(f, mmap_mode="r").shape[0]) for f in pfiles)
-        if count >= spec.min_points:
-            tasks.append((key, pfiles, ofiles if len(ofiles) == len(pfiles) else None,
-                          cfg, method))
+    for key in sorted(pieces):
+        if counts[key] >= spec.min_points:
+            files = [(pieces[m][0], pieces[m][1] if len(pieces[m][1]) == len(pieces[m][0])
+                      else []) for m in _members(owners, key)]
+            tasks.append((key, files, None, cfg, method))
     store = _TileStore(work_dir / "maps", [], cache=cache_tiles)
     skipped = {}
     # submit in waves so that at most a few finished tile maps wait in memory
@@ -725,6 +850,7 @@ def build_tiled_map_from_las(path, cfg: Optional[MappingConfig] = None,
     if not len(store):
         raise TilingError(f"Expected at least one tile with {spec.min_points} points in "
                           f"'{path}', found none that could be mapped.")
-    return TiledMap(spec, store, cfg, method, offset=off,
+    return TiledMap(spec, store, cfg, method, offset=off, owners=owners,
                     summary=dict(n_tiles=len(store), n_points=n,
+                                 absorbed_tiles={str(k): str(o) for k, o in owners.items()},
                                  skipped_tiles={str(k): v for k, v in skipped.items()}))
