@@ -11,11 +11,21 @@ a seed by hit point (a hit point and its virtual points stay on one side), and:
   components as the HGMM has leaves is fitted on the same rows (``max_iter``,
   default k-means init, same seed), timing it;
 * both are scored on the held-out 10 % (mean log-likelihood per row), and by the
-  held-out log-likelihood of d given xyz under each mixture's GMR.
+  held-out log-likelihood of d given xyz under each mixture's GMR; the tied HGMM
+  also by the likelihood of whole held-out observations (a hit point with its
+  virtual points, the unit tied EM models; ``hgmm.score_groups``), per row;
+* a reg_covar probe (``--reg-probe``, on the scene with fewer rows): scikit-learn
+  and the HGMM again with smaller ``reg_covar``. The rows' d takes three values
+  (-s, 0, +s), so a mixture that gives each sheet its own component has a d
+  variance of ``reg_covar`` there and a held-out log-likelihood that grows without
+  bound as ``reg_covar`` shrinks (about +0.5 log(100) = 2.3 nats per row for 1e-6
+  -> 1e-8); the JSON records the weight fraction in such one-sheet components.
 
 scikit-learn costs O(rows x leaves x iterations) and takes minutes with
-hundreds of components: its fit is bounded by ``--sk-max-rows`` (rows drawn
-from the training rows) and ``--sk-max-iter``; the JSON records what was used.
+hundreds of components (about 20-40 min for the default street on 2 cores): it
+fits the same rows as the HGMM unless ``--sk-max-rows`` caps them (rows drawn
+from the training rows); ``--sk-max-iter`` bounds its iterations; the JSON
+records what was used.
 When it is given fewer rows than the HGMM, the time ratio is also quoted per
 row (sk seconds / sk rows vs HGMM seconds / HGMM rows).
 
@@ -26,7 +36,7 @@ the effect of dropping inconsistent virtual points on the row labels (RMS of
 
 Examples
 --------
-    python scripts/bench_hgmm.py                       # everything, ~5-10 min on 2 cores
+    python scripts/bench_hgmm.py                       # everything, ~1 h on 2 cores
     python scripts/bench_hgmm.py --quick --out /tmp/b.json
     python scripts/bench_hgmm.py --sizes 50000 100000 --repeats 1
 """
@@ -34,6 +44,7 @@ Examples
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import platform
 import time
@@ -181,13 +192,20 @@ def read_kitti(path=KITTI):
 def split_rows(rows, groups, seed, frac=0.1):
     """Hold out ``frac`` of the hit points with all their rows (a group stays whole).
 
-    Returns train rows, their groups, test rows.
+    Returns train rows, their groups, test rows, their groups.
     """
     rng = np.random.default_rng(seed)
     ids = np.unique(groups)
     test_ids = rng.choice(ids, int(round(frac * len(ids))), replace=False)
     test = np.isin(groups, test_ids)
-    return rows[~test], groups[~test], rows[test]
+    return rows[~test], groups[~test], rows[test], groups[test]
+
+
+def one_sheet_weight(weights, covariances, s=0.25):
+    """Weight fraction of components whose d spread is under a fifth of s: they sit on
+    one sheet (d = -s, 0 or +s) and their d variance is about reg_covar."""
+    sd = np.sqrt(np.asarray(covariances)[:, 3, 3])
+    return float(np.sum(np.asarray(weights)[sd < 0.2 * s]))
 
 
 def sample_groups(rows, groups, n_rows, seed):
@@ -224,10 +242,12 @@ def conditional_loglik(mixture, rows) -> float:
     return float(np.mean(-0.5 * np.log(2 * np.pi * v) - 0.5 * (rows[:, 3] - m) ** 2 / v))
 
 
-def bench_scene(name, rows, groups, hcfg, seed, sk_max_rows, sk_max_iter, run_sklearn=True):
-    from gmmgp_app.stages.hgmm import fit_hgmm, format_level_history, hgmm_diagnostics, score
+def bench_scene(name, rows, groups, hcfg, seed, sk_max_rows, sk_max_iter, run_sklearn=True,
+                reg_probe=()):
+    from gmmgp_app.stages.hgmm import (fit_hgmm, format_level_history, hgmm_diagnostics,
+                                       score, score_groups)
 
-    train, train_groups, test = split_rows(rows, groups, seed)
+    train, train_groups, test, test_groups = split_rows(rows, groups, seed)
     t = time.perf_counter()
     h = fit_hgmm(train, hcfg, groups=train_groups)
     t_h = time.perf_counter() - t
@@ -245,8 +265,13 @@ def bench_scene(name, rows, groups, hcfg, seed, sk_max_rows, sk_max_iter, run_sk
     print(f"[{name}] {len(train)} train rows: HGMM {t_h:.2f} s, {h.leaves.n_components} leaves, "
           f"held-out {diag['heldout_mean_loglik']:.4f}")
     print(format_level_history(h))
+    ll_obs = score_groups(h.leaves, test, test_groups, h.info["leaf_group_weights"])
+    print(f"[{name}] held-out observations (tied likelihood) {ll_obs:.4f} per row")
     out = dict(n_rows=len(rows), n_train=len(train), n_test=len(test),
                hgmm=dict(seconds=t_h, heldout_mean_loglik=diag["heldout_mean_loglik"],
+                         heldout_observation_loglik_per_row=ll_obs,
+                         one_sheet_weight=one_sheet_weight(h.leaves.weights,
+                                                           h.leaves.covariances),
                          heldout_conditional_loglik=conditional_loglik(h.leaves, test),
                          diagnostics=diag, level_fits=h.info["level_fits"],
                          tied_groups=h.info.get("tied_groups"),
@@ -274,12 +299,32 @@ def bench_scene(name, rows, groups, hcfg, seed, sk_max_rows, sk_max_iter, run_sk
                           max_iter=sk_max_iter, n_iter=int(sk.n_iter_),
                           converged=bool(sk.converged_), heldout_mean_loglik=ll_sk,
                           heldout_conditional_loglik=conditional_loglik(sk_mix, test),
+                          one_sheet_weight=one_sheet_weight(sk.weights_, sk.covariances_),
                           init="kmeans (sklearn default), random_state=seed")
     out["time_ratio_sklearn_over_hgmm"] = t_sk / t_h
     out["time_ratio_per_row"] = (t_sk / len(sk_rows)) / (t_h / len(train))
     # Relative shortfall of the HGMM against sklearn (positive = HGMM worse).
     out["heldout_rel_shortfall"] = (ll_sk - ll_h) / abs(ll_sk)
     out["score_hgmm_on_its_leaves"] = score(h.leaves, test)
+    out["heldout_rel_shortfall_observations"] = (ll_sk - ll_obs) / abs(ll_sk)
+    probe = []
+    for reg in reg_probe:
+        hp = fit_hgmm(train, dataclasses.replace(hcfg, reg_covar=reg), groups=train_groups)
+        skp = SKGMM(n_components=hp.leaves.n_components, covariance_type="full",
+                    max_iter=sk_max_iter, random_state=seed, reg_covar=reg,
+                    tol=hcfg.tol).fit(sk_rows)
+        probe.append(dict(reg_covar=reg, n_components=hp.leaves.n_components,
+                          hgmm_heldout_mean_loglik=score(hp.leaves, test),
+                          sklearn_heldout_mean_loglik=float(skp.score(test)),
+                          sklearn_one_sheet_weight=one_sheet_weight(skp.weights_,
+                                                                    skp.covariances_)))
+        print(f"[{name}] reg_covar {reg:g}: {json.dumps(probe[-1])}")
+    if probe:
+        out["reg_covar_probe"] = [dict(reg_covar=hcfg.reg_covar, n_components=K,
+                                       hgmm_heldout_mean_loglik=ll_h,
+                                       sklearn_heldout_mean_loglik=ll_sk,
+                                       sklearn_one_sheet_weight=out["sklearn"][
+                                           "one_sheet_weight"])] + probe
     print(f"[{name}] sklearn K={K} on {len(sk_rows)} rows: {t_sk:.1f} s ({sk.n_iter_} it), "
           f"held-out {ll_sk:.4f}; ratio {t_sk / t_h:.1f}x (per row "
           f"{out['time_ratio_per_row']:.1f}x), shortfall {out['heldout_rel_shortfall']:+.4f}; "
@@ -295,14 +340,17 @@ def main(argv=None):
     ap.add_argument("--out", default=str(REPO / "out" / "bench" / "bench_hgmm.json"),
                     help="JSON output path (default: out/bench/bench_hgmm.json)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--street-points", type=int, default=600_000,
+    ap.add_argument("--street-points", type=int, default=300_000,
                     help="hit points of the street scan before the 15 %% subsampling")
     ap.add_argument("--sizes", type=int, nargs="*", default=[50_000, 100_000, 200_000, 400_000],
                     help="row counts of the scaling table")
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--sk-max-rows", type=int, default=100_000,
+    ap.add_argument("--sk-max-rows", type=int, default=0,
                     help="cap on scikit-learn's training rows, drawn from the HGMM's "
-                         "(0: the same rows); default 100k bounds its run to minutes")
+                         "(default 0: the same rows)")
+    ap.add_argument("--reg-probe", type=float, nargs="*", default=[1e-8],
+                    help="smaller reg_covar values to refit both with, on the scene with "
+                         "fewer rows (KITTI when present; none: skip)")
     ap.add_argument("--sk-max-iter", type=int, default=100)
     ap.add_argument("--quick", action="store_true",
                     help="small sizes, one repeat, scikit-learn capped (a smoke run)")
@@ -310,7 +358,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.quick:
         args.street_points, args.sizes, args.repeats = 150_000, [20_000, 40_000], 1
-        args.sk_max_iter = 20
+        args.sk_max_iter, args.reg_probe = 20, []
 
     from gmmgp_app.config import MappingConfig
     from gmmgp_app.stages.hgmm import fit_hgmm
@@ -341,18 +389,20 @@ def main(argv=None):
     res["virtual_point_dropping"] = drop
 
     # 2. HGMM vs scikit-learn on the street and on KITTI
+    with_kitti = KITTI.exists() and not args.no_kitti
     scan, scene, street_src = get_street(args.street_points, args.seed)
     data = prepare(scan, cfg)
     res["street"] = dict(source=street_src, n_points=len(scan),
                          **bench_scene("street", data.rows, data.groups, cfg.hgmm, args.seed,
-                                       args.sk_max_rows, args.sk_max_iter))
-    if KITTI.exists() and not args.no_kitti:
+                                       args.sk_max_rows, args.sk_max_iter,
+                                       reg_probe=[] if with_kitti else args.reg_probe))
+    if with_kitti:
         kscan, ksrc = read_kitti()
         kdata = prepare(kscan, cfg)
         res["kitti_000000"] = dict(source=ksrc, n_points=len(kscan),
                                    **bench_scene("kitti", kdata.rows, kdata.groups, cfg.hgmm,
-                                                 args.seed,
-                                                 args.sk_max_rows, args.sk_max_iter))
+                                                 args.seed, args.sk_max_rows,
+                                                 args.sk_max_iter, reg_probe=args.reg_probe))
     else:
         res["kitti_000000"] = dict(skipped=f"{KITTI} not found or --no-kitti")
 

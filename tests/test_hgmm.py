@@ -16,6 +16,7 @@ from gmmgp_app.stages.hgmm import (
     hgmm_diagnostics,
     predict_labels,
     score,
+    score_groups,
     score_samples,
 )
 from gmmgp_app.types import GaussianMixture
@@ -443,3 +444,36 @@ def test_bad_groups_raise():
         fit_hgmm(rows, HGMMConfig(), groups=groups[:-1])
     with pytest.raises(HGMMError, match="Expected group_ptr"):
         fit_gmm(rows, 2, group_ptr=np.array([0, 5, 3, len(rows)]))
+
+
+def test_score_groups_matches_brute_force_and_reduces_to_score():
+    """The tied (observation) likelihood: groups in any order, against scipy; with
+    one row per group it is the plain mean row log-likelihood."""
+    rng = np.random.default_rng(11)
+    gm = random_mixture(rng, K=3)
+    X = sample_mixture(gm, 240, rng)
+    sizes = rng.integers(1, 4, size=120)
+    gptr = np.concatenate([[0], np.cumsum(sizes)])
+    gptr = gptr[gptr <= len(X)]
+    X = X[:gptr[-1]]
+    groups = np.repeat(np.arange(len(gptr) - 1), np.diff(gptr))
+    gw = rng.dirichlet(np.ones(3))
+    _, ll_g = np_tied_responsibilities(X, gptr, gm, gw)
+    shuffle = rng.permutation(len(X))
+    got = score_groups(gm, X[shuffle], groups[shuffle] * 7 + 3, group_weights=gw)
+    np.testing.assert_allclose(got, ll_g.sum() / len(X), rtol=1e-12)
+    np.testing.assert_allclose(score_groups(gm, X, np.arange(len(X))), score(gm, X),
+                               rtol=1e-12)
+    with pytest.raises(HGMMError, match="Expected groups as"):
+        score_groups(gm, X, groups[:-1])
+
+
+def test_tied_hierarchy_reports_leaf_group_weights():
+    rows, groups = sphere_triplets(np.random.default_rng(2), n=400)
+    h = fit_hgmm(rows, HGMMConfig(), groups=groups)
+    gw = h.info["leaf_group_weights"]
+    assert gw.shape == (h.leaves.n_components,) and np.all(gw > 0)
+    np.testing.assert_allclose(gw.sum(), 1.0, rtol=1e-12)
+    # every group here has three rows: fractions of groups ~ fractions of rows
+    np.testing.assert_allclose(gw, h.leaves.weights, atol=0.02)
+    assert fit_hgmm(rows, HGMMConfig()).info["leaf_group_weights"] is None

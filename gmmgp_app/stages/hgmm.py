@@ -34,6 +34,7 @@ __all__ = [
     "fit_hgmm",
     "score_samples",
     "score",
+    "score_groups",
     "predict_labels",
     "predict_group_labels",
     "group_boundaries",
@@ -354,6 +355,42 @@ def score(gm: GaussianMixture, X: np.ndarray) -> float:
     return float(np.mean(score_samples(gm, X)))
 
 
+def score_groups(gm: GaussianMixture, X: np.ndarray, groups: np.ndarray,
+                 group_weights: Optional[np.ndarray] = None) -> float:
+    """Log-likelihood of whole observations under a tied mixture, per row.
+
+    An observation is a hit point with its virtual points (the rows sharing a value
+    of ``groups``); tied EM models it as one draw of a component:
+    ``log p(group) = log sum_k pi_k prod_n N(x_n | k)``. Returned is the sum over
+    groups divided by the number of rows, so it compares with :func:`score` of a
+    mixture that treats rows as independent (whose group likelihood is the product
+    of its row likelihoods, i.e. the same per-row mean).
+
+    Parameters
+    ----------
+    gm : GaussianMixture
+    X : (N, D) rows
+    groups : (N,) int
+        Observation of each row (``TrainingSet.groups``); any order.
+    group_weights : (K,), optional
+        Component fractions of observations (tied EM's ``pi``); default the
+        mixture's weights (fractions of rows: equal when all groups have the same
+        size, as with both virtual points kept).
+    """
+    X = _check_rows(X)
+    groups = np.asarray(groups)
+    if groups.shape != (len(X),) or not np.issubdtype(groups.dtype, np.integer):
+        raise HGMMError(f"Expected groups as ({len(X)},) integers (the hit point of each "
+                        f"row), found {groups.dtype} {groups.shape}; pass TrainingSet.groups.")
+    order = np.argsort(groups, kind="stable")
+    Xs = np.ascontiguousarray(X[order])
+    gptr = group_boundaries(groups[order])
+    gw = gm.weights if group_weights is None else np.asarray(group_weights, dtype=np.float64)
+    pchol, logconst = _terms(GaussianMixture(gw, gm.means, gm.covariances))
+    ll = ek.group_log_likelihood(Xs, gptr, gm.means, pchol, logconst, np.log(gw))
+    return float(ll.sum() / len(X))
+
+
 def predict_labels(gm: GaussianMixture, X: np.ndarray) -> np.ndarray:
     """Hard assignment of rows to the component with the largest ``pi_k N(x|.)``, (N,) int64."""
     X = _check_rows(X)
@@ -428,11 +465,13 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
     gm0, info0, labels = fit(X, group_ptr(None), hcfg.initial_components)
     # Current level: arrays of node parameters and the row indices of each node.
     weights, means, covs = gm0.weights, gm0.means, gm0.covariances
+    # fractions of observations (hit point groups) per node, for the tied likelihood
+    gweights = info0.get("group_weights", weights)
     parents = np.full(len(weights), -1, dtype=np.int64)
     node_rows = _group(labels, len(weights))
 
     levels = []
-    leaves_w, leaves_m, leaves_c, leaf_level = [], [], [], []
+    leaves_w, leaves_m, leaves_c, leaf_level, leaves_gw = [], [], [], [], []
     level_info = [dict(n_fits=1, em_iter=info0["n_iter"], dropped=len(info0["dropped"]),
                        not_converged=int(not info0["converged"]), failed_splits=0)]
     for lev in range(hcfg.max_levels):
@@ -445,7 +484,7 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
             want |= np.linalg.eigvalsh(covs[:, :d3, :d3])[:, -1] > max_std ** 2
         want &= (n_rows >= hcfg.min_rows) & (lev < hcfg.max_levels - 1)
         split = np.zeros(len(weights), dtype=bool)
-        nxt_w, nxt_m, nxt_c, nxt_p, nxt_rows = [], [], [], [], []
+        nxt_w, nxt_m, nxt_c, nxt_p, nxt_rows, nxt_gw = [], [], [], [], [], []
         stats = dict(n_fits=0, em_iter=0, dropped=0, not_converged=0, failed_splits=0)
         for j in np.flatnonzero(want):
             idx = node_rows[j]
@@ -475,8 +514,10 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
                 stats["failed_splits"] += 1
                 continue
             split[j] = True
+            child_gw = infoj.get("group_weights", gmj.weights)
             for g in range(gmj.n_components):
                 nxt_w.append(weights[j] * gmj.weights[g])
+                nxt_gw.append(gweights[j] * child_gw[g])
                 nxt_m.append(gmj.means[g])
                 nxt_c.append(gmj.covariances[g])
                 nxt_p.append(j)
@@ -486,6 +527,7 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
             complexity=np.asarray(c, dtype=np.float64), split=split, n_rows=n_rows))
         keep = ~split
         leaves_w.append(weights[keep])
+        leaves_gw.append(np.asarray(gweights)[keep])
         leaves_m.append(means[keep])
         leaves_c.append(covs[keep])
         leaf_level.append(np.full(int(keep.sum()), lev, dtype=np.int64))
@@ -493,14 +535,18 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
             break
         level_info.append(stats)  # the fits that made level lev + 1
         weights = np.asarray(nxt_w)
+        gweights = np.asarray(nxt_gw)
         means = np.asarray(nxt_m)
         covs = np.asarray(nxt_c)
         parents = np.asarray(nxt_p, dtype=np.int64)
         node_rows = nxt_rows
     lw = np.concatenate(leaves_w)
     leaves = GaussianMixture(lw / lw.sum(), np.concatenate(leaves_m), np.concatenate(leaves_c))
+    lgw = np.concatenate(leaves_gw)
     info = dict(
         reg_covar=hcfg.reg_covar,
+        # tied EM: the leaves' fractions of observations (see score_groups), else None
+        leaf_group_weights=None if gsorted is None else lgw / lgw.sum(),
         complexity_metric="correlation" if normalize else "covariance",
         tied_groups=None if gsorted is None else int(len(group_boundaries(gsorted)) - 1),
         n_rows=int(len(X)),
