@@ -35,7 +35,8 @@ _EXAMPLES = {
   gmmgp run assets/demo_street.npz --out out/demo --stage hgmm   # print the HGMM levels
   gmmgp run scan.npz --out out/scan --config my.toml
   gmmgp run scan.laz --out out/scan --workers 2                 # GP blocks on a local Dask cluster
-  gmmgp run scan.laz --out out/scan --scheduler tcp://HOST:8786 # ... or on an existing one""",
+  gmmgp run scan.laz --out out/scan --scheduler tcp://HOST:8786 # ... or on an existing one
+  gmmgp run city.laz --out out/city --tile-size 20 --workers 2  # 20 m tiles, stitched""",
     "view": """examples:
   gmmgp view assets/demo_street.npz
   gmmgp view out/demo/map
@@ -156,7 +157,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--serve", action="store_true",
                    help="also serve the recording to viewers (bound to 127.0.0.1)")
     p.add_argument("--no-mesh", action="store_true", help="skip surface extraction")
-    g = p.add_argument_group("parallel execution of the GP blocks")
+    g = p.add_argument_group("large scans: map in tiles (DIR/map is then a tiled map)")
+    g.add_argument("--tile-size", type=float, metavar="M",
+                   help="map in square tiles of this edge (m) in x and y, each an independent "
+                        "map, stitched smoothly; e.g. 20")
+    g.add_argument("--tile-overlap", type=float, metavar="M",
+                   help="with --tile-size: training margin and blending band around each "
+                        "tile (m; default 2, at most half the tile size)")
+    g.add_argument("--min-tile-points", type=int, metavar="N",
+                   help="with --tile-size: a tile with fewer points joins its nearest mapped "
+                        "tile (default 200)")
+    g = p.add_argument_group("parallel execution of the GP blocks (of the tiles with "
+                             "--tile-size)")
     g.add_argument("--workers", type=int, default=0,
                    help="start a local Dask cluster with N single-threaded workers")
     g.add_argument("--scheduler", help="use an existing Dask cluster, e.g. tcp://HOST:8786")
@@ -230,6 +242,7 @@ def cmd_run(args) -> int:
         raise ValueError("Expected a scan and --out DIR, e.g. "
                          "'gmmgp run assets/demo_street.npz --out out/demo'.")
     cfg = _load_config(args)  # validate settings before the (slow) read
+    spec = _tile_spec(args)
 
     from ._atomic import atomic_write_text
     from .datasets import read_scan
@@ -256,6 +269,8 @@ def cmd_run(args) -> int:
         from .stages.surface import check_grid_size
 
         check_grid_size(surface_seeds(scan, cfg), cfg.surface.voxel_size)
+    if spec is not None:
+        return _run_tiled(args, cfg, spec, scan, out, console, t0, read_s)
     from .distributed import open_executor
 
     with open_executor(workers=args.workers or None, scheduler=args.scheduler,
@@ -290,6 +305,94 @@ def cmd_run(args) -> int:
     if args.rrd:
         written.append(Path(args.rrd))
     if not args.quiet:
+        print("wrote " + ", ".join(str(w) for w in written), file=sys.stderr)
+    return EXIT_OK
+
+
+def _tile_spec(args):
+    """The TileSpec of ``run --tile-size`` (None without it), refusing the options a
+    tiled run cannot honour before anything is read or written."""
+    if args.tile_size is None:
+        for flag, value in (("--tile-overlap", args.tile_overlap),
+                            ("--min-tile-points", args.min_tile_points)):
+            if value is not None:
+                raise ValueError(f"{flag} only applies to tiled mapping, found it without "
+                                 "--tile-size; add e.g. --tile-size 20.")
+        return None
+    if args.stage != "all":
+        raise ValueError(f"--tile-size maps every stage of each tile, found --stage "
+                         f"{args.stage}; drop --stage or --tile-size.")
+    for flag, value in (("--rrd", args.rrd), ("--spawn", args.spawn),
+                        ("--serve", args.serve)):
+        if value:
+            raise ValueError(f"{flag} records the stages of a single map, found it with "
+                             f"--tile-size (tiles are mapped independently); drop {flag} or "
+                             "--tile-size.")
+    from .tiling import TileSpec
+
+    kw = {"size": args.tile_size}
+    # the default overlap shrinks with tiles smaller than 4 m instead of failing
+    kw["overlap"] = (min(TileSpec.overlap, args.tile_size / 2) if args.tile_overlap is None
+                     else args.tile_overlap)
+    if args.min_tile_points is not None:
+        kw["min_points"] = args.min_tile_points
+    return TileSpec(**kw)
+
+
+def _run_tiled(args, cfg, spec, scan, out: Path, console, t0: float, read_s: float) -> int:
+    """``run --tile-size``: map tile by tile, save the tiled map, mesh the stitched field."""
+    import dataclasses
+
+    from ._atomic import atomic_write_text
+    from .distributed import open_executor
+    from .stages.surface import write_mesh_ply
+    from .tiling import build_tiled_map
+
+    t1 = time.perf_counter()
+    with open_executor(workers=args.workers or None, scheduler=args.scheduler,
+                       kind="processes" if args.processes else "dask") as executor:
+        bar = _TaskBar(console, "tiles")
+        tmap = build_tiled_map(scan, cfg, spec, method=args.method, executor=executor,
+                               progress=bar)
+        bar.close()
+    seconds = {"read": read_s, "tiles": time.perf_counter() - t1}
+    per_tile = [sum(t.summary.get("seconds", {}).values()) for _, t in tmap.tiles.items()]
+    summary = {"method": args.method, "tiled": True, "tile_spec": dataclasses.asdict(spec),
+               **tmap.summary, "n_absorbed_tiles": len(tmap.owners),
+               "n_skipped_tiles": len(tmap.summary.get("skipped_tiles", {})),
+               "tile_seconds": {"median": float(np.median(per_tile)),
+                                "max": float(np.max(per_tile)), "sum": float(np.sum(per_tile))},
+               "scan": {"paths": [str(Path(s).resolve()) for s in args.scan],
+                        "reader": reader_kwargs(args)},
+               "seconds": seconds, "counts": {}}
+    tmap.summary = summary
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        t2 = time.perf_counter()
+        tmap.save(out / "map")
+        seconds["save"] = time.perf_counter() - t2
+        written = [out / "map"]
+        if not args.no_mesh:
+            t3 = time.perf_counter()
+            mesh = tmap.extract_surface(progress=console.progress)
+            seconds["surface"] = time.perf_counter() - t3
+            summary["counts"]["surface"] = {args.method: {"vertices": len(mesh.vertices),
+                                                          "faces": len(mesh.faces)}}
+            vmax = (float(np.sqrt(np.quantile(mesh.vertex_variance, 0.98)))
+                    if len(mesh.vertices) else None)
+            written.append(write_mesh_ply(mesh, out / f"mesh_{args.method}.ply",
+                                          offset=tmap.offset, vmax=vmax))
+        atomic_write_text(out / "config.toml", cfg.to_toml())
+        seconds["total"] = time.perf_counter() - t0
+        atomic_write_text(out / "summary.json", json.dumps(_jsonable(summary), indent=2))
+        written += [out / "config.toml", out / "summary.json"]
+    except OSError as exc:  # e.g. a full disk: numpy/zipfile do not name the file
+        if exc.filename is None:
+            exc.filename = str(out)
+        raise
+    if not args.quiet:
+        print(f"mapped {summary['n_tiles']} tiles ({len(tmap.owners)} small ones joined a "
+              f"neighbour, {summary['n_skipped_tiles']} skipped)", file=sys.stderr)
         print("wrote " + ", ".join(str(w) for w in written), file=sys.stderr)
     return EXIT_OK
 

@@ -183,6 +183,12 @@ def load_map(directory) -> SurfaceMap:
 
     directory = Path(directory)
     meta_path, arr_path = directory / "map.json", directory / "arrays.npz"
+    if (directory / "tiled.json").is_file():
+        raise MapFormatError(
+            f"'{directory}' holds a tiled map (tiled.json), which this command does not "
+            "open yet; load it in Python with gmmgp_app.tiling.load_tiled_map, or map "
+            "without --tile-size."
+        )
     if not meta_path.is_file() or not arr_path.is_file():
         raise MapFormatError(
             f"'{directory}' is not a saved map (expected map.json and arrays.npz); "

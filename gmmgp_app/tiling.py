@@ -32,8 +32,10 @@ a LAS file, scans added by :meth:`TiledMap.update`).
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable, Optional
 
 import numpy as np
@@ -42,12 +44,21 @@ from .config import MappingConfig
 from .types import Scan
 
 __all__ = ["TilingError", "TileSpec", "TiledMap", "build_tiled_map", "split_into_tiles",
-           "tile_owners",
+           "tile_owners", "load_tiled_map",
            "update_gp_blocks", "spill_las_to_tiles", "build_tiled_map_from_las"]
+
+
+TILED_MAP_FORMAT = "gmmgp-tiled-map"
+TILED_MAP_FORMAT_VERSION = 1
 
 
 class TilingError(ValueError):
     """Bad tiling parameters or input to a tiled map."""
+
+
+def _tile_dirname(key) -> str:
+    """``tile_I_J``: a tile's folder (saved map) or file stem (its points)."""
+    return f"tile_{int(key[0])}_{int(key[1])}"
 
 
 @dataclass(frozen=True)
@@ -425,6 +436,62 @@ class TiledMap:
                                max_std=cfg.max_std if max_std is None else max_std,
                                progress=progress)
 
+    # ------------------------------------------------------------ save/load
+    def save(self, directory) -> Path:
+        """Write the tiled map to ``directory`` (npz + json, no pickle), atomically.
+
+        Layout: ``tiled.json`` (format tag and version, tile spec, method, offset,
+        mapped tile keys, owners as ``[small, owner]`` pairs, summary, config as
+        TOML); ``tiles/tile_I_J/``, one saved :class:`~gmmgp_app.pipeline.SurfaceMap`
+        per mapped tile; and, when the map keeps its points, ``points/tile_I_J.npz``
+        (``points`` (n, 3) and ``origins`` (n, 3) when known) for :meth:`update`.
+
+        The folder is written under a temporary name beside ``directory`` and
+        renamed when complete (an existing folder is replaced whole), so an
+        interrupted save never leaves a half-written map. Tiles kept on disk (a
+        streamed or loaded map) are copied file by file, not loaded.
+
+        Returns
+        -------
+        Path
+            ``directory``.
+        """
+        from ._atomic import atomic_dir
+        from .pipeline import _jsonable
+
+        directory = Path(directory)
+        keys = self.keys
+        with atomic_dir(directory) as tmp:
+            (tmp / "tiles").mkdir()
+            for key in keys:
+                dest = tmp / "tiles" / _tile_dirname(key)
+                if isinstance(self.tiles, _TileStore):
+                    self.tiles.export(key, dest)
+                else:
+                    self.tiles[key].save(dest)
+            if self.tile_points:
+                (tmp / "points").mkdir()
+                for key, (pts, org) in sorted(self.tile_points.items()):
+                    arrays = {"points": np.asarray(pts, dtype=np.float64)}
+                    if org is not None:
+                        arrays["origins"] = np.asarray(org, dtype=np.float64)
+                    np.savez(tmp / "points" / f"{_tile_dirname(key)}.npz", **arrays)
+            meta = {
+                "format": TILED_MAP_FORMAT,
+                "format_version": TILED_MAP_FORMAT_VERSION,
+                "spec": {"size": self.spec.size, "overlap": self.spec.overlap,
+                         "blend": self.spec.blend, "min_points": self.spec.min_points},
+                "method": self.method,
+                "offset": [float(v) for v in self.offset],
+                "tiles": [list(k) for k in keys],
+                "owners": [[list(k), list(o)] for k, o in sorted(self.owners.items())],
+                "points": sorted(list(k) for k in self.tile_points),
+                "summary": _jsonable(self.summary),
+                "config_toml": self.config.to_toml(),
+            }
+            (tmp / "tiled.json").write_text(json.dumps(meta, indent=2))
+        return directory
+
     # ------------------------------------------------------------ incremental
     def update(self, scan: Scan, refit_hgmm: bool = False, executor=None,
                progress: Optional[Callable[[int, int], None]] = None,
@@ -687,10 +754,15 @@ class _TileStore:
     """Tile maps saved on disk, loaded on demand (a few kept in memory).
 
     A mapping ``{(i, j): SurfaceMap}``: memory stays bounded by ``cache`` tiles
-    however long the street.
+    however long the street. Tile ``(i, j)`` lives in ``directory/tile_i_j``.
+
+    With ``read_only`` (a map opened by :func:`load_tiled_map`) assigning a tile
+    keeps it in memory instead of overwriting the folder, so that updating a
+    loaded map never changes the saved one behind its ``tiled.json``; save the
+    updated map explicitly.
     """
 
-    def __init__(self, directory, keys, cache: int = 4):
+    def __init__(self, directory, keys, cache: int = 4, read_only: bool = False):
         from collections import OrderedDict
         from pathlib import Path
 
@@ -698,9 +770,11 @@ class _TileStore:
         self._keys = sorted(keys)
         self._cache: "OrderedDict" = OrderedDict()
         self._size = int(cache)
+        self.read_only = bool(read_only)
+        self._written: dict = {}  # read-only store: tiles replaced since loading
 
     def _path(self, key):
-        return self.directory / f"tile_{key[0]}_{key[1]}"
+        return self.directory / _tile_dirname(key)
 
     def __contains__(self, key):
         return key in set(self._keys)
@@ -717,6 +791,8 @@ class _TileStore:
     def __getitem__(self, key):
         from .pipeline import load_map
 
+        if key in self._written:
+            return self._written[key]
         if key not in self._cache:
             if key not in self:
                 raise KeyError(key)
@@ -727,13 +803,26 @@ class _TileStore:
         return self._cache[key]
 
     def __setitem__(self, key, smap):
-        smap.save(self._path(key))
+        if self.read_only:
+            self._written[key] = smap
+        else:
+            smap.save(self._path(key))
         if key not in self:
             self._keys = sorted(self._keys + [key])
         self._cache.pop(key, None)
 
     def items(self):
         return ((k, self[k]) for k in self._keys)
+
+    def export(self, key, dest) -> None:
+        """Write tile ``key`` as a saved map folder ``dest`` (a copy of its files when
+        it is unchanged on disk: no load, bit for bit)."""
+        import shutil
+
+        if key in self._written or not self._path(key).is_dir():
+            self[key].save(dest)
+        else:
+            shutil.copytree(self._path(key), dest)
 
 
 def spill_las_to_tiles(path, spec: TileSpec, directory, chunk_size: int = 1_000_000,
@@ -854,3 +943,82 @@ def build_tiled_map_from_las(path, cfg: Optional[MappingConfig] = None,
                     summary=dict(n_tiles=len(store), n_points=n,
                                  absorbed_tiles={str(k): str(o) for k, o in owners.items()},
                                  skipped_tiles={str(k): v for k, v in skipped.items()}))
+
+
+# ------------------------------------------------------------------ save/load
+def load_tiled_map(directory, cache_tiles: int = 4, *, load_points: bool = True) -> TiledMap:
+    """Open a tiled map written by :meth:`TiledMap.save`; it predicts identically.
+
+    The tiles stay on disk and are loaded on demand, ``cache_tiles`` at a time
+    (:class:`_TileStore`); tiles replaced by :meth:`TiledMap.update` are kept in
+    memory and the saved folder is left as it was (save the updated map to keep
+    them).
+
+    Parameters
+    ----------
+    directory : str or Path
+        The folder holding ``tiled.json``.
+    cache_tiles : int
+        Tile maps kept in memory at once.
+    load_points : bool
+        Read the saved tile points (needed by :meth:`TiledMap.update`; all of
+        them are read into memory). ``False`` opens the map for prediction only.
+
+    Returns
+    -------
+    TiledMap
+    """
+    import tomllib
+
+    directory = Path(directory)
+    meta_path = directory / "tiled.json"
+    fix = "save one with TiledMap.save(DIR) or 'gmmgp run SCAN --out DIR --tile-size 20'"
+    if not meta_path.is_file():
+        if (directory / "map.json").is_file():
+            raise TilingError(f"'{directory}' holds a single map (map.json), not a tiled map "
+                              "(tiled.json); open it with gmmgp_app.pipeline.load_map.")
+        what = "does not exist" if not directory.exists() else "has no tiled.json"
+        raise TilingError(f"'{directory}' is not a saved tiled map ({what}); {fix}.")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise TilingError(f"'{meta_path}' is not valid JSON ({exc}); save the tiled map "
+                          "again.") from None
+    if not isinstance(meta, dict) or meta.get("format") != TILED_MAP_FORMAT:
+        found = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
+        raise TilingError(f"'{meta_path}' is not a tiled map description (format "
+                          f"{found!r}, expected {TILED_MAP_FORMAT!r}); {fix}.")
+    if meta.get("format_version") != TILED_MAP_FORMAT_VERSION:
+        raise TilingError(f"Tiled map format version {meta.get('format_version')} in "
+                          f"'{directory}' is not supported (expected "
+                          f"{TILED_MAP_FORMAT_VERSION}); rebuild the map with this version.")
+    try:
+        spec = TileSpec(**meta["spec"])
+        cfg = MappingConfig.from_dict(tomllib.loads(meta["config_toml"]))
+        keys = [(int(k[0]), int(k[1])) for k in meta["tiles"]]
+        owners = {(int(k[0]), int(k[1])): (int(o[0]), int(o[1])) for k, o in meta["owners"]}
+        point_keys = [(int(k[0]), int(k[1])) for k in meta["points"]]
+        method, offset = meta["method"], np.asarray(meta["offset"], dtype=np.float64)
+    except KeyError as exc:
+        raise TilingError(f"'{meta_path}' lacks the field {exc}; save the tiled map "
+                          "again.") from None
+    missing = [_tile_dirname(k) for k in keys
+               if not (directory / "tiles" / _tile_dirname(k) / "map.json").is_file()]
+    if missing:
+        raise TilingError(f"Tiled map '{directory}' is incomplete: tiles/{missing[0]} is "
+                          f"missing ({len(missing)} of {len(keys)} tiles); save the tiled "
+                          "map again.")
+    tile_points = {}
+    if load_points:
+        for key in point_keys:
+            path = directory / "points" / f"{_tile_dirname(key)}.npz"
+            if not path.is_file():
+                raise TilingError(f"Tiled map '{directory}' is incomplete: points/"
+                                  f"{path.name} is missing; save the tiled map again or "
+                                  "load it with load_points=False.")
+            with np.load(path, allow_pickle=False) as z:
+                tile_points[key] = (z["points"], z["origins"] if "origins" in z.files
+                                    else None)
+    store = _TileStore(directory / "tiles", keys, cache=cache_tiles, read_only=True)
+    return TiledMap(spec, store, cfg, method, offset=offset, tile_points=tile_points,
+                    summary=meta.get("summary", {}), owners=owners)

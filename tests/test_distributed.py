@@ -489,3 +489,225 @@ def test_tiled_mesh_has_no_cracks_along_tile_borders():
         near_t = np.sum(np.abs(mid_t[:, 0] - b) < 0.3)
         near_p = np.sum(np.abs(mid_p[:, 0] - b) < 0.3)
         assert near_t <= 1.5 * near_p + 20
+
+
+# ---------------------------------------------------------------- save / load
+
+
+def _assert_same_prediction(a, b, q):
+    for x, y in zip(a.predict(q, return_grad=True), b.predict(q, return_grad=True)):
+        assert np.array_equal(x, y), np.abs(x - y).max()
+
+
+def test_saved_tiled_map_predicts_bit_for_bit(street, tiled, tmp_path):
+    from gmmgp_app.tiling import _TileStore, load_tiled_map
+
+    scan, _ = street
+    d = tiled.save(tmp_path / "tm")
+    assert (d / "tiled.json").is_file()
+    assert sorted(p.name for p in (d / "tiles").iterdir()) == sorted(
+        f"tile_{i}_{j}" for i, j in tiled.keys)
+    assert len(list((d / "points").iterdir())) == len(tiled.tile_points)
+    loaded = load_tiled_map(d, cache_tiles=1)
+    # tiles stay on disk until a query needs them, one at a time here
+    assert isinstance(loaded.tiles, _TileStore) and not loaded.tiles._cache
+    assert loaded.keys == tiled.keys and loaded.owners == tiled.owners
+    assert loaded.spec == tiled.spec and loaded.method == tiled.method
+    assert loaded.config == tiled.config and np.array_equal(loaded.offset, tiled.offset)
+    assert loaded.summary == tiled.summary
+    for k, (p, o) in tiled.tile_points.items():
+        assert np.array_equal(loaded.tile_points[k][0], p)
+        assert np.array_equal(loaded.tile_points[k][1], o)
+    q = np.concatenate([scan.points[::7] + 0.03, [[0.0, 0.0, 0.0], [100.0, 50.0, 1.0]]])
+    _assert_same_prediction(loaded, tiled, q)
+    assert len(loaded.tiles._cache) == 1
+    # overwriting a saved tiled map replaces it whole and leaves no temporary behind
+    core = TiledMap(TileSpec(size=8.0, overlap=2.0, blend="core"), tiled.tiles, tiled.config,
+                    tiled.method)
+    core.save(d)
+    again = load_tiled_map(d)
+    assert again.spec.blend == "core" and again.tile_points == {}
+    assert not (d / "points").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["tm"]
+    _assert_same_prediction(again, core, q)
+
+
+def test_saved_streamed_tiled_map_predicts_bit_for_bit(street, tiled, tmp_path):
+    from gmmgp_app.tiling import load_tiled_map
+
+    scan, _ = street
+    off = np.array([500000.0, 5400000.0, 100.0])
+    write_laz(tmp_path / "street.laz", scan, off)
+    tm = build_tiled_map_from_las(tmp_path / "street.laz", tiled.config, tiled.spec,
+                                  work_dir=tmp_path / "work", chunk_size=3000, cache_tiles=1,
+                                  offset=off)
+    loaded = load_tiled_map(tm.save(tmp_path / "saved"), cache_tiles=2)
+    assert not (tmp_path / "saved" / "points").exists()
+    assert np.array_equal(loaded.offset, off) and loaded.owners == tm.owners
+    _assert_same_prediction(loaded, tm, scan.points[::7] + 0.03)
+    with pytest.raises(TilingError, match="without keeping its points"):
+        loaded.update(gm.Scan(points=scan.points, offset=off))
+
+
+def test_update_of_a_loaded_map_equals_updating_the_original(street, tmp_path):
+    """Part of the street, saved and loaded, then the rest in two updates: the same as
+    updating the map in memory, for rebuilt tiles (new space beyond x = 23 m, small
+    tiles becoming tiles of their own) and GP-only refits (denser old space) alike; the
+    saved folder is untouched until the updated map is saved again (here over itself)."""
+    from gmmgp_app.tiling import load_tiled_map
+
+    scan, _ = street
+    left = scan.points[:, 0] < 23.0
+    later = left & (np.arange(len(scan)) % 4 == 0)
+    first = left & ~later
+    original = build_tiled_map(scan.select(first), gm.MappingConfig(),
+                               TileSpec(size=8.0, overlap=2.0))
+    d = original.save(tmp_path / "tm")
+    loaded = load_tiled_map(d, cache_tiles=1)
+    q = scan.points[::9] + 0.02
+    before = original.predict(q)
+    reports = []
+    for part in (~left, later):
+        rep_a = original.update(scan.select(part))
+        rep_b = loaded.update(scan.select(part))
+        assert rep_a == rep_b
+        reports.append(rep_a)
+        _assert_same_prediction(loaded, original, q)
+    assert reports[0]["rebuilt_tiles"] and reports[1]["gp_updated_tiles"]
+    assert loaded.owners == original.owners and loaded.keys == original.keys
+    untouched = load_tiled_map(d)
+    assert all(np.array_equal(x, y) for x, y in zip(untouched.predict(q), before))
+    loaded.save(d)
+    _assert_same_prediction(load_tiled_map(d), original, q)
+
+
+def test_load_tiled_map_errors(tiled, tmp_path):
+    import json
+    import shutil
+
+    from gmmgp_app.tiling import load_tiled_map
+
+    good = tiled.save(tmp_path / "good")
+    with pytest.raises(TilingError, match=r"is not a saved tiled map \(does not exist\); "
+                                          r"save one with TiledMap.save"):
+        load_tiled_map(tmp_path / "missing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(TilingError, match=r"is not a saved tiled map \(has no tiled.json\); "
+                                          r".*--tile-size 20"):
+        load_tiled_map(tmp_path / "empty")
+    tiled.tiles[tiled.keys[0]].save(tmp_path / "single")
+    with pytest.raises(TilingError, match=r"holds a single map \(map.json\), not a tiled "
+                                          r"map .*open it with gmmgp_app.pipeline.load_map"):
+        load_tiled_map(tmp_path / "single")
+
+    def broken(name, edit):
+        d = tmp_path / name
+        shutil.copytree(good, d)
+        edit(d)
+        return d
+
+    def set_field(key, value):
+        def edit(d):
+            meta = json.loads((d / "tiled.json").read_text())
+            if value is None:
+                del meta[key]
+            else:
+                meta[key] = value
+            (d / "tiled.json").write_text(json.dumps(meta))
+        return edit
+
+    cases = [
+        (set_field("format_version", 99), (r"Tiled map format version 99 in .* is not "
+                                           r"supported \(expected 1\); rebuild the map")),
+        (set_field("format", "other"), (r"is not a tiled map description \(format 'other', "
+                                        r"expected 'gmmgp-tiled-map'\)")),
+        (lambda d: (d / "tiled.json").write_text("{not json"),
+         r"is not valid JSON .*; save the tiled map again"),
+        (set_field("owners", None), r"lacks the field 'owners'; save the tiled map again"),
+        (lambda d: shutil.rmtree(d / "tiles" / "tile_2_1"),
+         r"is incomplete: tiles/tile_2_1 is missing \(1 of \d+ tiles\)"),
+        (lambda d: (d / "points" / "tile_3_2.npz").unlink(),
+         r"is incomplete: points/tile_3_2.npz is missing; .*load_points=False"),
+    ]
+    for i, (edit, match) in enumerate(cases):
+        with pytest.raises(TilingError, match=match):
+            load_tiled_map(broken(f"bad{i}", edit))
+    # without its points a tiled map still opens, for prediction only
+    assert load_tiled_map(tmp_path / "bad5", load_points=False).tile_points == {}
+
+
+# ---------------------------------------------------------------- gmmgp run --tile-size
+
+
+def test_cli_run_tiled_end_to_end(street, tmp_path, capsys):
+    """``gmmgp run --tile-size``: a tiled map in DIR/map that predicts the scan's
+    surface, a stitched mesh in the original frame, config and summary."""
+    import json
+
+    from gmmgp_app.cli import main
+    from gmmgp_app.config import MappingConfig
+    from gmmgp_app.tiling import load_tiled_map
+
+    scan, _ = street
+    off = np.array([500000.0, 5400000.0, 100.0])
+    np.savez(tmp_path / "scan.npz", points=scan.points, origins=scan.origins, offset=off)
+    out = tmp_path / "out"
+    assert main(["run", str(tmp_path / "scan.npz"), "--out", str(out), "--tile-size", "8",
+                 "--tile-overlap", "2", "--min-tile-points", "200", "--set",
+                 "surface.voxel_size=0.2"]) == 0
+    err = capsys.readouterr().err
+    assert "mapped 9 tiles" in err and "wrote" in err
+    assert {p.name for p in out.iterdir()} == {"map", "mesh_gmmgp.ply", "config.toml",
+                                                "summary.json"}
+    summary = json.loads((out / "summary.json").read_text())
+    tm = load_tiled_map(out / "map")
+    # x in (16, 32), y in (12, 28): 4 x 3 squares of 8 m, 3 small ones joined a neighbour
+    assert summary["n_tiles"] == len(tm.keys) == 9 and summary["n_absorbed_tiles"] == 3
+    assert summary["n_absorbed_tiles"] == len(tm.owners)
+    assert summary["tile_spec"] == {"size": 8.0, "overlap": 2.0, "blend": "smooth",
+                                    "min_points": 200}
+    assert {"read", "tiles", "save", "surface", "total"} <= set(summary["seconds"])
+    assert summary["n_points"] == len(scan)
+    assert np.array_equal(tm.offset, off)
+    assert MappingConfig.from_toml(out / "config.toml") == tm.config
+    assert tm.config.surface.voxel_size == 0.2
+    assert np.median(np.abs(tm.predict(scan.points)[0])) < 0.01
+    import open3d as o3d
+
+    v = np.asarray(o3d.io.read_triangle_mesh(str(out / "mesh_gmmgp.ply")).vertices)
+    assert len(v) == summary["counts"]["surface"]["gmmgp"]["vertices"] > 100
+    # vertices are written in the original frame, near the scan's points
+    lo, hi = scan.points.min(0) + off - 0.5, scan.points.max(0) + off + 0.5
+    assert np.all((v >= lo) & (v <= hi))
+
+
+@pytest.mark.parametrize("extra,match", [
+    (["--tile-size", "8", "--stage", "hgmm"],
+     "--tile-size maps every stage of each tile, found --stage hgmm; drop --stage"),
+    (["--tile-size", "8", "--rrd", "x.rrd"], "--rrd records the stages of a single map"),
+    (["--tile-size", "8", "--spawn"], "--spawn records the stages of a single map"),
+    (["--tile-overlap", "1"], ("--tile-overlap only applies to tiled mapping, found it "
+                               "without --tile-size")),
+    (["--tile-size", "8", "--tile-overlap", "5"], r"Expected 0 <= tile overlap <= size / 2"),
+])
+def test_cli_run_tiled_bad_combinations(extra, match, tmp_path, capsys):
+    import re
+
+    from gmmgp_app.cli import main
+
+    out = tmp_path / "out"
+    # the scan need not exist: the options are refused before anything is read
+    assert main(["run", str(tmp_path / "scan.npz"), "--out", str(out), *extra]) == 2
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "Traceback" not in lines[0]
+    assert lines[0].startswith("gmmgp run: error: ") and re.search(match, lines[0]), lines[0]
+    assert not out.exists()
+
+
+def test_cli_run_help_shows_the_tiled_example(capsys):
+    from gmmgp_app.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["run", "--help"])
+    text = capsys.readouterr().out
+    assert "--tile-size 20" in text and "--min-tile-points" in text

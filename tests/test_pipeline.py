@@ -96,3 +96,11 @@ def test_load_map_errors(tmp_path):
 
     with pytest.raises(MapFormatError, match="is not a saved map"):
         gm.load_map(tmp_path)
+
+
+def test_load_map_names_a_tiled_map(tmp_path):
+    from gmmgp_app.pipeline import MapFormatError
+
+    (tmp_path / "tiled.json").write_text("{}")
+    with pytest.raises(MapFormatError, match="holds a tiled map .*load_tiled_map"):
+        gm.load_map(tmp_path)
