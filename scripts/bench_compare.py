@@ -15,7 +15,6 @@ bin, training and testing times), sweeps Log-GPIS's lambda, and writes
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import platform
 import sys

@@ -19,6 +19,7 @@ from gmmgp_app.datasets import (
 from gmmgp_app.datasets import _common
 from gmmgp_app.datasets._common import quat_to_matrix
 from gmmgp_app.datasets.las import parse_geokeys, wkt_units
+from lasfile import write_las
 
 
 @pytest.fixture
@@ -283,27 +284,11 @@ def _geokeys(*keys):
     return struct.pack(f"<{len(words)}H", *words)
 
 
-def _write_las(path, xyz, *, vlrs=(), scale=0.001, offset=(0, 0, 0), classes=None):
-    import laspy
-
-    header = laspy.LasHeader(point_format=3, version="1.2")
-    header.scales = np.full(3, scale)
-    header.offsets = np.asarray(offset, dtype=float)
-    for v in vlrs:
-        header.vlrs.append(v)
-    las = laspy.LasData(header)
-    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    las.intensity = np.arange(len(xyz), dtype=np.uint16)
-    if classes is not None:
-        las.classification = classes.astype(np.uint8)
-    las.write(str(path))
-
-
 @pytest.mark.parametrize("ext", [".las", ".laz"])
 def test_las_round_trip(tmp_path, cloud, ext):
     path = tmp_path / f"scan{ext}"
     classes = (np.arange(len(cloud)) % 2 + 1).astype(np.uint8)
-    _write_las(path, cloud, classes=classes)
+    write_las(path, cloud, classes=classes)
     scan = read_scan(path)
     np.testing.assert_allclose(scan.points, cloud, atol=0.0005 + 1e-12)  # 1 mm quantisation
     np.testing.assert_array_equal(scan.labels, classes)
@@ -319,7 +304,7 @@ def test_las_feet_from_geokey_directory(tmp_path, cloud, code, factor, name):
     vlr = laspy.VLR("LASF_Projection", 34735, "GeoTiff GeoKeyDirectoryTag",
                     _geokeys((1024, 0, 1, 1), (3076, 0, 1, code)))
     path = tmp_path / "feet.laz"
-    _write_las(path, cloud, vlrs=[vlr])
+    write_las(path, cloud, vlrs=[vlr])
     scan = read_scan(path)
     assert scan.units == name
     expected = np.round(cloud / 0.001) * 0.001 * factor
@@ -335,7 +320,7 @@ def test_las_vertical_unit_key_and_user_defined_unit(tmp_path, cloud):
     # horizontal US survey feet, vertical metres
     vlr = laspy.VLR("LASF_Projection", 34735, "", _geokeys((1024, 0, 1, 1), (3076, 0, 1, 9003), (4099, 0, 1, 9001)))
     path = tmp_path / "mixed.las"
-    _write_las(path, cloud, vlrs=[vlr])
+    write_las(path, cloud, vlrs=[vlr])
     scan = read_scan(path)
     q = np.round(cloud / 0.001) * 0.001
     np.testing.assert_allclose(scan.points, q * [1200 / 3937, 1200 / 3937, 1.0], atol=1e-9)
@@ -344,7 +329,7 @@ def test_las_vertical_unit_key_and_user_defined_unit(tmp_path, cloud):
     keys = _geokeys((1024, 0, 1, 1), (3076, 0, 1, 32767), (3077, 34736, 1, 0))
     vlrs = [laspy.VLR("LASF_Projection", 34735, "", keys),
             laspy.VLR("LASF_Projection", 34736, "", struct.pack("<d", 0.5))]
-    _write_las(path, cloud, vlrs=vlrs)
+    write_las(path, cloud, vlrs=vlrs)
     np.testing.assert_allclose(read_scan(path).points, q * 0.5, atol=1e-9)
 
 
@@ -355,10 +340,10 @@ def test_las_unit_from_wkt_only_and_geographic_error(tmp_path, cloud):
            'UNIT["degree",0.0174532925199433]],PROJECTION["Lambert_Conformal_Conic_2SP"],'
            'UNIT["foot",0.3048,AUTHORITY["EPSG","9002"]]]')
     path = tmp_path / "wkt.las"
-    _write_las(path, cloud, vlrs=[laspy.VLR("LASF_Projection", 2112, "", wkt.encode() + b"\x00")])
+    write_las(path, cloud, vlrs=[laspy.VLR("LASF_Projection", 2112, "", wkt.encode() + b"\x00")])
     np.testing.assert_allclose(read_scan(path).points, np.round(cloud / 0.001) * 0.001 * 0.3048, atol=1e-9)
     geo = laspy.VLR("LASF_Projection", 34735, "", _geokeys((1024, 0, 1, 2), (2054, 0, 1, 9102)))
-    _write_las(path, cloud, vlrs=[geo])
+    write_las(path, cloud, vlrs=[geo])
     with pytest.raises(ScanReadError, match=r"geographic CRS \(degrees.*reproject it"):
         read_scan(path)
 
@@ -369,11 +354,11 @@ def test_las_projected_cs_without_unit_key(tmp_path, cloud, recwarn):
     path = tmp_path / "cs.las"
     q = np.round(cloud / 0.001) * 0.001
     # UTM zone code only: metres are known without a CRS database, no warning
-    _write_las(path, cloud, vlrs=[laspy.VLR("LASF_Projection", 34735, "", _geokeys((1024, 0, 1, 1), (3072, 0, 1, 32633)))])
+    write_las(path, cloud, vlrs=[laspy.VLR("LASF_Projection", 34735, "", _geokeys((1024, 0, 1, 1), (3072, 0, 1, 32633)))])
     np.testing.assert_allclose(read_scan(path).points, q, atol=1e-9)
     assert not [w for w in recwarn if issubclass(w.category, ScanWarning)]
     # a state-plane code (EPSG 2994, Oregon Lambert, in feet) cannot be resolved here: warn, keep metres
-    _write_las(path, cloud, vlrs=[laspy.VLR("LASF_Projection", 34735, "", _geokeys((1024, 0, 1, 1), (3072, 0, 1, 2994)))])
+    write_las(path, cloud, vlrs=[laspy.VLR("LASF_Projection", 34735, "", _geokeys((1024, 0, 1, 1), (3072, 0, 1, 2994)))])
     with pytest.warns(ScanWarning, match=r"Could not find a linear unit in the CRS of '.*cs\.las'; assuming metres\. Pass units='ft'"):
         scan = read_scan(path)
     np.testing.assert_allclose(scan.points, q, atol=1e-9)
@@ -396,7 +381,7 @@ def test_las_utm_offset_keeps_millimetres(tmp_path):
     local_mm = np.round(rng.uniform(0, 200, size=(500, 3)) * 1000) / 1000  # exact mm values
     base = np.array([512345.0, 5403210.0, 250.0])
     path = tmp_path / "utm.laz"
-    _write_las(path, local_mm + base, scale=0.001, offset=(500000.0, 5400000.0, 0.0))
+    write_las(path, local_mm + base, scale=0.001, offset=(500000.0, 5400000.0, 0.0))
     scan = read_scan(path)
     np.testing.assert_array_equal(scan.offset, [512000.0, 5403000.0, 0.0])
     np.testing.assert_allclose(scan.points, local_mm + base - scan.offset, rtol=0, atol=1e-6)
@@ -406,7 +391,7 @@ def test_las_utm_offset_keeps_millimetres(tmp_path):
 
 def test_corrupt_las(tmp_path, cloud):
     path = tmp_path / "scan.las"
-    _write_las(path, cloud)
+    write_las(path, cloud)
     data = path.read_bytes()
     path.write_bytes(data[:400])
     with pytest.raises(ScanReadError, match=r"(Cannot read '.*scan\.las' as LAS/LAZ|declares 200 points but holds)"):

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from gmmgp_app.config import MappingConfig
-from gmmgp_app.types import GaussianMixture, Scan
+from gmmgp_app.types import Scan
 from gmmgp_app.viz import gui_geometry as G
 from gmmgp_app.viz.gui_model import (STAGES, Cancelled, StageResults, ViewerError,
                                      ViewerModel, first_affected_stage)

@@ -34,6 +34,7 @@ import pytest
 import gmmgp_app as gm
 from gmmgp_app.cli import main
 from gmmgp_app.datasets import ScanReadError, ScanWarning, read_scan
+from lasfile import write_las
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "hardening.md"
@@ -80,20 +81,6 @@ def _plane(n_side=30, h=0.05, z=0.0):
 
 def _cloud(n=200, seed=0):
     return np.random.default_rng(seed).uniform(-2, 2, size=(n, 3))
-
-
-def _write_las(path, xyz, *, vlrs=(), scale=0.001, offset=(0.0, 0.0, 0.0)):
-    import laspy
-
-    header = laspy.LasHeader(point_format=3, version="1.2")
-    header.scales = np.full(3, scale)
-    header.offsets = np.asarray(offset, dtype=float)
-    for v in vlrs:
-        header.vlrs.append(v)
-    las = laspy.LasData(header)
-    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    las.write(str(path))
-    return path
 
 
 def _feet_vlr():
@@ -183,11 +170,11 @@ def _make_ply_garbage(t):
 
 
 def _make_las_truncated(t):
-    return _truncate(_write_las(t / "cut.las", _cloud(2000)), 0.5)
+    return _truncate(write_las(t / "cut.las", _cloud(2000)), 0.5)
 
 
 def _make_laz_truncated(t):
-    return _truncate(_write_las(t / "cut.laz", _cloud(2000)), 0.5)
+    return _truncate(write_las(t / "cut.laz", _cloud(2000)), 0.5)
 
 
 def _make_las_garbage(t):
@@ -356,14 +343,14 @@ def test_truncated_laz_is_one_line_in_a_real_process(tmp_path):
 
 def test_las_header_declaring_huge_counts_is_refused_before_allocating(tmp_path, capsys):
     """A corrupt header claiming 4e9 points (or VLRs) must not make laspy allocate ~100 GiB."""
-    path = _write_las(tmp_path / "huge.las", _cloud(100))
+    path = write_las(tmp_path / "huge.las", _cloud(100))
     data = bytearray(path.read_bytes())
     struct.pack_into("<I", data, 107, 4_000_000_000)
     path.write_bytes(bytes(data))
     rc, _, err = _cli(capsys, "info", path)
     assert_one_line_error(rc, err, "info", r"header declares 4000000000 points .* but the file "
                           r"has \d+ bytes; the file is corrupt or truncated")
-    data = bytearray(_write_las(tmp_path / "vlrs.las", _cloud(100)).read_bytes())
+    data = bytearray(write_las(tmp_path / "vlrs.las", _cloud(100)).read_bytes())
     struct.pack_into("<I", data, 100, 3_000_000_000)
     (tmp_path / "vlrs.las").write_bytes(bytes(data))
     rc, _, err = _cli(capsys, "info", tmp_path / "vlrs.las")
@@ -506,7 +493,7 @@ def test_utm_las_keeps_millimetres_and_maps(tmp_path, capsys, box):
     same field as the map of the same points near zero (compared in the original frame)."""
     scan = box["scan"]
     local = np.round(scan.points, 3)
-    path = _write_las(tmp_path / "utm.las", local + UTM, scale=0.001, offset=UTM)
+    path = write_las(tmp_path / "utm.las", local + UTM, scale=0.001, offset=UTM)
     got = read_scan(path)
     np.testing.assert_allclose(got.points + got.offset, local + UTM, rtol=0, atol=1e-9)
     near = tmp_path / "near.npy"
@@ -540,7 +527,7 @@ def test_saved_map_of_a_constant_prior_loads(how, tmp_path, capsys, box):
 
 def test_las_in_feet_is_converted_to_metres(tmp_path, capsys):
     xyz_ft = _cloud(300) * 50 + [1000.0, 2000.0, 300.0]
-    path = _write_las(tmp_path / "feet.las", xyz_ft, vlrs=[_feet_vlr()], scale=0.01)
+    path = write_las(tmp_path / "feet.las", xyz_ft, vlrs=[_feet_vlr()], scale=0.01)
     rc, out, err = _cli(capsys, "info", path, "--json")
     assert rc == 0, err
     import json
