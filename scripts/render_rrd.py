@@ -3,10 +3,10 @@
 
 ``rerun FILE.rrd --headless --screenshot-to out.png`` takes its screenshot as soon
 as the window exists, often before a large recording (meshes of a few 100k
-vertices) has loaded: the views come out empty. This script spawns a headless
-viewer, opens the recording, moves the time cursor (default: the end of the
-``stage`` timeline, so every stage is shown), waits until the viewer has had time
-to draw, and saves the whole window.
+vertices) has loaded: the views come out empty. This is a command line for
+:func:`gmmgp_app.viz.rerun_observer.screenshot`, which waits until the headless
+viewer has loaded everything, moves the time cursor (default: the end of the
+``stage`` timeline, so every stage is shown) and saves the whole window.
 
 Needs a Vulkan device or Mesa's llvmpipe (installed by scripts/setup.sh).
 
@@ -20,8 +20,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
-from pathlib import Path
 
 
 def main(argv=None) -> int:
@@ -31,36 +29,25 @@ def main(argv=None) -> int:
     ap.add_argument("png", help="output PNG (whole viewer window)")
     ap.add_argument("--timeline", default="stage", help="timeline to move (default: stage)")
     ap.add_argument("--time", type=int, help="sequence value (default: the timeline's end)")
-    ap.add_argument("--wait", type=float, default=8.0,
-                    help="seconds to let the viewer draw before the screenshot (default 8)")
-    ap.add_argument("--port", type=int, default=9877, help="gRPC port of the viewer")
+    ap.add_argument("--size", default="1600x900", help="window size in points (1600x900)")
+    ap.add_argument("--settle", type=float, default=3.0,
+                    help="seconds to let the views draw after loading (default 3)")
     args = ap.parse_args(argv)
-    rrd = Path(args.rrd)
-    if not rrd.is_file():
-        print(f"error: Expected a rerun recording, found no file '{rrd}'; record one with "
-              "'gmmgp run SCAN --out DIR --rrd DIR/run.rrd'.", file=sys.stderr)
-        return 2
-    from rerun.experimental import ViewerClient
+    from gmmgp_app.viz.rerun_observer import RerunError, screenshot
 
-    client = ViewerClient.spawn(headless=True, port=args.port, hide_welcome_screen=True)
     try:
-        client.open(str(rrd.resolve()))
-        state = client.get_state()
-        timelines = {t.name: t for r in state.recordings for t in r.timelines}
-        if args.timeline not in timelines:
-            print(f"error: Expected a timeline '{args.timeline}' in '{rrd}', found "
-                  f"{sorted(timelines)}; pass --timeline.", file=sys.stderr)
-            return 2
-        t = timelines[args.timeline]
-        client.set_time(args.timeline, sequence=t.end if args.time is None else args.time,
-                        play_state="paused")
-        time.sleep(args.wait)
-        out = Path(args.png).resolve()
-        out.parent.mkdir(parents=True, exist_ok=True)
-        client.save_screenshot(str(out))
-    finally:
-        client.quit()
-    print(f"wrote {args.png}")
+        w, h = (int(v) for v in args.size.lower().split("x"))
+    except ValueError:
+        print(f"error: Expected --size as WIDTHxHEIGHT, found '{args.size}'; use e.g. "
+              "1600x900.", file=sys.stderr)
+        return 2
+    try:
+        png = screenshot(args.rrd, args.png, window_size=(w, h), settle=args.settle,
+                         timeline=args.timeline, sequence=args.time)
+    except (FileNotFoundError, RerunError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {png}")
     return 0
 
 

@@ -107,6 +107,24 @@ def test_vertex_normals_of_a_flat_square_point_up():
     np.testing.assert_allclose(ro._vertex_normals(v, f), np.tile([0, 0, 1.0], (4, 1)))
 
 
+def test_scan_eye_looks_from_the_sensor_side():
+    """A facade at y = 10 scanned from y = 0: the camera stands on the street side,
+    above, and looks at the middle of the scan."""
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.uniform(0, 20, 500), np.full(500, 10.0), rng.uniform(0, 8, 500)]
+    org = np.c_[rng.uniform(0, 20, 500), np.zeros(500), np.full(500, 2.0)]
+    pos, target = ro.scan_eye(pts, org)
+    np.testing.assert_allclose(target, [10.0, 10.0, 4.0], atol=0.2)
+    assert pos[1] < target[1] - 5 and pos[2] > target[2] and abs(pos[0] - target[0]) < 0.5
+    pos2, _ = ro.scan_eye(pts, org + [0.0, 20.0, 0.0])  # scanned from behind
+    assert pos2[1] > target[1] + 5
+    pos3, _ = ro.scan_eye(pts)  # no origins: from -y
+    assert pos3[1] < target[1]
+    import rerun.blueprint as rrb
+
+    assert isinstance(ro.default_blueprint(eye=(pos, target)), rrb.Blueprint)
+
+
 # --------------------------------------------------------------------------- recording
 def test_recording_passes_rerun_rrd_verify(recorded):
     res = _verify(recorded["path"])

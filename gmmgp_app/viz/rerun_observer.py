@@ -58,6 +58,7 @@ __all__ = [
     "RerunError",
     "RerunObserver",
     "default_blueprint",
+    "scan_eye",
     "ellipsoid_params",
     "repair_recording",
     "rerun_executable",
@@ -252,6 +253,8 @@ class RerunObserver:
         self.rec.set_log_time_enabled(False)
         self.rec.set_log_tick_enabled(False)
         self.blueprint = default_blueprint() if blueprint is None else blueprint
+        # the default layout gets a camera on the scan once it is known (_log_scan)
+        self._frame_views = blueprint is None
         self.path = Path(rrd) if rrd else None
         self.processes: list = []
         self.urls: list = []
@@ -359,6 +362,10 @@ class RerunObserver:
             t = (z - z.min()) / max(float(np.ptp(z)), 1e-9) if len(z) else z
             self.log("world/scan", rr.Points3D(pts, colors=_colormap(t, "turbo"), radii=-1.0))
         self.count("scan_points", len(pts))
+        if self._frame_views and len(pts):
+            self._frame_views = False
+            self.blueprint = default_blueprint(eye=scan_eye(pts, scan.origins))
+            self.rec.send_blueprint(self.blueprint)
 
     def _log_prepare(self, data, extra) -> None:
         rr = self.rr
@@ -479,7 +486,27 @@ class RerunObserver:
 
 
 # --------------------------------------------------------------------------- blueprint
-def default_blueprint(timeline: str = "stage", sweep: bool = False):
+def scan_eye(points, origins=None) -> tuple:
+    """A camera (position, look target) that shows a scan from its sensor's side.
+
+    Looks at the middle of the bounding box from the side where the sensor origins
+    lie on average (a street scan is seen from the street, not from behind its
+    facades), from 0.6 box diagonals away and 0.25 diagonals up.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    lo, hi = pts.min(0), pts.max(0)
+    target = 0.5 * (lo + hi)
+    diag = max(float(np.linalg.norm(hi - lo)), 1e-3)
+    side = np.array([0.0, -1.0])
+    if origins is not None and len(origins):
+        v = np.asarray(origins, dtype=np.float64).mean(0)[:2] - target[:2]
+        if np.linalg.norm(v) > 1e-6 * diag:
+            side = v / np.linalg.norm(v)
+    position = target + np.r_[0.6 * diag * side, 0.25 * diag]
+    return position, target
+
+
+def default_blueprint(timeline: str = "stage", sweep: bool = False, eye=None):
     """One 3D view per stage group, metrics, summary and config; time on ``timeline``.
 
     Parameters
@@ -488,8 +515,17 @@ def default_blueprint(timeline: str = "stage", sweep: bool = False):
         Timeline the time panel opens on (``stage``, or ``sweep`` for sweeps).
     sweep : bool
         Add the sweep metrics (``sweep/**``) and the sweep table as first tabs.
+    eye : (position, look target), optional
+        Same camera for every 3D view (z up), e.g. :func:`scan_eye`.
     """
     import rerun.blueprint as rrb
+
+    def view3d(name, contents):
+        kw = {}
+        if eye is not None:
+            kw["eye_controls"] = rrb.EyeControls3D(position=eye[0], look_target=eye[1],
+                                                   eye_up=[0.0, 0.0, 1.0])
+        return rrb.Spatial3DView(name=name, origin="world", contents=contents, **kw)
 
     side = []
     if sweep:
@@ -504,18 +540,14 @@ def default_blueprint(timeline: str = "stage", sweep: bool = False):
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Grid(
-                rrb.Spatial3DView(name="Scan and training rows", origin="world",
-                                  contents=["+ world/scan", "+ world/prepare/**"]),
-                rrb.Spatial3DView(name="HGMM leaves (time panel 'level': levels)",
-                                  origin="world", contents=["+ world/hgmm/**"]),
-                rrb.Spatial3DView(name="GMR error |m(x)| and GP points/blocks",
-                                  origin="world", contents=["+ world/gmr/**", "+ world/gp/**"]),
+                view3d("Scan and training rows", ["+ world/scan", "+ world/prepare/**"]),
+                view3d("HGMM leaves (time panel 'level': levels)", ["+ world/hgmm/**"]),
+                view3d("GMR error |m(x)| and GP points/blocks",
+                       ["+ world/gmr/**", "+ world/gp/**"]),
                 rrb.Tabs(
-                    rrb.Spatial3DView(name="Surface of the map (colour: predicted std)",
-                                      origin="world", contents=["+ world/surface/**",
-                                                                "- world/surface/hgmm"]),
-                    rrb.Spatial3DView(name="Surface of the HGMM prior alone",
-                                      origin="world", contents=["+ world/surface/hgmm"]),
+                    view3d("Surface of the map (colour: predicted std)",
+                           ["+ world/surface/**", "- world/surface/hgmm"]),
+                    view3d("Surface of the HGMM prior alone", ["+ world/surface/hgmm"]),
                 ),
             ),
             rrb.Vertical(
