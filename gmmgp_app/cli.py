@@ -167,6 +167,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--min-tile-points", type=int, metavar="N",
                    help="with --tile-size: a tile with fewer points joins its nearest mapped "
                         "tile (default 200)")
+    g.add_argument("--no-stream", action="store_true",
+                   help="with --tile-size: read a single LAS/LAZ file whole instead of "
+                        "streaming it chunk by chunk into tiles on disk")
     g = p.add_argument_group("parallel execution of the GP blocks (of the tiles with "
                              "--tile-size)")
     g.add_argument("--workers", type=int, default=0,
@@ -261,6 +264,9 @@ def cmd_run(args) -> int:
         observers.append(recorder)
     observer = FanoutObserver(*observers)
     t0 = time.perf_counter()
+    stream, fallback = _stream_plan(args) if spec is not None else (None, None)
+    if stream is not None:
+        return _run_tiled(args, cfg, spec, None, out, console, t0, 0.0, stream=stream)
     scan = read_scan(args.scan[0] if len(args.scan) == 1 else args.scan, **reader_kwargs(args))
     read_s = time.perf_counter() - t0
     stop = None if args.stage == "all" else args.stage
@@ -270,7 +276,7 @@ def cmd_run(args) -> int:
 
         check_grid_size(surface_seeds(scan, cfg), cfg.surface.voxel_size)
     if spec is not None:
-        return _run_tiled(args, cfg, spec, scan, out, console, t0, read_s)
+        return _run_tiled(args, cfg, spec, scan, out, console, t0, read_s, fallback=fallback)
     from .distributed import open_executor
 
     with open_executor(workers=args.workers or None, scheduler=args.scheduler,
@@ -314,7 +320,8 @@ def _tile_spec(args):
     tiled run cannot honour before anything is read or written."""
     if args.tile_size is None:
         for flag, value in (("--tile-overlap", args.tile_overlap),
-                            ("--min-tile-points", args.min_tile_points)):
+                            ("--min-tile-points", args.min_tile_points),
+                            ("--no-stream", args.no_stream or None)):
             if value is not None:
                 raise ValueError(f"{flag} only applies to tiled mapping, found it without "
                                  "--tile-size; add e.g. --tile-size 20.")
@@ -339,38 +346,155 @@ def _tile_spec(args):
     return TileSpec(**kw)
 
 
-def _run_tiled(args, cfg, spec, scan, out: Path, console, t0: float, read_s: float) -> int:
-    """``run --tile-size``: map tile by tile, save the tiled map, mesh the stitched field."""
+#: Points per chunk when streaming a LAS/LAZ file into tiles (one chunk in memory).
+STREAM_CHUNK_POINTS = 1_000_000
+
+
+def _stream_plan(args):
+    """Whether ``run --tile-size`` streams its input: ``(plan, fallback)``.
+
+    ``plan`` is None (read the scan whole) or a dict with the LAS/LAZ ``path``, the
+    local ``offset`` and whether the file has ``origins`` (extra dimensions
+    ``origin_x/y/z``). ``fallback`` says why a single LAS/LAZ file is read whole
+    (None when it streams, or when the input is not a single LAS/LAZ file: only the
+    in-memory readers know other formats and folders).
+
+    Streaming (:func:`gmmgp_app.tiling.build_tiled_map_from_las`) reads the stored
+    coordinates as they are, every point of the file. So it is used only when that
+    is exactly what :func:`gmmgp_app.datasets.read_scan` would return: no class
+    filter, no pose file, no scan selection, and coordinates already in metres (the
+    ``--units`` override or the file's CRS unit has a factor of 1). Anything else
+    falls back to the in-memory reader with a one-line notice instead of being
+    re-implemented here: applying a class filter or a unit factor while streaming
+    would need the tiling module to transform each chunk, and mapping feet as metres
+    would silently scale every length parameter of the config by 3.3. Options the
+    reader refuses for a single file (``--max-scans``, a CRS in degrees) also fall
+    back, silently, so that the reader's own error and fix are what the user sees.
+    """
+    if len(args.scan) != 1:
+        return None, None
+    path = Path(args.scan[0])
+    if path.suffix.lower() not in (".las", ".laz") or path.is_dir():
+        return None, None
+    import laspy
+
+    from .datasets._common import OFFSET_THRESHOLD_M, auto_offset, check_file, parse_units
+    from .datasets.las import _check_declared_size, crs_units, vlr_crs_present
+
+    kw = reader_kwargs(args)
+    check_file(path)
+    _check_declared_size(path)  # a corrupt header fails here, before any work
+    try:
+        with laspy.open(str(path)) as reader:
+            hdr = reader.header
+            has_org = {"origin_x", "origin_y", "origin_z"} <= set(
+                hdr.point_format.dimension_names)
+            lo = np.asarray(hdr.mins, dtype=np.float64)
+            hi = np.asarray(hdr.maxs, dtype=np.float64)
+            horiz, vert, _ = crs_units(hdr)
+            crs = vlr_crs_present(hdr)
+    except (laspy.errors.LaspyException, ValueError, OSError):
+        return None, "unreadable header"  # the in-memory reader reports it with the fix
+    why, notice = None, True
+    if args.no_stream:
+        why, notice = "--no-stream", False
+    elif "classes" in kw or "poses" in kw:
+        why = f"{'--classes' if 'classes' in kw else '--poses'} is applied by the in-memory " \
+              "reader only"
+    elif "max_scans" in kw:
+        return None, "--max-scans"
+    elif "units" in kw:
+        if parse_units(kw["units"])[1] != 1.0:
+            why = f"--units {args.units} scales the coordinates, which streaming does not do"
+    elif horiz == "degrees":
+        return None, "CRS in degrees"
+    elif any(u is not None and float(u) != 1.0 for u in (horiz, vert)):
+        why = "the file's CRS unit is not the metre and streaming does not scale coordinates"
+    if why is not None:
+        if notice:
+            print(f"gmmgp run: notice: {why}, so '{path}' is read whole instead of streamed "
+                  "into tiles (memory ~ the whole scan).", file=sys.stderr)
+        if has_org:
+            print(f"gmmgp run: notice: the in-memory reader ignores the origin_x/y/z extra "
+                  f"dimensions of '{path}' (streaming uses them as sensor origins).",
+                  file=sys.stderr)
+        return None, why
+    if horiz is None and crs and "units" not in kw:  # as the reader warns
+        warnings.warn(f"Could not find a linear unit in the CRS of '{path}'; assuming "
+                      "metres. Pass --units ft or --units us-ft if that is wrong.")
+    # The offset the reader would choose (datasets finalize, offset="auto": a LAS holds
+    # no local offset of its own), so that a streamed map and an in-memory one share
+    # their local frame and hence their tile boundaries. The header's bounds stand in
+    # for the points' (the same for files written by laspy, PDAL or LAStools; should a
+    # header lie, the map is still consistent, only its tile grid is shifted).
+    far = max(np.abs(lo).max(), np.abs(hi).max()) > OFFSET_THRESHOLD_M
+    offset = auto_offset(lo) if far else np.zeros(3)
+    return {"path": path, "offset": offset, "origins": has_org}, None
+
+
+def _run_tiled(args, cfg, spec, scan, out: Path, console, t0: float, read_s: float, *,
+               stream=None, fallback=None) -> int:
+    """``run --tile-size``: map tile by tile, save the tiled map, mesh the stitched field.
+
+    With ``stream`` (:func:`_stream_plan`; ``scan`` is then None) the LAS/LAZ file is
+    streamed into per-tile pieces under a temporary folder inside ``out`` (the same
+    file system as the output, which must hold the map anyway, unlike a possibly
+    small /tmp); the folder is removed once the map is saved to ``out/map`` (the save
+    copies the tiles), also on errors and Ctrl-C, and the mesh is extracted from the
+    saved map, which is what later commands open.
+    """
     import dataclasses
+    import shutil
+    import tempfile
 
     from ._atomic import atomic_write_text
     from .distributed import open_executor
     from .stages.surface import write_mesh_ply
-    from .tiling import build_tiled_map
+    from .tiling import build_tiled_map, load_tiled_map
 
-    t1 = time.perf_counter()
-    with open_executor(workers=args.workers or None, scheduler=args.scheduler,
-                       kind="processes" if args.processes else "dask") as executor:
-        bar = _TaskBar(console, "tiles")
-        tmap = build_tiled_map(scan, cfg, spec, method=args.method, executor=executor,
-                               progress=bar)
-        bar.close()
-    seconds = {"read": read_s, "tiles": time.perf_counter() - t1}
-    per_tile = [sum(t.summary.get("seconds", {}).values()) for _, t in tmap.tiles.items()]
-    summary = {"method": args.method, "tiled": True, "tile_spec": dataclasses.asdict(spec),
-               **tmap.summary, "n_absorbed_tiles": len(tmap.owners),
-               "n_skipped_tiles": len(tmap.summary.get("skipped_tiles", {})),
-               "tile_seconds": {"median": float(np.median(per_tile)),
-                                "max": float(np.max(per_tile)), "sum": float(np.sum(per_tile))},
-               "scan": {"paths": [str(Path(s).resolve()) for s in args.scan],
-                        "reader": reader_kwargs(args)},
-               "seconds": seconds, "counts": {}}
-    tmap.summary = summary
+    created = not out.exists()
+    work = None
+    ok = False
     try:
+        t1 = time.perf_counter()
+        with open_executor(workers=args.workers or None, scheduler=args.scheduler,
+                           kind="processes" if args.processes else "dask") as executor:
+            bar = _TaskBar(console, "tiles")
+            if stream is None:
+                tmap = build_tiled_map(scan, cfg, spec, method=args.method, executor=executor,
+                                       progress=bar, keep_points=True)
+            else:
+                out.mkdir(parents=True, exist_ok=True)
+                work = Path(tempfile.mkdtemp(prefix=".stream-", dir=out))
+                tmap = _stream_tiles(stream, cfg, spec, args.method, work, executor, bar)
+            bar.close()
+        seconds = {"read": read_s, "tiles": time.perf_counter() - t1}
+        # per tile: a streamed map loads each tile from its work folder, a few at a time
+        per_tile = [sum(t.summary.get("seconds", {}).values()) for _, t in tmap.tiles.items()]
+        summary = {"method": args.method, "tiled": True, "tile_spec": dataclasses.asdict(spec),
+                   **tmap.summary, "n_absorbed_tiles": len(tmap.owners),
+                   "n_skipped_tiles": len(tmap.summary.get("skipped_tiles", {})),
+                   "tile_seconds": {"median": float(np.median(per_tile)),
+                                    "max": float(np.max(per_tile)),
+                                    "sum": float(np.sum(per_tile))},
+                   "scan": {"paths": [str(Path(s).resolve()) for s in args.scan],
+                            "reader": reader_kwargs(args)},
+                   "streamed": stream is not None,
+                   "stream": (None if stream is None else
+                              {"chunk_points": STREAM_CHUNK_POINTS,
+                               "origins": bool(stream["origins"])}),
+                   "stream_fallback": fallback,
+                   "seconds": seconds, "counts": {}}
+        tmap.summary = summary
         out.mkdir(parents=True, exist_ok=True)
         t2 = time.perf_counter()
         tmap.save(out / "map")
         seconds["save"] = time.perf_counter() - t2
+        if work is not None:
+            shutil.rmtree(work)
+            work = None
+            # from here on the map is the saved one: nothing may point into the work folder
+            tmap = load_tiled_map(out / "map", load_points=False)
         written = [out / "map"]
         if not args.no_mesh:
             t3 = time.perf_counter()
@@ -386,15 +510,47 @@ def _run_tiled(args, cfg, spec, scan, out: Path, console, t0: float, read_s: flo
         seconds["total"] = time.perf_counter() - t0
         atomic_write_text(out / "summary.json", json.dumps(_jsonable(summary), indent=2))
         written += [out / "config.toml", out / "summary.json"]
+        ok = True
     except OSError as exc:  # e.g. a full disk: numpy/zipfile do not name the file
         if exc.filename is None:
             exc.filename = str(out)
         raise
+    finally:
+        if work is not None:
+            shutil.rmtree(work, ignore_errors=True)
+        if not ok and created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()  # a failed streamed run leaves no empty output folder behind
     if not args.quiet:
-        print(f"mapped {summary['n_tiles']} tiles ({len(tmap.owners)} small ones joined a "
-              f"neighbour, {summary['n_skipped_tiles']} skipped)", file=sys.stderr)
+        how = "streamed, " if stream is not None else ""
+        print(f"mapped {summary['n_tiles']} tiles ({how}{len(tmap.owners)} small ones joined "
+              f"a neighbour, {summary['n_skipped_tiles']} skipped)", file=sys.stderr)
         print("wrote " + ", ".join(str(w) for w in written), file=sys.stderr)
     return EXIT_OK
+
+
+def _stream_tiles(stream, cfg, spec, method, work: Path, executor, progress):
+    """:func:`build_tiled_map_from_las` of a :func:`_stream_plan`, with laspy's and
+    lazrs's errors on a file whose points are corrupt turned into a ScanReadError."""
+    import laspy
+
+    from .datasets import ScanReadError
+    from .tiling import build_tiled_map_from_las
+
+    errors = (laspy.errors.LaspyException,)
+    try:
+        import lazrs
+
+        errors += (lazrs.LazrsError,)
+    except ImportError:  # no LAZ backend: laspy raises a LaspyException saying so
+        pass
+    try:
+        return build_tiled_map_from_las(stream["path"], cfg, spec, method, work_dir=work,
+                                        executor=executor, chunk_size=STREAM_CHUNK_POINTS,
+                                        progress=progress, offset=stream["offset"])
+    except errors as exc:
+        raise ScanReadError(f"Cannot stream '{stream['path']}' as LAS/LAZ ({type(exc).__name__}:"
+                            f" {exc}); the file is corrupt or truncated, export or download it "
+                            "again.") from None
 
 
 def _write_meshes(smap, out: Path, observer, console) -> list:

@@ -6,7 +6,9 @@ subclasses) and ``cli.py`` turns them into exit codes.
 
 The recipe:
 
-1. load the saved map of ``DIR/map`` and its configuration;
+1. load the saved map of ``DIR/map`` and its configuration (a tiled map of
+   ``run --tile-size`` answers for gmmgp, and hgmm as its tiles' stitched priors,
+   only: the other methods would be built untiled on the whole scan);
 2. read the scan (``--scan``, or the paths recorded in the map's summary) and
    prepare it once: its hit points are the binning axis and the query seeds;
 3. queries: hit points moved along their normal by up to the last bin edge;
@@ -28,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["add_eval_arguments", "cmd_eval", "run_evaluation", "EVAL_METHODS",
-           "EvalInputError"]
+           "EvalInputError", "tiled_methods"]
 
 EVAL_METHODS = ("gmmgp", "hgmm", "gpis", "loggpis")
 
@@ -123,7 +125,18 @@ def cmd_eval(args) -> int:
     from .datasets import read_scan
     from .pipeline import load_map
 
-    smap = load_map(directory / "map")
+    if (directory / "map" / "tiled.json").is_file():
+        from .tiling import load_tiled_map
+
+        smap = load_tiled_map(directory / "map", load_points=False)
+        provided = tiled_methods(smap)
+        if args.methods is None:  # the default: what the tiled map can answer for
+            methods = provided
+            log(f"tiled map: evaluating {','.join(provided)} (the other methods need an "
+                "untiled run)")
+        _check_tiled_methods(methods, provided)
+    else:
+        smap = load_map(directory / "map")
     scan_paths = args.scan or smap.summary.get("scan", {}).get("paths")
     if not scan_paths:
         raise EvalInputError(
@@ -134,7 +147,7 @@ def cmd_eval(args) -> int:
     scan_kw = reader_kwargs(args) or dict(smap.summary.get("scan", {}).get("reader", {}))
     log(f"reading scan {', '.join(map(str, scan_paths))}")
     scan = read_scan(scan_paths[0] if len(scan_paths) == 1 else list(scan_paths), **scan_kw)
-    n_saved = smap.summary.get("n_scan_points")
+    n_saved = smap.summary.get("n_points" if _is_tiled(smap) else "n_scan_points")
     if n_saved is not None and int(n_saved) != len(scan):
         raise EvalInputError(
             f"The scan has {len(scan)} points but the map was built from {n_saved}; pass the "
@@ -197,8 +210,11 @@ def run_evaluation(scan, smap, reference, methods, *, bins, n_queries: int = 200
     Parameters
     ----------
     scan : Scan
-    smap : SurfaceMap or None
-        A saved map to reuse for its own method (others are built).
+    smap : SurfaceMap, TiledMap or None
+        A saved map to reuse for its own method (others are built). A tiled map
+        answers only for the methods of :func:`tiled_methods` (its own, and hgmm as
+        the stitched priors of a gmmgp map's tiles); the others are refused, since
+        building them untiled on the whole scan is what tiling avoids.
     reference : Reference
         In the scan's original frame (local + offset).
     methods : list of str
@@ -224,6 +240,9 @@ def run_evaluation(scan, smap, reference, methods, *, bins, n_queries: int = 200
     from .stages.prepare import prepare
 
     log = log or (lambda *a: None)
+    tiled = _is_tiled(smap)
+    if tiled:
+        _check_tiled_methods(methods, tiled_methods(smap))
     cfg = smap.config if smap is not None else MappingConfig()
     offset = scan.offset
     t0 = time.perf_counter()
@@ -244,7 +263,12 @@ def run_evaluation(scan, smap, reference, methods, *, bins, n_queries: int = 200
         log(f"{method}: building")
         saved = {k: float(v) for k, v in (smap.summary.get("seconds", {}) if smap else {})
                  .items() if k in ("prepare", "hgmm", "gmr", "gp")}
-        if smap is not None and smap.method == method:
+        if tiled:
+            model = _TiledModel(smap if method == smap.method else _tiled_priors(smap),
+                                scan.offset)
+            tiles_s = smap.summary.get("seconds", {}).get("tiles")
+            train = {} if tiles_s is None or method != smap.method else {"tiles": float(tiles_s)}
+        elif smap is not None and smap.method == method:
             model, train = smap, saved
         elif smap is not None and method == "hgmm" and smap.hgmm is not None:
             # the saved map's prior is the GMR of the same hierarchy: no need to refit
@@ -272,7 +296,95 @@ def run_evaluation(scan, smap, reference, methods, *, bins, n_queries: int = 200
         log(f"{method}: RMSE SDF {a['rmse_sdf']:.4f} m, EDF {a['rmse_edf']:.4f} m, "
             f"LL SDF {a['ll_sdf']:.2f}, EDF {a['ll_edf']:.2f}")
     results["prepare_seconds_eval"] = prep_s
+    results["tiled"] = bool(tiled)
     return results
+
+
+def _is_tiled(smap) -> bool:
+    from .tiling import TiledMap
+
+    return isinstance(smap, TiledMap)
+
+
+def tiled_methods(tmap) -> list:
+    """The evaluation methods a tiled map answers for: its own method, and ``hgmm``
+    for a gmmgp map (each tile's GMR prior is the hgmm baseline of that tile's
+    hierarchy, stitched like the map itself)."""
+    return [tmap.method] + (["hgmm"] if tmap.method == "gmmgp" else [])
+
+
+def _check_tiled_methods(methods, provided) -> None:
+    missing = [m for m in methods if m not in provided]
+    if missing:
+        raise EvalInputError(
+            f"--methods {','.join(missing)} cannot be evaluated on a tiled map, which holds "
+            f"{','.join(provided)} only (the others would be built untiled on the whole "
+            f"scan); pass --methods {','.join(provided)}, or evaluate a run made without "
+            "--tile-size.")
+
+
+class _TiledModel:
+    """A tiled map as :func:`run_evaluation` uses a map: ``predict`` and
+    ``extract_surface`` in the scan's local frame, which may differ from the map's
+    (a streamed map chose its offset from the LAS header)."""
+
+    signed = True
+    seed_points = None  # the whole scan crops the reference instead
+
+    def __init__(self, tmap, scan_offset):
+        self.tmap, self.method, self.config = tmap, tmap.method, tmap.config
+        self.shift = np.asarray(scan_offset, dtype=np.float64) - tmap.offset
+
+    def predict(self, xyz, return_grad: bool = False):
+        x = np.asarray(xyz, dtype=np.float64)
+        # frames equal (the usual case): the queries go through bit for bit
+        return self.tmap.predict(x + self.shift if np.any(self.shift) else x,
+                                 return_grad=return_grad)
+
+    def extract_surface(self, voxel_size=None):
+        mesh = self.tmap.extract_surface(voxel_size=voxel_size)
+        if np.any(self.shift):
+            from dataclasses import replace
+
+            mesh = replace(mesh, vertices=mesh.vertices - self.shift)
+        return mesh
+
+
+class _PriorTiles:
+    """The tiles of a tiled gmmgp map as prior-only (:class:`_PriorOnly`) maps, loaded
+    on demand through the map's own tile store (memory stays bounded by its cache)."""
+
+    def __init__(self, tiles):
+        self._tiles = tiles
+
+    def __contains__(self, key):
+        return key in self._tiles
+
+    def __iter__(self):
+        return iter(self._tiles)
+
+    def __len__(self):
+        return len(self._tiles)
+
+    def __getitem__(self, key):
+        return _PriorOnly(self._tiles[key])
+
+    def get(self, key, default=None):
+        return self[key] if key in self else default
+
+    def items(self):
+        return ((k, self[k]) for k in self)
+
+
+def _tiled_priors(tmap):
+    """The hgmm baseline of a tiled gmmgp map: its tiles' GMR priors, stitched by the
+    same tile weights."""
+    from .tiling import TiledMap
+
+    out = TiledMap(tmap.spec, {}, tmap.config, "hgmm", offset=tmap.offset,
+                   summary=tmap.summary, owners=tmap.owners)
+    out.tiles = _PriorTiles(tmap.tiles)
+    return out
 
 
 class _PriorOnly:

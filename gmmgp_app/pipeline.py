@@ -185,9 +185,9 @@ def load_map(directory) -> SurfaceMap:
     meta_path, arr_path = directory / "map.json", directory / "arrays.npz"
     if (directory / "tiled.json").is_file():
         raise MapFormatError(
-            f"'{directory}' holds a tiled map (tiled.json), which this command does not "
-            "open yet; load it in Python with gmmgp_app.tiling.load_tiled_map, or map "
-            "without --tile-size."
+            f"'{directory}' holds a tiled map (tiled.json), not a single map; open it with "
+            "gmmgp_app.tiling.load_tiled_map ('gmmgp eval' reads tiled runs, 'gmmgp view' "
+            "does not yet: map without --tile-size to view)."
         )
     if not meta_path.is_file() or not arr_path.is_file():
         raise MapFormatError(
