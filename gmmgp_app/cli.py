@@ -414,10 +414,6 @@ def _stream_plan(args):
         if notice:
             print(f"gmmgp run: notice: {why}, so '{path}' is read whole instead of streamed "
                   "into tiles (memory ~ the whole scan).", file=sys.stderr)
-        if has_org:
-            print(f"gmmgp run: notice: the in-memory reader ignores the origin_x/y/z extra "
-                  f"dimensions of '{path}' (streaming uses them as sensor origins).",
-                  file=sys.stderr)
         return None, why
     if horiz is None and crs and "units" not in kw:  # as the reader warns
         warnings.warn(f"Could not find a linear unit in the CRS of '{path}'; assuming "

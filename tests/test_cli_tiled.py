@@ -129,6 +129,11 @@ def test_streamed_laz_uses_sensor_origins(street, tmp_path, capsys):
                           got.config, got.spec)
     q = _queries(street)
     np.testing.assert_allclose(got.predict(q)[0], ref.predict(q)[0], rtol=0, atol=1e-6)
+    # the in-memory reader reads the same origins, so --no-stream maps the same
+    np.testing.assert_allclose(pts.origins, org, rtol=0, atol=1e-9)
+    assert _run(path, tmp_path / "o2", *QUIET, "--no-stream") == 0
+    whole = load_tiled_map(tmp_path / "o2" / "map")
+    np.testing.assert_allclose(whole.predict(q)[0], got.predict(q)[0], rtol=0, atol=1e-6)
 
 
 def _plan(*argv):
@@ -171,12 +176,11 @@ def test_stream_plan_decides_from_the_reader_options(laz, street, tmp_path, caps
     feet = write_las(tmp_path / "feet.laz", street.points, vlrs=[_geokeys_feet()])
     plan, why = _plan(feet)
     assert plan is None and "CRS unit is not the metre" in capsys.readouterr().err
-    # origins the in-memory reader would drop are named when falling back
+    # origins as extra dims: streamed, and read by the in-memory reader too (no notice)
     org = _write_laz_with_origins(tmp_path / "o.laz", street)
     assert _plan(org)[0]["origins"] is True
     assert _plan(org, "--no-stream")[0] is None
-    err = capsys.readouterr().err.splitlines()
-    assert len(err) == 1 and "ignores the origin_x/y/z extra dimensions" in err[0]
+    assert capsys.readouterr().err == ""
 
 
 def test_stream_errors_are_one_line(laz, tmp_path, capsys):

@@ -734,3 +734,27 @@ def test_e57_without_scans(tmp_path):
     pye57.E57(str(path), mode="w").close()
     with pytest.raises(ScanReadError, match=r"E57 file '.*empty\.e57' contains no scans"):
         read_scan(path)
+
+
+def test_las_origin_extra_dimensions_become_origins(tmp_path):
+    """Sensor origins stored as extra dims origin_x/y/z come back in the local frame."""
+    import laspy
+
+    rng = np.random.default_rng(1)
+    base = np.array([500000.0, 5400000.0, 100.0])
+    pts = rng.uniform(0, 20, (300, 3)) + base
+    org = pts + [0.0, -5.0, 2.0]
+    hdr = laspy.LasHeader(point_format=3, version="1.4")
+    hdr.offsets, hdr.scales = base, np.full(3, 1e-4)
+    hdr.add_extra_dims([laspy.ExtraBytesParams(name=f"origin_{a}", type=np.float64)
+                        for a in "xyz"])
+    las = laspy.LasData(hdr)
+    las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
+    for i, a in enumerate("xyz"):
+        las[f"origin_{a}"] = org[:, i]
+    las.write(str(tmp_path / "o.laz"))
+    scan = read_scan(tmp_path / "o.laz")
+    np.testing.assert_allclose(scan.points + scan.offset, pts, atol=1e-4)
+    np.testing.assert_allclose(scan.origins + scan.offset, org, atol=1e-6)
+    np.testing.assert_allclose(scan.origins - scan.points, np.tile([0.0, -5.0, 2.0], (300, 1)),
+                               atol=1e-4)

@@ -12,7 +12,8 @@ Formats (by extension, case-insensitive):
 ``.xyz .pts .txt .csv``   text columns, whitespace/comma/semicolon, optional header
 ``.npy`` ``.npz``         NumPy without pickle; npz keys points, origins, labels,
                           intensity, offset
-``.las`` ``.laz``         laspy + lazrs; classification -> labels; CRS unit honoured
+``.las`` ``.laz``         laspy + lazrs; classification -> labels; CRS unit honoured;
+                          extra dims origin_x/y/z -> origins
 ``.e57``                  pye57; all scans merged by pose, scanner positions as origins
 ``.bin``                  KITTI Velodyne (+ SemanticKITTI ``.label``), origins zero
 ``.conf``                 Stanford scan set (``bmesh`` lines), e.g. the bunny

@@ -347,8 +347,15 @@ def read_las(path: Path, *, units=None, **_) -> RawScan:
     dims = set(las.point_format.dimension_names)
     labels = np.asarray(las.classification, dtype=np.int64) if "classification" in dims else None
     intensity = np.asarray(las.intensity, dtype=np.float64) if "intensity" in dims else None
+    # Sensor origins as extra dimensions origin_x/y/z (same frame and units as the
+    # points), as written by gmmgp and read by the streaming tiler.
+    origins = None
+    if {"origin_x", "origin_y", "origin_z"} <= dims:
+        origins = np.column_stack([np.asarray(las[f"origin_{a}"], dtype=np.float64)
+                                   for a in "xyz"])
     src = str(path) + (f" (CRS unit from {where})" if where and units is None else "")
-    return RawScan(points=pts, labels=labels, intensity=intensity, units=name, factor=factor, source=src)
+    return RawScan(points=pts, origins=origins, labels=labels, intensity=intensity, units=name,
+                   factor=factor, source=src)
 
 
 def vlr_crs_present(header) -> bool:
