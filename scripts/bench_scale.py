@@ -39,23 +39,13 @@ def _rss_mb() -> float:
 
 def make_laz(path: Path, length: float, density: float, seed: int = 0) -> dict:
     """Simulate the street and write it as LAZ (child process: its memory is not counted)."""
-    import laspy
-
+    from gmmgp_app.datasets import write_las
     from gmmgp_app.synth import scan_scene
+    from gmmgp_app.types import Scan
 
     scan, _ = scan_scene("street", density=density, seed=seed,
                          scene_params=dict(length=float(length)))
-    hdr = laspy.LasHeader(point_format=3, version="1.4")
-    hdr.offsets = OFFSET
-    hdr.scales = np.array([1e-4, 1e-4, 1e-4])
-    hdr.add_extra_dims([laspy.ExtraBytesParams(name=f"origin_{a}", type=np.float64)
-                        for a in "xyz"])
-    las = laspy.LasData(hdr)
-    p = scan.points + OFFSET
-    las.x, las.y, las.z = p[:, 0], p[:, 1], p[:, 2]
-    for i, a in enumerate("xyz"):
-        las[f"origin_{a}"] = scan.origins[:, i] + OFFSET[i]
-    las.write(str(path))
+    write_las(path, Scan(points=scan.points, origins=scan.origins, offset=OFFSET))
     return dict(n_points=len(scan), bytes=path.stat().st_size)
 
 

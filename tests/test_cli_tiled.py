@@ -29,20 +29,9 @@ def street():
 
 def _write_laz_with_origins(path, scan):
     """A LAZ of a scan georeferenced by GEO, sensor origins as extra dimensions."""
-    import laspy
+    from gmmgp_app.datasets import write_las
 
-    hdr = laspy.LasHeader(point_format=3, version="1.4")
-    hdr.offsets = GEO
-    hdr.scales = np.array([1e-4, 1e-4, 1e-4])
-    hdr.add_extra_dims([laspy.ExtraBytesParams(name=f"origin_{a}", type=np.float64)
-                        for a in "xyz"])
-    las = laspy.LasData(hdr)
-    p = scan.points + GEO
-    las.x, las.y, las.z = p[:, 0], p[:, 1], p[:, 2]
-    for i, a in enumerate("xyz"):
-        las[f"origin_{a}"] = scan.origins[:, i] + GEO[i]
-    las.write(str(path))
-    return path
+    return write_las(path, gm.Scan(points=scan.points, origins=scan.origins, offset=GEO))
 
 
 @pytest.fixture(scope="module")

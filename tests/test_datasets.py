@@ -758,3 +758,23 @@ def test_las_origin_extra_dimensions_become_origins(tmp_path):
     np.testing.assert_allclose(scan.origins + scan.offset, org, atol=1e-6)
     np.testing.assert_allclose(scan.origins - scan.points, np.tile([0.0, -5.0, 2.0], (300, 1)),
                                atol=1e-4)
+
+
+def test_write_las_round_trip_with_origins_labels_intensity(tmp_path):
+    from gmmgp_app.datasets import write_las
+
+    rng = np.random.default_rng(2)
+    pts = rng.uniform(0, 30, (400, 3))
+    scan = gm.Scan(points=pts, origins=pts + [0.0, -4.0, 1.5],
+                   offset=np.array([500000.0, 5400000.0, 0.0]),
+                   labels=rng.integers(0, 7, 400), intensity=rng.uniform(0, 900, 400))
+    path = write_las(tmp_path / "s.laz", scan)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.laz"]  # no temporary left
+    back = read_scan(path)
+    np.testing.assert_allclose(back.points + back.offset, pts + scan.offset, atol=5.1e-5)
+    np.testing.assert_allclose(back.origins + back.offset, scan.origins + scan.offset,
+                               rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(back.labels, scan.labels)
+    np.testing.assert_array_equal(back.intensity, np.round(scan.intensity))
+    with pytest.raises(ValueError, match="Expected a .las or .laz path"):
+        write_las(tmp_path / "s.ply", scan)

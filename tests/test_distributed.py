@@ -332,19 +332,10 @@ def test_fit_local_gps_process_pool_matches_serial():
 
 def write_laz(path, scan, offset=(500000.0, 5400000.0, 100.0)):
     """A LAZ file of a scan (georeferenced by ``offset``) with origins as extra dims."""
-    import laspy
+    from gmmgp_app.datasets import write_las
 
-    hdr = laspy.LasHeader(point_format=3, version="1.4")
-    hdr.offsets = np.asarray(offset)
-    hdr.scales = np.array([1e-4, 1e-4, 1e-4])
-    hdr.add_extra_dims([laspy.ExtraBytesParams(name=f"origin_{a}", type=np.float64)
-                        for a in "xyz"])
-    las = laspy.LasData(hdr)
-    p = scan.points + np.asarray(offset)
-    las.x, las.y, las.z = p[:, 0], p[:, 1], p[:, 2]
-    for i, a in enumerate("xyz"):
-        las[f"origin_{a}"] = scan.origins[:, i] + offset[i]
-    las.write(str(path))
+    return write_las(path, gm.Scan(points=scan.points, origins=scan.origins,
+                                   offset=np.asarray(offset, dtype=float)))
 
 
 def test_streamed_laz_equals_in_memory_tiles(street, tiled, tmp_path):

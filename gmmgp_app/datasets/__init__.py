@@ -45,11 +45,13 @@ from ._common import (
     merge,
     qname,
 )
+from .las import write_las
 from .registry import SUPPORTED_EXTENSIONS, read_conf_file, read_file, read_folder, read_list
 
 __all__ = [
     "read_scan",
     "scan_summary",
+    "write_las",
     "ScanReadError",
     "ScanWarning",
     "SUPPORTED_EXTENSIONS",

@@ -360,3 +360,55 @@ def read_las(path: Path, *, units=None, **_) -> RawScan:
 
 def vlr_crs_present(header) -> bool:
     return any(str(v.user_id).strip("\x00") == "LASF_Projection" for v in header.vlrs)
+
+
+def write_las(path, scan, *, scale: float = 1e-4, header_offset=None) -> Path:
+    """Write a scan as LAS/LAZ (the extension decides), readable by :func:`read_las`.
+
+    Coordinates are the original ones (``scan.points + scan.offset``), stored as
+    integers of ``scale`` metres around ``header_offset`` (default ``scan.offset``).
+    Sensor origins go to float64 extra dimensions ``origin_x/y/z`` (original frame),
+    labels to ``classification`` (0-255) and intensity to ``intensity`` (clipped to
+    0-65535). Written to a temporary name and renamed.
+
+    Parameters
+    ----------
+    path : str or Path
+    scan : Scan
+    scale : float
+        Quantum of the stored coordinates (m); 1e-4 keeps 0.1 mm.
+    header_offset : (3,) array_like, optional
+
+    Returns
+    -------
+    Path
+    """
+    import laspy
+
+    from .._atomic import atomic_path
+
+    path = Path(path)
+    if path.suffix.lower() not in (".las", ".laz"):
+        raise ValueError(f"Expected a .las or .laz path, found '{path.name}'; name the "
+                         "file e.g. scan.laz.")
+    off = np.asarray(scan.offset if header_offset is None else header_offset,
+                     dtype=np.float64).reshape(3)
+    hdr = laspy.LasHeader(point_format=3, version="1.4")
+    hdr.offsets, hdr.scales = off, np.full(3, float(scale))
+    if scan.origins is not None:
+        hdr.add_extra_dims([laspy.ExtraBytesParams(name=f"origin_{a}", type=np.float64)
+                            for a in "xyz"])
+    las = laspy.LasData(hdr)
+    p = scan.points + scan.offset
+    las.x, las.y, las.z = p[:, 0], p[:, 1], p[:, 2]
+    if scan.origins is not None:
+        o = scan.origins + scan.offset
+        for i, a in enumerate("xyz"):
+            las[f"origin_{a}"] = o[:, i]
+    if scan.labels is not None:
+        las.classification = np.clip(scan.labels, 0, 255).astype(np.uint8)
+    if scan.intensity is not None:
+        las.intensity = np.clip(np.round(scan.intensity), 0, 65535).astype(np.uint16)
+    with atomic_path(path, suffix=path.suffix) as tmp:
+        las.write(str(tmp))
+    return path
