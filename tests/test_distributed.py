@@ -338,14 +338,19 @@ def write_laz(path, scan, offset=(500000.0, 5400000.0, 100.0)):
                                    offset=np.asarray(offset, dtype=float)))
 
 
+def streamed_map(scan, tiled, tmp_path, off):
+    """The street written as a georeferenced LAZ and streamed into ``tiled``'s tiles."""
+    write_laz(tmp_path / "street.laz", scan, off)
+    return build_tiled_map_from_las(tmp_path / "street.laz", tiled.config, tiled.spec,
+                                    work_dir=tmp_path / "work", chunk_size=3000,
+                                    cache_tiles=1, offset=off)
+
+
 def test_streamed_laz_equals_in_memory_tiles(street, tiled, tmp_path):
     """Chunked LAZ reading into tiles gives the same tile maps as the in-memory split."""
     scan, _ = street
     off = np.array([500000.0, 5400000.0, 100.0])
-    write_laz(tmp_path / "street.laz", scan, off)
-    tm = build_tiled_map_from_las(tmp_path / "street.laz", tiled.config, tiled.spec,
-                                  work_dir=tmp_path / "work", chunk_size=3000, cache_tiles=1,
-                                  offset=off)
+    tm = streamed_map(scan, tiled, tmp_path, off)
     assert np.array_equal(tm.offset, off)
     # The LAS file stores coordinates on a 0.1 mm integer grid; the hierarchy's EM is
     # sensitive enough that such a shift moves the map by ~2 mm (median), so the
@@ -528,10 +533,7 @@ def test_saved_streamed_tiled_map_predicts_bit_for_bit(street, tiled, tmp_path):
 
     scan, _ = street
     off = np.array([500000.0, 5400000.0, 100.0])
-    write_laz(tmp_path / "street.laz", scan, off)
-    tm = build_tiled_map_from_las(tmp_path / "street.laz", tiled.config, tiled.spec,
-                                  work_dir=tmp_path / "work", chunk_size=3000, cache_tiles=1,
-                                  offset=off)
+    tm = streamed_map(scan, tiled, tmp_path, off)
     loaded = load_tiled_map(tm.save(tmp_path / "saved"), cache_tiles=2)
     assert not (tmp_path / "saved" / "points").exists()
     assert np.array_equal(loaded.offset, off) and loaded.owners == tm.owners

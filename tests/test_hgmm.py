@@ -360,14 +360,18 @@ def np_tied_responsibilities(X, gptr, gm, group_weights):
     return np.exp(lg - logsumexp(lg, axis=1, keepdims=True)), logsumexp(lg, axis=1)
 
 
+def random_groups(rng, X, max_size=3):
+    """Rows of X cut into consecutive groups of 1..max_size rows: (X, group_ptr)."""
+    sizes = rng.integers(1, max_size + 1, size=len(X) // 2)
+    gptr = np.concatenate([[0], np.cumsum(sizes)])
+    gptr = gptr[gptr <= len(X)]
+    return np.ascontiguousarray(X[:gptr[-1]]), gptr
+
+
 def test_tied_e_step_matches_numpy_reference():
     rng = np.random.default_rng(7)
     gm = random_mixture(rng, K=4)
-    X = sample_mixture(gm, 300, rng)
-    sizes = rng.integers(1, 4, size=150)
-    gptr = np.concatenate([[0], np.cumsum(sizes)])
-    gptr = gptr[gptr <= len(X)]
-    X = np.ascontiguousarray(X[:gptr[-1]])
+    X, gptr = random_groups(rng, sample_mixture(gm, 300, rng))
     gw = rng.dirichlet(np.ones(4))
     P, lc = terms(GaussianMixture(gw, gm.means, gm.covariances))
     nk, gk, sx, sxx, ll, worst, worst_i = ek.accumulate_groups(X, gptr, gm.means, P, lc,
@@ -451,11 +455,7 @@ def test_score_groups_matches_brute_force_and_reduces_to_score():
     one row per group it is the plain mean row log-likelihood."""
     rng = np.random.default_rng(11)
     gm = random_mixture(rng, K=3)
-    X = sample_mixture(gm, 240, rng)
-    sizes = rng.integers(1, 4, size=120)
-    gptr = np.concatenate([[0], np.cumsum(sizes)])
-    gptr = gptr[gptr <= len(X)]
-    X = X[:gptr[-1]]
+    X, gptr = random_groups(rng, sample_mixture(gm, 240, rng))
     groups = np.repeat(np.arange(len(gptr) - 1), np.diff(gptr))
     gw = rng.dirichlet(np.ones(3))
     _, ll_g = np_tied_responsibilities(X, gptr, gm, gw)
