@@ -268,7 +268,7 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
     else:
         if stop_after == "prepare":
             return _early_map(method, cfg, scan, data, None, summary)
-        hgmm = stage("hgmm", lambda: fit_hgmm(data.rows, cfg.hgmm, groups=data.groups),
+        hgmm = stage("hgmm", lambda: fit_hgmm(data, cfg.hgmm),
                      counts=lambda h: {"levels": len(h.levels),
                                        "leaves": h.leaves.n_components})
         if stop_after == "hgmm":

@@ -477,3 +477,20 @@ def test_tied_hierarchy_reports_leaf_group_weights():
     # every group here has three rows: fractions of groups ~ fractions of rows
     np.testing.assert_allclose(gw, h.leaves.weights, atol=0.02)
     assert fit_hgmm(rows, HGMMConfig()).info["leaf_group_weights"] is None
+
+
+def test_fit_hgmm_takes_a_training_set_and_ties_its_groups():
+    from gmmgp_app.config import MappingConfig
+    from gmmgp_app.stages.prepare import prepare
+    from gmmgp_app.synth import scan_scene
+
+    scan, _ = scan_scene("box", density=0.03)
+    cfg = MappingConfig()
+    data = prepare(scan, cfg)
+    h = fit_hgmm(data, cfg.hgmm)
+    ref = fit_hgmm(data.rows, cfg.hgmm, groups=data.groups)
+    assert h.info["tied_groups"] == len(data.points)
+    np.testing.assert_array_equal(h.leaves.means, ref.leaves.means)
+    assert fit_hgmm(data.rows, cfg.hgmm).info["tied_groups"] is None
+    with pytest.raises(HGMMError, match="found both"):
+        fit_hgmm(data, cfg.hgmm, groups=data.groups)

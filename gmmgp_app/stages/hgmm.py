@@ -14,6 +14,11 @@ the mixture the GMR stage uses.
 >>> h = fit_hgmm(rows, HGMMConfig(split_threshold=0.2))
 >>> float(h.leaves.weights.sum().round(12))
 1.0
+
+On a prepared scan pass the :class:`~gmmgp_app.types.TrainingSet` itself
+(``fit_hgmm(prepare(scan, cfg), cfg.hgmm)``): its ``groups`` make the EM tied (a
+hit point and its virtual points share one component, ``HGMMConfig.tie_virtual``);
+plain rows without ``groups=`` get free EM.
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ import numpy as np
 
 from gmmgp_app.config import HGMMConfig
 from gmmgp_app.stages import em_kernels as ek
-from gmmgp_app.types import GaussianMixture, HGMMLevel, HierarchicalGMM
+from gmmgp_app.types import GaussianMixture, HGMMLevel, HierarchicalGMM, TrainingSet
 
 __all__ = [
     "HGMMError",
@@ -406,8 +411,10 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
 
     Parameters
     ----------
-    rows : (M, D) float64
-        Training rows, in the mapper ``(x, y, z, d)``.
+    rows : (M, D) float64 or TrainingSet
+        Training rows, in the mapper ``(x, y, z, d)``; a
+        :class:`~gmmgp_app.types.TrainingSet` (``prepare``'s result) brings its
+        ``groups`` along, so ``fit_hgmm(prepare(scan, cfg), cfg.hgmm)`` is tied.
     hcfg : HGMMConfig
         ``initial_components``, ``n_children``, ``split_threshold``,
         ``min_rows``, ``max_levels``, EM settings, ``seed`` and
@@ -428,6 +435,11 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
         components re-seeded or dropped per level).
     """
     t0 = time.perf_counter()
+    if isinstance(rows, TrainingSet):
+        if groups is not None:
+            raise HGMMError("Expected groups either inside the TrainingSet or as groups=, "
+                            "found both; pass the TrainingSet alone.")
+        rows, groups = rows.rows, rows.groups
     X = _check_rows(rows, min_rows=hcfg.initial_components)
     _check_not_identical(X)
     rng = np.random.default_rng(hcfg.seed) if rng is None else rng

@@ -259,7 +259,7 @@ class ViewerModel:
                 seconds[name] = time.perf_counter() - t0
                 done(name, data=data)
             elif name == "hgmm":
-                h = fit_hgmm(r.data.rows, cfg.hgmm, groups=r.data.groups)
+                h = fit_hgmm(r.data, cfg.hgmm)
                 prior = GMRField.from_config(h.leaves, cfg.gmr)
                 seconds[name] = time.perf_counter() - t0
                 done(name, hgmm=h, prior=prior)
