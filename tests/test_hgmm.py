@@ -494,3 +494,9 @@ def test_fit_hgmm_takes_a_training_set_and_ties_its_groups():
     assert fit_hgmm(data.rows, cfg.hgmm).info["tied_groups"] is None
     with pytest.raises(HGMMError, match="found both"):
         fit_hgmm(data, cfg.hgmm, groups=data.groups)
+    d = hgmm_diagnostics(h, data.rows, data.groups)
+    assert d["heldout_observation_loglik"] == pytest.approx(score_groups(
+        h.leaves, data.rows, data.groups, h.info["leaf_group_weights"]))
+    # a hit point and its virtual points share one component: counted once, the
+    # observation likelihood per row is above the row marginal
+    assert d["heldout_observation_loglik"] > d["heldout_mean_loglik"]

@@ -578,7 +578,8 @@ def _group(labels: np.ndarray, K: int) -> list:
 
 
 # --------------------------------------------------------------- diagnostics
-def hgmm_diagnostics(hgmm: HierarchicalGMM, heldout_rows: Optional[np.ndarray] = None) -> dict:
+def hgmm_diagnostics(hgmm: HierarchicalGMM, heldout_rows: Optional[np.ndarray] = None,
+                     heldout_groups: Optional[np.ndarray] = None) -> dict:
     """Summary of a fitted hierarchy.
 
     Returns
@@ -587,7 +588,9 @@ def hgmm_diagnostics(hgmm: HierarchicalGMM, heldout_rows: Optional[np.ndarray] =
     ``leaves_per_level``, ``split_per_level``, ``leaf_complexity_quantiles``
     (c over leaves at q = 0, 0.05, 0.25, 0.5, 0.75, 0.95, 1) and, when held-out
     rows are given, ``heldout_mean_loglik`` (mean log p of those rows under the
-    leaves) and ``n_heldout``.
+    leaves) and ``n_heldout``; with their ``heldout_groups`` (the hit point of each
+    row) also ``heldout_observation_loglik`` (:func:`score_groups` with the leaves'
+    group weights of a tied fit).
     """
     leaf_c = np.concatenate([lv.complexity[~lv.split] for lv in hgmm.levels])
     qs = [0.0, 0.05, 0.25, 0.5, 0.75, 0.95, 1.0]
@@ -603,6 +606,10 @@ def hgmm_diagnostics(hgmm: HierarchicalGMM, heldout_rows: Optional[np.ndarray] =
     if heldout_rows is not None:
         out["heldout_mean_loglik"] = score(hgmm.leaves, heldout_rows)
         out["n_heldout"] = int(len(heldout_rows))
+        if heldout_groups is not None:
+            out["heldout_observation_loglik"] = score_groups(
+                hgmm.leaves, heldout_rows, heldout_groups,
+                hgmm.info.get("leaf_group_weights"))
     return out
 
 
