@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 
 __all__ = ["OctreeError", "BlockGrid"]
 
@@ -28,6 +29,47 @@ class OctreeError(ValueError):
 def _pack(cells: np.ndarray) -> np.ndarray:
     c = cells + _BIAS
     return (c[:, 0] << (2 * _BITS)) | (c[:, 1] << _BITS) | c[:, 2]
+
+
+@njit(cache=True)
+def _find(packed, c0, c1, c2):
+    """Index of cell (c0, c1, c2) in the sorted packed table, -1 if absent."""
+    if c0 < -_BIAS or c0 >= _BIAS or c1 < -_BIAS or c1 >= _BIAS or c2 < -_BIAS or c2 >= _BIAS:
+        return -1
+    k = ((c0 + _BIAS) << (2 * _BITS)) | ((c1 + _BIAS) << _BITS) | (c2 + _BIAS)
+    j = np.searchsorted(packed, k)
+    if j < packed.shape[0] and packed[j] == k:
+        return j
+    return -1
+
+
+@njit(cache=True)
+def _cover_pairs(lo, hi, packed):
+    """(point, block) pairs for per-point cell ranges [lo, hi], in point order.
+
+    Two passes (count, then fill) so the output is allocated once.
+    """
+    n = lo.shape[0]
+    count = 0
+    for i in range(n):
+        for a in range(lo[i, 0], hi[i, 0] + 1):
+            for b in range(lo[i, 1], hi[i, 1] + 1):
+                for c in range(lo[i, 2], hi[i, 2] + 1):
+                    if _find(packed, a, b, c) >= 0:
+                        count += 1
+    pts = np.empty(count, dtype=np.int64)
+    blk = np.empty(count, dtype=np.int64)
+    m = 0
+    for i in range(n):
+        for a in range(lo[i, 0], hi[i, 0] + 1):
+            for b in range(lo[i, 1], hi[i, 1] + 1):
+                for c in range(lo[i, 2], hi[i, 2] + 1):
+                    j = _find(packed, a, b, c)
+                    if j >= 0:
+                        pts[m] = i
+                        blk[m] = j
+                        m += 1
+    return pts, blk
 
 
 class BlockGrid:
@@ -113,24 +155,10 @@ class BlockGrid:
         h = self.block_size
         half = self.half_extent
         # block i covers x when |x - (i + 0.5) h| <= half, i.e. i in [lo, hi] per axis
-        lo = np.ceil((xyz - half) / h - 0.5).astype(np.int64)
-        hi = np.floor((xyz + half) / h - 0.5).astype(np.int64)
-        span = int((hi - lo).max()) + 1 if len(xyz) else 0
-        pts, blks = [], []
-        for dx in range(span):
-            for dy in range(span):
-                for dz in range(span):
-                    cell = lo + np.array([dx, dy, dz])
-                    valid = np.all(cell <= hi, axis=1)
-                    b = np.full(len(xyz), -1, dtype=np.int64)
-                    if valid.any():
-                        b[valid] = self.lookup(cell[valid])
-                    sel = np.flatnonzero(b >= 0)
-                    pts.append(sel)
-                    blks.append(b[sel])
-        if not pts:
+        lo = np.ascontiguousarray(np.ceil((xyz - half) / h - 0.5).astype(np.int64))
+        hi = np.ascontiguousarray(np.floor((xyz + half) / h - 0.5).astype(np.int64))
+        if len(xyz) == 0 or len(self._packed) == 0:
             return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-        p = np.concatenate(pts)
-        b = np.concatenate(blks)
-        order = np.lexsort((p, b))
+        p, b = _cover_pairs(lo, hi, self._packed)
+        order = np.argsort(b, kind="stable")  # by block, then by point (p is ascending)
         return p[order], b[order]

@@ -37,7 +37,7 @@ def estimate_grid_nodes(seeds: np.ndarray, voxel_size: float, dilate: int = 1) -
     Surface following grows a sheet of cells around each seed cell, so the bound
     is the seed cells times the area of a (2 dilate + 1)^2 patch, times 2 nodes.
     """
-    cells = np.unique(np.floor(np.asarray(seeds) / voxel_size).astype(np.int64), axis=0)
+    cells = _unique_rows(np.floor(np.asarray(seeds) / voxel_size).astype(np.int64))
     return int(2 * len(cells) * (2 * dilate + 1) ** 2)
 
 
@@ -115,7 +115,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
 
     tree = cKDTree(seeds)
     reach = 0.5 * np.sqrt(3.0) * h + REACH_SPACINGS * _median_spacing(seeds)
-    cells = np.unique(np.floor(seeds / h).astype(np.int64), axis=0)
+    cells = _unique_rows(np.floor(seeds / h).astype(np.int64))
     pack = _Packer(cells.min(0) - dilate - block_cells - 2,
                    cells.max(0) + dilate + block_cells + 2)
     lattice = _LatticeValues(predict, h, pack, batch)
@@ -129,7 +129,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
             fv = vals[:, face]
             crosses = (fv.min(1) < 0) & (fv.max(1) > 0)
             grown.append(frontier[crosses] + step)
-        grown = np.unique(np.concatenate(grown), axis=0)
+        grown = _unique_rows(np.concatenate(grown), pack)
         keys = pack(grown)
         new = grown[~_contains(cell_keys, keys)]
         if len(new):
@@ -146,7 +146,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     node_keys, values = lattice.keys, lattice.values
 
     # 2. Marching cubes per block on its (B+1)^3 nodes, looked up by key.
-    blocks = np.unique(np.floor_divide(cells, block_cells), axis=0)
+    blocks = _unique_rows(np.floor_divide(cells, block_cells))
     nb = block_cells + 1
     local = np.stack(np.meshgrid(*(np.arange(nb),) * 3, indexing="ij"), -1).reshape(-1, 3)
     keys_all, verts_all, faces_all = [], [], []
@@ -186,7 +186,10 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     verts = np.concatenate(verts_all)
     faces = np.concatenate(faces_all).astype(np.int64)
     # Stitch: one vertex per lattice-edge key.
-    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    # (node, axis) packed into one int64 in the same order as the rows (axis -1..2:
+    # a vertex on a node has axis -1)
+    _, first, inverse = np.unique(pack(keys[:, :3]) * 4 + (keys[:, 3] + 1),
+                                  return_index=True, return_inverse=True)
     verts = verts[first] * h
     faces = inverse.reshape(-1)[faces]
     faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
@@ -225,6 +228,17 @@ def _contains(sorted_keys: np.ndarray, keys: np.ndarray) -> np.ndarray:
     return sorted_keys[pos] == keys
 
 
+def _unique_rows(cells: np.ndarray, pack=None) -> np.ndarray:
+    """Distinct rows of an (n, 3) integer array in lexicographic order (as
+    ``np.unique(cells, axis=0)``, through packed int64 keys: several times faster)."""
+    if len(cells) == 0:
+        return cells.reshape(0, 3)
+    if pack is None:
+        pack = _Packer(cells.min(0), cells.max(0))
+    _, first = np.unique(pack(cells), return_index=True)
+    return cells[first]
+
+
 class _LatticeValues:
     """Field values at lattice nodes, evaluated once each, in large batches."""
 
@@ -258,7 +272,7 @@ class _Packer:
     def __init__(self, lo: np.ndarray, hi: np.ndarray):
         self.lo = lo.astype(np.int64)
         self.dims = (hi - lo + 1).astype(np.int64)
-        if float(np.prod(self.dims.astype(np.float64))) >= 2.0 ** 62:
+        if float(np.prod(self.dims.astype(np.float64))) >= 2.0 ** 61:  # x4 edge keys fit int64
             raise GridTooLargeError("The surface lattice spans too many cells to index; "
                                     "use a larger voxel size or tile the scan.")
 
