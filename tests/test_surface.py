@@ -109,3 +109,32 @@ def test_scanned_sphere_mesh_is_accurate_and_tied_em_is_what_makes_it_so():
     free = mesh_rmse(gm.MappingConfig().replace("hgmm.tie_virtual", False))
     assert tied < 0.008
     assert free > 2 * tied
+
+
+def test_node_grouping_by_block_matches_a_brute_force_box_lookup():
+    """Every node lands in exactly the blocks whose (B+1)^3 node box contains it, at
+    its local index, and nowhere else (faces, edges, corners shared)."""
+    from gmmgp_app.stages import surface as S
+
+    rng = np.random.default_rng(3)
+    B = 4
+    nodes = np.unique(rng.integers(-9, 10, size=(400, 3)), axis=0)
+    pack = S._Packer(nodes.min(0) - 2, nodes.max(0) + 2)
+    keys = np.sort(pack(nodes))
+    np.testing.assert_array_equal(pack.unpack(keys), nodes[np.argsort(pack(nodes))])
+    values = rng.normal(size=len(keys))
+    blocks = S._unique_rows(np.floor_divide(pack.unpack(keys), B))
+    bpack, blk, loc, val = S._nodes_by_block(keys, values, pack, blocks, B)
+    got = {(int(k), int(l)): v for k, l, v in zip(blk, loc, val)}
+    want = {}
+    nb = B + 1
+    ijk = pack.unpack(keys)
+    lo_b, hi_b = np.floor_divide(ijk, B).min(0) - 1, np.floor_divide(ijk, B).max(0)
+    for b in np.stack(np.meshgrid(*[np.arange(lo_b[a], hi_b[a] + 1) for a in range(3)],
+                                  indexing="ij"), -1).reshape(-1, 3).tolist():
+        q = ijk - np.array(b) * B
+        inside = np.all((q >= 0) & (q <= B), axis=1)
+        for i in np.flatnonzero(inside):
+            want[(int(bpack(np.array([b]))[0]), int((q[i, 0] * nb + q[i, 1]) * nb + q[i, 2]))] = values[i]
+    assert got == want
+    assert np.all(np.diff(blk) >= 0)

@@ -148,18 +148,20 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     # 2. Marching cubes per block on its (B+1)^3 nodes, looked up by key.
     blocks = _unique_rows(np.floor_divide(cells, block_cells))
     nb = block_cells + 1
-    local = np.stack(np.meshgrid(*(np.arange(nb),) * 3, indexing="ij"), -1).reshape(-1, 3)
     keys_all, verts_all, faces_all = [], [], []
     n_verts = 0
     bar = progress(len(blocks), "marching cubes") if progress else None
-    for b in blocks:
+    bpack, node_block, node_local, node_value = _nodes_by_block(node_keys, values, pack,
+                                                                blocks, block_cells)
+    starts = np.searchsorted(node_block, bpack(blocks), side="left")
+    ends = np.searchsorted(node_block, bpack(blocks), side="right")
+    for b, s0, s1 in zip(blocks, starts, ends):
         bar and bar.update(1)
-        want = pack(b * block_cells + local)
-        pos = np.minimum(np.searchsorted(node_keys, want), len(node_keys) - 1)
-        found = node_keys[pos] == want
-        if found.sum() < 8:
+        if s1 - s0 < 8:
             continue
-        vol = np.where(found, values[pos], np.nan).reshape(nb, nb, nb)
+        vol = np.full(nb * nb * nb, np.nan)
+        vol[node_local[s0:s1]] = node_value[s0:s1]
+        vol = vol.reshape(nb, nb, nb)
         finite = np.isfinite(vol)
         if np.nanmin(vol) > 0 or np.nanmax(vol) < 0:
             continue
@@ -239,6 +241,35 @@ def _unique_rows(cells: np.ndarray, pack=None) -> np.ndarray:
     return cells[first]
 
 
+def _nodes_by_block(node_keys, values, pack, blocks, block_cells: int):
+    """Lattice nodes grouped by the marching-cubes blocks whose (B+1)^3 node boxes hold
+    them (a node on a block face belongs to both blocks, on an edge or corner to 4 or
+    8): the block key packer, then (packed block key, sorted), flat local index
+    ``(i nb + j) nb + k`` and value of every (block, node) pair.
+
+    One pass over the nodes instead of a lookup of every (B+1)^3 box slot per block.
+    """
+    ijk = pack.unpack(node_keys)
+    B, nb = int(block_cells), int(block_cells) + 1
+    base = np.floor_divide(ijk, B)
+    bpack = _Packer(np.minimum(blocks.min(0), base.min(0) - 1),
+                    np.maximum(blocks.max(0), base.max(0)))
+    on_face = ijk - base * B == 0
+    blk, loc, val = [], [], []
+    for o in ((0, 0, 0), (0, 0, 1), (0, 1, 0), (0, 1, 1),
+              (1, 0, 0), (1, 0, 1), (1, 1, 0), (1, 1, 1)):
+        o = np.array(o)
+        sel = np.all(on_face | (o == 0), axis=1)  # shifted axes need the node on a face
+        b = base[sel] - o
+        q = ijk[sel] - b * B
+        blk.append(bpack(b))
+        loc.append((q[:, 0] * nb + q[:, 1]) * nb + q[:, 2])
+        val.append(values[sel])
+    blk = np.concatenate(blk)
+    order = np.argsort(blk, kind="stable")
+    return bpack, blk[order], np.concatenate(loc)[order], np.concatenate(val)[order]
+
+
 class _LatticeValues:
     """Field values at lattice nodes, evaluated once each, in large batches."""
 
@@ -279,6 +310,14 @@ class _Packer:
     def __call__(self, ijk: np.ndarray) -> np.ndarray:
         q = ijk - self.lo
         return (q[:, 0] * self.dims[1] + q[:, 1]) * self.dims[2] + q[:, 2]
+
+    def unpack(self, keys: np.ndarray) -> np.ndarray:
+        """The (n, 3) lattice coordinates of packed keys (inverse of calling)."""
+        keys = np.asarray(keys, dtype=np.int64)
+        plane = self.dims[1] * self.dims[2]
+        q = np.column_stack([keys // plane, (keys % plane) // self.dims[2],
+                             keys % self.dims[2]])
+        return q + self.lo
 
 
 def _refine_on_edges(v: np.ndarray, vol: np.ndarray):
