@@ -312,6 +312,19 @@ def _check_group_ptr(group_ptr, N: int):
     return g
 
 
+def _sort_by_groups(X: np.ndarray, groups) -> tuple:
+    """Rows reordered so that each group's rows are contiguous: (X sorted, groups sorted).
+
+    ``groups`` (N,) integers, the hit point of each row (``TrainingSet.groups``).
+    """
+    groups = np.asarray(groups)
+    if groups.shape != (len(X),) or not np.issubdtype(groups.dtype, np.integer):
+        raise HGMMError(f"Expected groups as ({len(X)},) integers (the hit point of each "
+                        f"row), found {groups.dtype} {groups.shape}; pass TrainingSet.groups.")
+    order = np.argsort(groups, kind="stable")
+    return np.ascontiguousarray(X[order]), groups[order]
+
+
 def group_boundaries(groups: np.ndarray) -> np.ndarray:
     """Boundaries ``(G + 1,)`` of the runs of equal values in a sorted group array."""
     groups = np.asarray(groups)
@@ -382,14 +395,8 @@ def score_groups(gm: GaussianMixture, X: np.ndarray, groups: np.ndarray,
         mixture's weights (fractions of rows: equal when all groups have the same
         size, as with both virtual points kept).
     """
-    X = _check_rows(X)
-    groups = np.asarray(groups)
-    if groups.shape != (len(X),) or not np.issubdtype(groups.dtype, np.integer):
-        raise HGMMError(f"Expected groups as ({len(X)},) integers (the hit point of each "
-                        f"row), found {groups.dtype} {groups.shape}; pass TrainingSet.groups.")
-    order = np.argsort(groups, kind="stable")
-    Xs = np.ascontiguousarray(X[order])
-    gptr = group_boundaries(groups[order])
+    Xs, gsorted = _sort_by_groups(_check_rows(X), groups)
+    gptr = group_boundaries(gsorted)
     gw = gm.weights if group_weights is None else np.asarray(group_weights, dtype=np.float64)
     pchol, logconst = _terms(GaussianMixture(gw, gm.means, gm.covariances))
     ll = ek.group_log_likelihood(Xs, gptr, gm.means, pchol, logconst, np.log(gw))
@@ -446,16 +453,9 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
     D = X.shape[1]
     gsorted = None
     if groups is not None and getattr(hcfg, "tie_virtual", True):
-        groups = np.asarray(groups)
-        if groups.shape != (len(X),) or not np.issubdtype(groups.dtype, np.integer):
-            raise HGMMError(f"Expected groups as ({len(X)},) integers (the hit point of "
-                            f"each row), found {groups.dtype} {groups.shape}; pass "
-                            "TrainingSet.groups.")
         # Rows of a group made contiguous; node row lists stay sorted, so groups
         # stay contiguous inside every node.
-        order = np.argsort(groups, kind="stable")
-        X = np.ascontiguousarray(X[order])
-        gsorted = groups[order]
+        X, gsorted = _sort_by_groups(X, groups)
 
     def group_ptr(idx):
         """Group boundaries of the rows ``idx`` (all rows: None), or None untied."""
