@@ -26,9 +26,19 @@ class OctreeError(ValueError):
     """Bad input to the block partition."""
 
 
-def _pack(cells: np.ndarray) -> np.ndarray:
-    c = cells + _BIAS
-    return (c[:, 0] << (2 * _BITS)) | (c[:, 1] << _BITS) | c[:, 2]
+@njit(cache=True, inline="always")
+def _key(c0, c1, c2):
+    """One int64 per cell within +-_BIAS: 21 bits per axis, sortable."""
+    return ((c0 + _BIAS) << (2 * _BITS)) | ((c1 + _BIAS) << _BITS) | (c2 + _BIAS)
+
+
+@njit(cache=True)
+def _pack(cells):
+    """Keys of (n, 3) cells (all within +-_BIAS)."""
+    out = np.empty(cells.shape[0], dtype=np.int64)
+    for i in range(cells.shape[0]):
+        out[i] = _key(cells[i, 0], cells[i, 1], cells[i, 2])
+    return out
 
 
 @njit(cache=True)
@@ -36,11 +46,20 @@ def _find(packed, c0, c1, c2):
     """Index of cell (c0, c1, c2) in the sorted packed table, -1 if absent."""
     if c0 < -_BIAS or c0 >= _BIAS or c1 < -_BIAS or c1 >= _BIAS or c2 < -_BIAS or c2 >= _BIAS:
         return -1
-    k = ((c0 + _BIAS) << (2 * _BITS)) | ((c1 + _BIAS) << _BITS) | (c2 + _BIAS)
+    k = _key(c0, c1, c2)
     j = np.searchsorted(packed, k)
     if j < packed.shape[0] and packed[j] == k:
         return j
     return -1
+
+
+@njit(cache=True)
+def _lookup(packed, cells):
+    """:func:`_find` of every (n, 3) cell."""
+    out = np.empty(cells.shape[0], dtype=np.int64)
+    for i in range(cells.shape[0]):
+        out[i] = _find(packed, cells[i, 0], cells[i, 1], cells[i, 2])
+    return out
 
 
 @njit(cache=True)
@@ -129,14 +148,8 @@ class BlockGrid:
 
     def lookup(self, cells: np.ndarray) -> np.ndarray:
         """Block index of each (n, 3) integer cell, -1 where the cell is unoccupied."""
-        cells = np.asarray(cells, dtype=np.int64).reshape(-1, 3)
-        if len(self._packed) == 0 or len(cells) == 0:
-            return np.full(len(cells), -1, dtype=np.int64)
-        inside = np.all((cells >= -_BIAS) & (cells < _BIAS), axis=1)
-        p = _pack(np.where(inside[:, None], cells, 0))
-        pos = np.clip(np.searchsorted(self._packed, p), 0, len(self._packed) - 1)
-        hit = inside & (self._packed[pos] == p)
-        return np.where(hit, pos, -1)
+        cells = np.ascontiguousarray(np.asarray(cells, dtype=np.int64).reshape(-1, 3))
+        return _lookup(self._packed, cells)
 
     def cover(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pairs (point, block) such that the block's region contains the point.
