@@ -153,8 +153,9 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     bar = progress(len(blocks), "marching cubes") if progress else None
     bpack, node_block, node_local, node_value = _nodes_by_block(node_keys, values, pack,
                                                                 blocks, block_cells)
-    starts = np.searchsorted(node_block, bpack(blocks), side="left")
-    ends = np.searchsorted(node_block, bpack(blocks), side="right")
+    block_keys = bpack(blocks)
+    starts = np.searchsorted(node_block, block_keys, side="left")
+    ends = np.searchsorted(node_block, block_keys, side="right")
     for b, s0, s1 in zip(blocks, starts, ends):
         bar and bar.update(1)
         if s1 - s0 < 8:
