@@ -498,10 +498,8 @@ def _run_tiled(args, cfg, spec, scan, out: Path, console, t0: float, read_s: flo
             seconds["surface"] = time.perf_counter() - t3
             summary["counts"]["surface"] = {args.method: {"vertices": len(mesh.vertices),
                                                           "faces": len(mesh.faces)}}
-            vmax = (float(np.sqrt(np.quantile(mesh.vertex_variance, 0.98)))
-                    if len(mesh.vertices) else None)
             written.append(write_mesh_ply(mesh, out / f"mesh_{args.method}.ply",
-                                          offset=tmap.offset, vmax=vmax))
+                                          offset=tmap.offset, vmax=_std_colour_max([mesh])))
         atomic_write_text(out / "config.toml", cfg.to_toml())
         seconds["total"] = time.perf_counter() - t0
         atomic_write_text(out / "summary.json", json.dumps(_jsonable(summary), indent=2))
@@ -549,6 +547,13 @@ def _stream_tiles(stream, cfg, spec, method, work: Path, executor, progress):
                             "again.") from None
 
 
+def _std_colour_max(meshes) -> float | None:
+    """Top of the std colour scale shared by ``meshes``: the largest 98th percentile of
+    their vertex standard deviations (None when they have no vertex)."""
+    return max((float(np.sqrt(np.quantile(m.vertex_variance, 0.98)))
+                for m in meshes if len(m.vertices)), default=None)
+
+
 def _write_meshes(smap, out: Path, observer, console) -> list:
     """Marching-cubes surfaces of the map and of its HGMM prior (GMR alone)."""
     from .pipeline import StagePayload
@@ -569,8 +574,7 @@ def _write_meshes(smap, out: Path, observer, console) -> list:
                                          for k, m in meshes.items()}
     observer.on_stage("surface", StagePayload(meshes, seconds))
     # Same colour scale for every mesh so they can be compared side by side.
-    vmax = max((float(np.sqrt(np.quantile(m.vertex_variance, 0.98)))
-                for m in meshes.values() if len(m.vertices)), default=None)
+    vmax = _std_colour_max(meshes.values())
     return [write_mesh_ply(m, out / f"mesh_{k}.ply", offset=smap.offset, vmax=vmax)
             for k, m in meshes.items()]
 

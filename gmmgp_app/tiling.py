@@ -32,6 +32,7 @@ a LAS file, scans added by :meth:`TiledMap.update`).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import dataclass
@@ -194,6 +195,11 @@ def tile_owners(counts: dict, min_points: int) -> dict:
         owners[k] = min(big, key=lambda b: ((b[0] - k[0]) ** 2 + (b[1] - k[1]) ** 2,
                                             -counts[b], b))
     return owners
+
+
+def _owners_summary(owners: dict) -> dict:
+    """``{"(i, j)": "(k, l)"}``: the owners as the JSON-friendly ``absorbed_tiles`` summary."""
+    return {str(k): str(o) for k, o in owners.items()}
 
 
 def _members(owners: dict, key) -> list:
@@ -479,8 +485,7 @@ class TiledMap:
             meta = {
                 "format": TILED_MAP_FORMAT,
                 "format_version": TILED_MAP_FORMAT_VERSION,
-                "spec": {"size": self.spec.size, "overlap": self.spec.overlap,
-                         "blend": self.spec.blend, "min_points": self.spec.min_points},
+                "spec": dataclasses.asdict(self.spec),
                 "method": self.method,
                 "offset": [float(v) for v in self.offset],
                 "tiles": [list(k) for k in keys],
@@ -564,7 +569,7 @@ class TiledMap:
                 report["gp_updated_tiles"].append(key)
                 report["refit_blocks"] += n
         self.owners = owners
-        self.summary["absorbed_tiles"] = {str(k): str(o) for k, o in owners.items()}
+        self.summary["absorbed_tiles"] = _owners_summary(owners)
         maps, skipped = _run_tiles(executor, rebuild, progress)
         report["skipped_tiles"] = skipped
         for key, smap in maps.items():
@@ -745,7 +750,7 @@ def build_tiled_map(scan: Scan, cfg: Optional[MappingConfig] = None,
     return TiledMap(spec, maps, cfg, method, offset=scan.offset, tile_points=kept,
                     owners=owners,
                     summary=dict(n_tiles=len(maps), n_points=len(scan),
-                                 absorbed_tiles={str(k): str(o) for k, o in owners.items()},
+                                 absorbed_tiles=_owners_summary(owners),
                                  skipped_tiles={str(k): v for k, v in skipped.items()}))
 
 
@@ -941,7 +946,7 @@ def build_tiled_map_from_las(path, cfg: Optional[MappingConfig] = None,
                           f"'{path}', found none that could be mapped.")
     return TiledMap(spec, store, cfg, method, offset=off, owners=owners,
                     summary=dict(n_tiles=len(store), n_points=n,
-                                 absorbed_tiles={str(k): str(o) for k, o in owners.items()},
+                                 absorbed_tiles=_owners_summary(owners),
                                  skipped_tiles={str(k): v for k, v in skipped.items()}))
 
 
