@@ -13,3 +13,17 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real scan data not found at {SHARED_DATA} (../shared/data is absent)")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def box_scene(tmp_path_factory):
+    """A small scanned synthetic box (scan_scene("box", density=0.03)): a folder with
+    its ``scan.npz`` and exact ``mesh.ply``, and the Scan. Tests write only below
+    their own subfolders of it."""
+    from gmmgp_app.synth import save_mesh_ply, save_scan_npz, scan_scene
+
+    root = tmp_path_factory.mktemp("box")
+    scan, scene = scan_scene("box", density=0.03)
+    save_scan_npz(root / "scan.npz", scan.points, scan.origins)
+    save_mesh_ply(root / "mesh.ply", scene)
+    return root, scan

@@ -193,16 +193,10 @@ def _eval(run_dir, reference, *extra):
 
 
 @pytest.fixture(scope="module")
-def box(tmp_path_factory):
-    """A small synthetic box: its scan, exact mesh and mapping options."""
-    from gmmgp_app.synth import save_mesh_ply, save_scan_npz, scan_scene
-
-    root = tmp_path_factory.mktemp("box")
-    scan, scene = scan_scene("box", density=0.03)
-    save_scan_npz(root / "scan.npz", scan.points, scan.origins)
-    save_mesh_ply(root / "mesh.ply", scene)
+def box(box_scene):
+    """The small synthetic box of conftest (scan.npz, exact mesh.ply) and mapping options."""
     opts = ["--set", "prepare.subsample_rate=0.5", "--set", "surface.voxel_size=0.1", "-q"]
-    return root, opts
+    return box_scene[0], opts
 
 
 def test_eval_refuses_methods_a_tiled_map_cannot_answer(box, tmp_path, capsys):

@@ -284,16 +284,13 @@ def _eval_parser():
 
 
 @pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    """A 'gmmgp run' folder of a small synthetic box, its scan and its exact mesh."""
+def tiny_run(box_scene):
+    """A 'gmmgp run' folder (run/) of the small synthetic box of conftest, beside its
+    scan.npz and exact mesh.ply."""
     from gmmgp_app import MappingConfig
     from gmmgp_app.pipeline import build_map
-    from gmmgp_app.synth import save_mesh_ply, save_scan_npz, scan_scene
 
-    root = tmp_path_factory.mktemp("tiny")
-    scan, scene = scan_scene("box", density=0.03)
-    save_scan_npz(root / "scan.npz", scan.points, scan.origins)
-    save_mesh_ply(root / "mesh.ply", scene)
+    root, scan = box_scene
     cfg = MappingConfig().replace({"prepare.subsample_rate": 0.5, "surface.voxel_size": 0.1})
     build_map(scan, cfg, method="gmmgp").save(root / "run" / "map")
     return root
