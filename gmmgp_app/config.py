@@ -29,6 +29,11 @@ __all__ = [
 ]
 
 
+#: The mapping methods (``build_map(method=...)``, ``gmmgp run --method``, ``gmmgp eval``):
+#: the paper's gmmgp, its GMR prior alone (hgmm), and the GPIS and Log-GPIS baselines.
+METHODS = ("gmmgp", "hgmm", "gpis", "loggpis")
+
+
 class ConfigError(ValueError):
     """A configuration field is unknown or out of range."""
 
@@ -83,8 +88,9 @@ class PrepareConfig:
     subsample_rate: float = _f(
         0.15, "Fraction of hit points kept for training.", 1e-4, 1.0,
         source="paper Sec. V-B: about 15 %, robust from 5 % to 80 %")
-    voxel_size: Optional[float] = _f(
-        None, "If set, voxel-grid subsampling with this cell size replaces the rate.",
+    subsample_voxel: Optional[float] = _f(
+        None, "If set, voxel-grid subsampling with this cell size replaces the rate "
+        "(formerly prepare.voxel_size).",
         1e-4, 100.0, unit="m", optional=True)
     normal_radius: float = _f(
         0.3, "Neighbourhood radius for PCA normals.", 1e-4, 100.0, unit="m",
@@ -112,7 +118,9 @@ class HGMMConfig:
     initial_components: int = _f(
         4, "Components of the first level.", 1, 4096,
         source="paper Fig. 2: four initial Gaussians")
-    n_children: int = _f(8, "Children per split node.", 2, 64, source="DESIGN.md")
+    n_children: int = _f(
+        8, "Children per split node.", 2, 64,
+        source="chosen: an octree-like 8-way split of each node; the paper leaves it open")
     split_threshold: float = _f(
         0.01, "Split a node when c = lambda_min / sum(lambda) exceeds this.", 0.0, 0.25,
         symbol="c", source="paper Sec. III-A (empirical value of Eckart et al.)")
@@ -197,6 +205,7 @@ class GPConfig:
         symbol="sigma_eta^2", source="authors' public GP code")
     gradient_noise: float = _f(
         5e-4, "Noise variance of the gradient (normal) observations.", 0.0, 10.0,
+        unit="1 (dimensionless: a gradient of a distance is m/m)",
         source="authors' public GP code")
     block_size: float = _f(
         0.2, "Edge of an octree leaf block.", 1e-3, 1000.0, unit="m",
@@ -258,7 +267,7 @@ class MappingConfig:
                     f"Expected an override like 'hgmm.split_threshold=0.02', found {a!r}."
                 )
             key, raw = a.split("=", 1)
-            updates[key.strip()] = _parse_value(raw.strip())
+            updates[key.strip()] = parse_value(raw.strip())
         return self.replace(updates)
 
     @classmethod
@@ -342,7 +351,9 @@ def _toml_value(v) -> str:
     return repr(v)
 
 
-def _parse_value(raw: str):
+def parse_value(raw: str):
+    """A CLI value parsed as TOML (``0.01``, ``8``, ``true``, ``"x"``); a bare word stays a
+    string (validation judges it)."""
     import tomllib
 
     try:
@@ -372,7 +383,22 @@ def _coerce(f, value, name: str):
     return value
 
 
+#: Renamed fields: old dotted name -> new one (the old name is still read, with a warning).
+RENAMED_FIELDS = {"prepare.voxel_size": "prepare.subsample_voxel"}
+
+
+class ConfigDeprecationWarning(FutureWarning):
+    """A configuration field was given under its former name (shown to users by default)."""
+
+
 def _replace_one(cfg: MappingConfig, key: str, value) -> MappingConfig:
+    if key in RENAMED_FIELDS:
+        import warnings
+
+        warnings.warn(f"Config field '{key}' is now '{RENAMED_FIELDS[key]}'; the old name "
+                      "still works but will be removed.", ConfigDeprecationWarning,
+                      stacklevel=3)
+        key = RENAMED_FIELDS[key]
     parts = key.split(".")
     sections = {f.name: f for f in dataclasses.fields(cfg)}
     if len(parts) == 1 and parts[0] in sections and not dataclasses.is_dataclass(

@@ -1,10 +1,20 @@
-"""build_map(): the mapping recipe, one line per stage.
+"""The mapping recipe: a table of stages and one runner, used by every caller.
 
-    scan ──prepare──> TrainingSet ──fit_hgmm──> HierarchicalGMM ──GMRField──> prior m(x), sigma_p(x)
-         ──select |m(x)| > d_m──> GP points ──fit_local_gps──> LocalGPField ──> SurfaceMap
+    scan ──prepare──> TrainingSet ──hgmm──> HierarchicalGMM ──gmr──> prior m(x), sigma_p(x)
+         ──select |m(x)| > d_m──> GP points ──gp──> LocalGPField ──map──> SurfaceMap ──surface──> mesh
 
-Each stage reports to an observer (``observer.on_stage(name, payload)``) as soon
-as it finishes; the rerun logger and the GUI are such observers.
+:data:`STAGES` names every stage with the function that computes it, what it
+takes and what it gives (the names of a run's *state*); :data:`RECIPES` lists the
+stages of each method. :func:`run_stages` is the only code that runs stages:
+:func:`build_map`, the desktop app (:mod:`gmmgp_app.viz.gui_model`, which re-runs
+from a stage and reuses the state before it), ``gmmgp sweep`` and the incremental
+update of a tile (:func:`update_map`) all call it.
+
+Each reported stage goes to an observer (``observer.on_stage(name, payload)``) as
+soon as it finishes; the console, the rerun logger and the GUI are such observers.
+This module is also the only door to :mod:`gmmgp_app.stages` for the rest of the
+package: what the viewer, tiling, eval and the command line need from the stages
+is re-exported here (bottom of the file).
 """
 
 from __future__ import annotations
@@ -13,22 +23,36 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
 
 from ._atomic import atomic_dir
-from .config import MappingConfig
+from .config import METHODS, MappingConfig
+from .stages import gmr as _gmr
+from .stages import gp as _gp
+from .stages import hgmm as _hgmm
+from .stages import loggpis as _loggpis
+from .stages import octree as _octree
+from .stages import prepare as _prepare
+from .stages import surface as _surface
 from .types import GaussianMixture, HGMMLevel, HierarchicalGMM, Scan, SurfaceMesh
 
-__all__ = ["build_map", "SurfaceMap", "load_map", "NullObserver", "FanoutObserver", "METHODS", "MapFormatError"]
+__all__ = ["build_map", "SurfaceMap", "load_map", "update_map", "run_stages", "Stage",
+           "STAGES", "RECIPES", "RunContext", "NullObserver", "FanoutObserver", "METHODS",
+           "MapFormatError", "PipelineError", "StagePayload"]
 
-METHODS = ("gmmgp", "hgmm", "gpis")
 MAP_FORMAT_VERSION = 1
+#: The GPIS baseline's constant prior (the paper's setup): distance 0.2 m, variance 0.2^2.
+GPIS_PRIOR = {"distance": 0.2, "variance": 0.2 ** 2}
 
 
 class MapFormatError(ValueError):
     """A saved map folder is missing, incomplete or from an incompatible version."""
+
+
+class PipelineError(ValueError):
+    """A stage was asked to run without what it needs, or an unknown stage/method."""
 
 
 class FanoutObserver:
@@ -84,7 +108,8 @@ class SurfaceMap:
     Attributes
     ----------
     method : str
-        "gmmgp" (HGMM prior + local GPs), "hgmm" (GMR alone) or "gpis".
+        "gmmgp" (HGMM prior + local GPs), "hgmm" (GMR alone), "gpis" or "loggpis"
+        (unsigned distance, :attr:`signed` False).
     hgmm : HierarchicalGMM or None
         The fitted hierarchy (None for gpis).
     gp_points : (P, 3) float64
@@ -127,24 +152,33 @@ class SurfaceMap:
             Predictive variance (m^2).
         grad : (K, 3) float64, only if ``return_grad``
         """
-        xyz = _as_queries(xyz)
+        xyz = as_queries(xyz)
         field_ = self.gp if self.gp is not None else self.prior
         out = field_.predict(xyz, return_grad=return_grad)
         return out
 
+    @property
+    def signed(self) -> bool:
+        """Whether the field is a signed distance (False for loggpis, an unsigned one)."""
+        return self.method != "loggpis"
+
     def extract_surface(self, voxel_size: Optional[float] = None, max_std=None,
                         progress=None) -> SurfaceMesh:
-        """Marching-cubes surface of the zero level set, vertices carrying variance."""
-        from .stages.surface import extract_surface
+        """Marching-cubes surface of the zero level set, vertices carrying variance.
 
-        cfg = self.config.surface
-        return extract_surface(
-            self.predict,
-            self.seed_points,
-            voxel_size=cfg.voxel_size if voxel_size is None else voxel_size,
-            max_std=cfg.max_std if max_std is None else max_std,
-            progress=progress,
-        )
+        ``voxel_size`` and ``max_std`` default to ``config.surface``.
+        """
+        if not self.signed:
+            raise PipelineError(f"A {self.method} map predicts an unsigned distance, which "
+                                "has no zero level set to mesh; map with --method gmmgp.")
+        return _surface.mesh_field(self.predict, self.seed_points, self.config.surface,
+                                   voxel_size, max_std, progress)
+
+    def prior_surface(self, voxel_size: Optional[float] = None, max_std=None,
+                      progress=None) -> SurfaceMesh:
+        """Marching-cubes surface of the prior alone (the HGMM's GMR for a gmmgp map)."""
+        return _surface.mesh_field(self.prior.predict, self.seed_points,
+                                   self.config.surface, voxel_size, max_std, progress)
 
     # ------------------------------------------------------------------ save/load
     def save(self, directory) -> Path:
@@ -168,7 +202,7 @@ class SurfaceMap:
                 "prior": type(self.prior).__name__,
                 "prior_params": getattr(self.prior, "params", lambda: {})(),
                 "config_toml": self.config.to_toml(),
-                "summary": _jsonable(self.summary),
+                "summary": jsonable(self.summary),
             }
             (tmp / "map.json").write_text(json.dumps(meta, indent=2))
         return directory
@@ -177,9 +211,6 @@ class SurfaceMap:
 def load_map(directory) -> SurfaceMap:
     """Load a map written by :meth:`SurfaceMap.save`; it predicts identically."""
     import tomllib
-
-    from .stages.gmr import GMRField
-    from .stages.gp import ConstantPrior, LocalGPField
 
     directory = Path(directory)
     meta_path, arr_path = directory / "map.json", directory / "arrays.npz"
@@ -204,22 +235,270 @@ def load_map(directory) -> SurfaceMap:
     with np.load(arr_path, allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files}
     hgmm = _hgmm_from_arrays(arrays) if "hgmm/leaves/weights" in arrays else None
-    if meta["prior"] == "GMRField":
-        prior = GMRField.from_config(hgmm.leaves, cfg.gmr)
-    else:
-        prior = ConstantPrior(**meta["prior_params"])
     gp_arrays = {k[3:]: v for k, v in arrays.items() if k.startswith("gp/")}
-    gp = LocalGPField.from_arrays(gp_arrays, prior, cfg.gp) if gp_arrays else None
+    if meta["method"] == "loggpis":
+        prior, gp = None, _loggpis.LogGPISField.from_arrays(gp_arrays)
+    else:
+        if meta["prior"] == "GMRField":
+            prior = _gmr.GMRField.from_config(hgmm.leaves, cfg.gmr)
+        else:
+            prior = _gp.ConstantPrior(**meta["prior_params"])
+        gp = _gp.LocalGPField.from_arrays(gp_arrays, prior, cfg.gp) if gp_arrays else None
     smap = SurfaceMap(meta["method"], cfg, arrays["offset"], prior, hgmm=hgmm, gp=gp,
                       gp_points=arrays["gp_points"], gp_normals=arrays["gp_normals"],
                       seed_points=arrays["seed_points"], summary=meta.get("summary", {}))
     return smap
 
 
+# --------------------------------------------------------------------------- stages
+@dataclass(frozen=True)
+class RunContext:
+    """What every stage of one run may read besides its inputs.
+
+    Attributes
+    ----------
+    cfg : MappingConfig
+    method : str
+    executor : concurrent.futures.Executor, optional
+        Fits GP blocks as batched tasks (:mod:`gmmgp_app.distributed`).
+    progress : callable(done, total), optional
+        GP block tasks finished.
+    voxel_size : float, optional
+        Surface voxel of the ``surface`` stage (default ``cfg.surface.voxel_size``).
+    surface_progress : callable(total, desc) -> bar, optional
+        Progress of the marching-cubes blocks.
+    loggpis_lambda : float, optional
+        Log-GPIS lambda (1/m); default ``sqrt(3) / cfg.gp.length_scale``.
+    """
+
+    cfg: MappingConfig
+    method: str = "gmmgp"
+    executor: Any = None
+    progress: Optional[Callable] = None
+    voxel_size: Optional[float] = None
+    surface_progress: Optional[Callable] = None
+    loggpis_lambda: Optional[float] = None
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One row of the recipe table.
+
+    Attributes
+    ----------
+    name : str
+    fn : callable(ctx, **inputs) -> dict
+        Pure compute: returns ``{output name: value}``.
+    inputs, outputs : tuple of str
+        Names in the run's state.
+    optional : tuple of str
+        Inputs that may be absent (passed as None).
+    reported : bool
+        Timed into ``summary["seconds"]`` and sent to the observer; internal steps
+        (selection, assembling the map) are not.
+    payload : callable(outputs, inputs) -> (result, extra), optional
+        What the observer receives (default: the first output, no extra).
+    counts : callable(outputs, ctx) -> dict, optional
+        Counts for ``summary["counts"][name]``.
+    when : callable(inputs) -> bool, optional
+        Run only if true; otherwise the outputs are None (e.g. no GP points).
+    """
+
+    name: str
+    fn: Callable
+    inputs: tuple
+    outputs: tuple
+    optional: tuple = ()
+    reported: bool = True
+    payload: Optional[Callable] = None
+    counts: Optional[Callable] = None
+    when: Optional[Callable] = None
+
+
+def _prepare_stage(ctx, scan):
+    return {"data": _prepare.prepare(scan, ctx.cfg)}
+
+
+def _hgmm_stage(ctx, data):
+    return {"hgmm": _hgmm.fit_hgmm(data, ctx.cfg.hgmm)}
+
+
+def _gmr_stage(ctx, data, hgmm=None, prior=None):
+    # the prior of a kept hierarchy (tile update) is reused, else built from the leaves
+    prior = _gmr.GMRField.from_config(hgmm.leaves, ctx.cfg.gmr) if prior is None else prior
+    return {"prior": prior, "gmr_error": prior.predict(data.points)[0]}
+
+
+def _select_stage(ctx, data, gmr_error):
+    mask = _gp.select_gp_points(gmr_error, ctx.cfg.gp.d_m)
+    return {"gp_points": data.points[mask], "gp_normals": data.normals[mask]}
+
+
+def _constant_prior_stage(ctx, data):
+    mask = np.ones(len(data.points), dtype=bool)  # the GPIS baseline trains on every point
+    return {"prior": _gp.ConstantPrior(**GPIS_PRIOR), "gp_points": data.points[mask],
+            "gp_normals": data.normals[mask]}
+
+
+def _gp_stage(ctx, gp_points, gp_normals, prior):
+    return {"gp": _gp.fit_local_gps(gp_points, gp_normals, prior, ctx.cfg.gp,
+                                    executor=ctx.executor, progress=ctx.progress)}
+
+
+def _loggpis_stage(ctx, data):
+    params = _loggpis.LogGPISParams.from_config(ctx.cfg, ctx.loggpis_lambda)
+    field_ = _loggpis.fit_loggpis(data.points, params,
+                                  rng=np.random.default_rng(ctx.cfg.seed))
+    return {"gp": field_, "gp_points": data.points}
+
+
+def _map_stage(ctx, scan, summary=None, prior=None, hgmm=None, gp=None, gp_points=None,
+               gp_normals=None):
+    if prior is None and ctx.method != "loggpis":  # stopped before the prior
+        prior = _gp.ConstantPrior(**GPIS_PRIOR)
+    return {"smap": SurfaceMap(ctx.method, ctx.cfg, scan.offset, prior, hgmm=hgmm, gp=gp,
+                               gp_points=gp_points, gp_normals=gp_normals,
+                               seed_points=surface_seeds(scan, ctx.cfg), summary=summary)}
+
+
+def _surface_stage(ctx, smap):
+    return {"mesh": smap.extract_surface(ctx.voxel_size, progress=ctx.surface_progress)}
+
+
+def _touch_stage(ctx, smap, all_points, all_origins, new_points):
+    touched = _gp.touched_blocks(smap.gp, new_points)
+    # the touched regions plus a margin for the normals' neighbourhoods
+    p = ctx.cfg.prepare
+    half = 0.5 * (1.0 + touched.overlap) * touched.block_size
+    near = _gp.points_near_blocks(touched, all_points,
+                                  half + 2.0 * p.normal_radius + p.virtual_spacing)
+    sub = Scan(points=all_points[near],
+               origins=None if all_origins is None else all_origins[near])
+    return {"touched": touched, "scan": sub, "prior": smap.prior}
+
+
+def _refit_stage(ctx, smap, touched, gp_points, gp_normals, all_points):
+    field_, pts, n_refit = _gp.refit_touched_blocks(smap.gp, touched, gp_points, gp_normals,
+                                                    ctx.cfg.gp, ctx.executor)
+    gpp = np.unique(np.concatenate([smap.gp_points, pts]), axis=0)
+    out = SurfaceMap(smap.method, smap.config, smap.offset, smap.prior, hgmm=smap.hgmm,
+                     gp=field_, gp_points=gpp,
+                     seed_points=surface_seeds(Scan(points=all_points), ctx.cfg),
+                     summary=smap.summary)
+    return {"smap": out, "n_refit": n_refit}
+
+
+def _info_counts(out, ctx):
+    return {k: v for k, v in out["gp"].info.items() if isinstance(v, (int, float))}
+
+
+def _gmr_counts(out, ctx):
+    m = out["gmr_error"]
+    n_gp = int(_gp.select_gp_points(m, ctx.cfg.gp.d_m).sum()) if ctx.method == "gmmgp" else 0
+    return {"rms_error_at_hits": float(np.sqrt(np.mean(m ** 2))), "gp_points": n_gp}
+
+
+#: The recipe table: every stage, the function computing it, what it takes and gives.
+STAGES = {s.name: s for s in (
+    Stage("prepare", _prepare_stage, ("scan",), ("data",),
+          counts=lambda o, c: {"hit_points": len(o["data"].points), "rows": len(o["data"].rows),
+                               "dropped_virtual": o["data"].n_dropped_virtual}),
+    Stage("hgmm", _hgmm_stage, ("data",), ("hgmm",),
+          counts=lambda o, c: {"levels": len(o["hgmm"].levels),
+                               "leaves": o["hgmm"].leaves.n_components}),
+    Stage("gmr", _gmr_stage, ("data",), ("prior", "gmr_error"), optional=("hgmm", "prior"),
+          payload=lambda o, i: (o["gmr_error"], {"points": i["data"].points,
+                                                 "error": o["gmr_error"]}),
+          counts=_gmr_counts),
+    Stage("select", _select_stage, ("data", "gmr_error"), ("gp_points", "gp_normals"),
+          reported=False),
+    Stage("constant_prior", _constant_prior_stage, ("data",),
+          ("prior", "gp_points", "gp_normals"), reported=False),
+    Stage("gp", _gp_stage, ("gp_points", "gp_normals", "prior"), ("gp",),
+          payload=lambda o, i: (o["gp"], {"points": i["gp_points"], "normals": i["gp_normals"]}),
+          counts=_info_counts, when=lambda i: len(i["gp_points"]) > 0),
+    Stage("loggpis", _loggpis_stage, ("data",), ("gp", "gp_points"), counts=_info_counts),
+    Stage("map", _map_stage, ("scan",), ("smap",), reported=False,
+          optional=("summary", "prior", "hgmm", "gp", "gp_points", "gp_normals")),
+    Stage("surface", _surface_stage, ("smap",), ("mesh",)),
+    Stage("touch", _touch_stage, ("smap", "all_points", "all_origins", "new_points"),
+          ("touched", "scan", "prior"), reported=False),
+    Stage("refit", _refit_stage, ("smap", "touched", "gp_points", "gp_normals", "all_points"),
+          ("smap", "n_refit"), reported=False),
+)}
+
+#: Stages of each method, in order (``map`` assembles the SurfaceMap).
+RECIPES = {
+    "gmmgp": ("prepare", "hgmm", "gmr", "select", "gp"),
+    "hgmm": ("prepare", "hgmm", "gmr"),
+    "gpis": ("prepare", "constant_prior", "gp"),
+    "loggpis": ("prepare", "loggpis"),
+}
+#: The incremental update of a map's GP blocks (the prior is kept).
+UPDATE_RECIPE = ("touch", "prepare", "gmr", "select", "refit")
+
+
+def run_stages(names, state: dict, ctx: RunContext, *, observer=None,
+               summary: Optional[dict] = None,
+               on_stage: Optional[Callable[[str, dict], None]] = None) -> dict:
+    """Run the stages ``names`` in order on ``state`` (updated in place and returned).
+
+    Parameters
+    ----------
+    names : sequence of str
+        Keys of :data:`STAGES`.
+    state : dict
+        Results so far by name (``scan``, ``data``, ``hgmm``, ...): a re-run passes
+        the state of an earlier run and starts at a later stage.
+    ctx : RunContext
+    observer : object with ``on_stage(name, payload)``, optional
+        Receives a :class:`StagePayload` after each reported stage.
+    summary : dict, optional
+        Gets ``seconds[name]`` and ``counts[name]`` of the reported stages.
+    on_stage : callable(name, state), optional
+        Called after every stage (reported or not); may raise to stop the run.
+    """
+    observer = observer or NullObserver()
+    summary = summary if summary is not None else {"seconds": {}, "counts": {}}
+    for name in names:
+        if name not in STAGES:
+            raise PipelineError(f"Unknown stage {name!r}; expected one of {', '.join(STAGES)}.")
+        st = STAGES[name]
+        missing = [k for k in st.inputs if k not in state]
+        if missing:
+            raise PipelineError(f"Stage '{name}' needs {', '.join(missing)}, found none; run "
+                                "the stages that give them first.")
+        kw = {k: state[k] for k in st.inputs}
+        kw.update({k: state[k] for k in st.optional if k in state})
+        if st.when is not None and not st.when(kw):
+            state.update({k: None for k in st.outputs})
+            if on_stage is not None:
+                on_stage(name, state)
+            continue
+        if st.reported:
+            start = getattr(observer, "on_stage_start", None)
+            if start is not None:
+                start(name)
+        t0 = time.perf_counter()
+        out = st.fn(ctx, **kw)
+        seconds = time.perf_counter() - t0
+        state.update(out)
+        if st.counts is not None:
+            summary["counts"][name] = st.counts(out, ctx)
+        if st.reported:
+            summary["seconds"][name] = seconds
+            result, extra = (st.payload(out, kw) if st.payload is not None
+                             else (out[st.outputs[0]], {}))
+            observer.on_stage(name, StagePayload(result, seconds, extra))
+        if on_stage is not None:
+            on_stage(name, state)
+    return state
+
+
 # --------------------------------------------------------------------------- recipe
 def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gmmgp",
               observer=None, *, stop_after: Optional[str] = None, executor=None,
-              progress=None) -> SurfaceMap:
+              progress=None, loggpis_lambda: Optional[float] = None) -> SurfaceMap:
     """Map a scan into a probabilistic signed distance field.
 
     Parameters
@@ -227,118 +506,76 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
     scan : Scan
     cfg : MappingConfig, optional
         Defaults to ``MappingConfig()`` (the paper's settings).
-    method : {"gmmgp", "hgmm", "gpis"}
+    method : {"gmmgp", "hgmm", "gpis", "loggpis"}
         gmmgp: HGMM prior refined by local GPs (the paper's method);
         hgmm: Gaussian mixture regression alone; gpis: stationary GP with a
-        constant prior on all points (baseline).
+        constant prior on all points (baseline); loggpis: Log-GPIS on the hit
+        points (baseline; an unsigned distance).
     observer : object with ``on_stage(name, payload)``, optional
         Receives a :class:`StagePayload` after each stage.
-    stop_after : {"prepare", "hgmm", "gmr"}, optional
-        Return early (used by ``gmmgp run --stage``); the map then has no GP.
+    stop_after : str, optional
+        A stage of the method's recipe (:data:`RECIPES`), e.g. "prepare", "hgmm",
+        "gmr": return early (used by ``gmmgp run --stage``); the map then has no GP.
     executor : concurrent.futures.Executor, optional
         Fits the GP blocks as batched tasks (see :mod:`gmmgp_app.distributed`);
         the result equals the serial one.
     progress : callable(done, total), optional
         Called as GP block tasks finish.
+    loggpis_lambda : float, optional
+        Log-GPIS lambda (1/m).
 
     Returns
     -------
     SurfaceMap
     """
-    from .stages.gmr import GMRField
-    from .stages.gp import ConstantPrior, fit_local_gps, select_gp_points
-    from .stages.hgmm import fit_hgmm
-    from .stages.prepare import prepare
-
     cfg = MappingConfig() if cfg is None else cfg
     if method not in METHODS:
         raise ValueError(f"Unknown method {method!r}; expected one of {', '.join(METHODS)}.")
+    recipe = RECIPES[method]
+    if stop_after is not None:
+        if stop_after not in recipe:
+            raise PipelineError(f"Method {method} has no stage {stop_after!r} to stop after; "
+                                f"expected one of {', '.join(recipe)}.")
+        recipe = recipe[:recipe.index(stop_after) + 1]
     observer = observer or NullObserver()
     summary: dict = {"method": method, "n_scan_points": len(scan), "seconds": {}, "counts": {}}
-    stage = _StageRunner(observer, summary)
     observer.on_stage("scan", StagePayload(scan, 0.0))
-
-    data = stage("prepare", lambda: prepare(scan, cfg),
-                 counts=lambda d: {"hit_points": len(d.points), "rows": len(d.rows),
-                                   "dropped_virtual": d.n_dropped_virtual})
-    hgmm, gp, gp_mask = None, None, np.zeros(len(data.points), dtype=bool)
-    if method == "gpis":
-        prior = ConstantPrior(**_gpis_prior_kwargs(cfg))
-        gp_mask[:] = True
-    else:
-        if stop_after == "prepare":
-            return _early_map(method, cfg, scan, data, None, summary)
-        hgmm = stage("hgmm", lambda: fit_hgmm(data, cfg.hgmm),
-                     counts=lambda h: {"levels": len(h.levels),
-                                       "leaves": h.leaves.n_components})
-        if stop_after == "hgmm":
-            return _early_map(method, cfg, scan, data, hgmm, summary)
-        prior = GMRField.from_config(hgmm.leaves, cfg.gmr)
-        m_hits = stage("gmr", lambda: prior.predict(data.points)[0],
-                       extra=lambda m: {"points": data.points, "error": m})
-        gp_mask = select_gp_points(m_hits, cfg.gp.d_m) if method == "gmmgp" else gp_mask
-        summary["counts"]["gmr"] = {"rms_error_at_hits": float(np.sqrt(np.mean(m_hits ** 2))),
-                                    "gp_points": int(gp_mask.sum())}
-        if stop_after == "gmr" or method == "hgmm":
-            return SurfaceMap(method, cfg, scan.offset, prior, hgmm=hgmm,
-                              seed_points=surface_seeds(scan, cfg), summary=summary)
-    pts, nrm = data.points[gp_mask], data.normals[gp_mask]
-    if len(pts):
-        gp = stage("gp", lambda: fit_local_gps(pts, nrm, prior, cfg.gp, executor=executor,
-                                               progress=progress),
-                   counts=lambda g: {k: v for k, v in g.info.items()
-                                     if isinstance(v, (int, float))},
-                   extra=lambda g: {"points": pts, "normals": nrm})
-    return SurfaceMap(method, cfg, scan.offset, prior, hgmm=hgmm, gp=gp, gp_points=pts,
-                      gp_normals=nrm, seed_points=surface_seeds(scan, cfg), summary=summary)
+    ctx = RunContext(cfg, method, executor=executor, progress=progress,
+                     loggpis_lambda=loggpis_lambda)
+    state = run_stages(recipe + ("map",), {"scan": scan, "summary": summary}, ctx,
+                       observer=observer, summary=summary)
+    return state["smap"]
 
 
-class _StageRunner:
-    """Times a stage, records its counts, and tells the observer."""
+def update_map(smap: SurfaceMap, all_points, all_origins, new_points,
+               cfg: Optional[MappingConfig] = None, executor=None) -> tuple:
+    """Refit the GP blocks of ``smap`` whose training region holds a new point.
 
-    def __init__(self, observer, summary):
-        self.observer, self.summary = observer, summary
+    The map's prior (HGMM/GMR) is kept. The neighbourhood of the touched blocks is
+    prepared again from all the points (normals need neighbours), GP points are
+    selected there (eq. condition1) and each touched block is fitted on the GP
+    points in its region; every other block keeps its factorisation
+    (:data:`UPDATE_RECIPE`).
 
-    def __call__(self, name, fn, counts=None, extra=None):
-        start = getattr(self.observer, "on_stage_start", None)
-        if start is not None:
-            start(name)
-        t0 = time.perf_counter()
-        result = fn()
-        seconds = time.perf_counter() - t0
-        self.summary["seconds"][name] = seconds
-        if counts is not None:
-            self.summary["counts"][name] = counts(result)
-        self.observer.on_stage(name, StagePayload(result, seconds,
-                                                  extra(result) if extra else {}))
-        return result
-
-
-def _early_map(method, cfg, scan, data, hgmm, summary):
-    from .stages.gp import ConstantPrior
-
-    return SurfaceMap(method, cfg, scan.offset, ConstantPrior(**_gpis_prior_kwargs(cfg)),
-                      hgmm=hgmm, seed_points=surface_seeds(scan, cfg), summary=summary)
+    Returns
+    -------
+    (SurfaceMap, int)
+        The updated map and the number of refitted blocks.
+    """
+    cfg = smap.config if cfg is None else cfg
+    state = run_stages(UPDATE_RECIPE, {"smap": smap, "all_points": all_points,
+                                       "all_origins": all_origins, "new_points": new_points},
+                       RunContext(cfg, smap.method, executor=executor))
+    return state["smap"], state["n_refit"]
 
 
 def surface_seeds(scan: Scan, cfg: MappingConfig) -> np.ndarray:
-    """One scan point per cell of half the surface voxel: where the surface is sought.
-
-    All hit points (not only the training subsample) so that marching cubes covers
-    every observed surface; thinned so that dense scans do not bloat the map.
-    """
-    cell = cfg.surface.voxel_size / 2
-    keys = np.floor(scan.points / cell).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
-    return scan.points[np.sort(first)]
+    """Where a map of ``scan`` seeks its surface (:func:`stages.surface.surface_seeds`)."""
+    return _surface.surface_seeds(scan.points, cfg.surface)
 
 
-def _gpis_prior_kwargs(cfg: MappingConfig) -> dict:
-    # The paper's GPIS setup: a constant prior distance of 0.2 m.
-    return {"distance": 0.2, "variance": 0.2 ** 2}
-
-
-def _as_queries(xyz) -> np.ndarray:
+def as_queries(xyz) -> np.ndarray:
+    """Query points as a (K, 3) float64 array, refusing other shapes and non-finite rows."""
     q = np.asarray(xyz, dtype=np.float64)
     if q.ndim == 1 and q.shape[0] == 3:
         q = q[None, :]
@@ -355,9 +592,8 @@ def _as_queries(xyz) -> np.ndarray:
 # --------------------------------------------------------------------------- (de)serialise
 def _hgmm_to_arrays(h: HierarchicalGMM) -> dict:
     out = {"hgmm/n_levels": np.array(len(h.levels)), "hgmm/leaf_level": h.leaf_level}
-    for name, gm in [("leaves", h.leaves)]:
-        out.update({f"hgmm/{name}/weights": gm.weights, f"hgmm/{name}/means": gm.means,
-                    f"hgmm/{name}/covariances": gm.covariances})
+    out.update({"hgmm/leaves/weights": h.leaves.weights, "hgmm/leaves/means": h.leaves.means,
+                "hgmm/leaves/covariances": h.leaves.covariances})
     for i, lv in enumerate(h.levels):
         p = f"hgmm/level{i}/"
         out.update({p + "weights": lv.mixture.weights, p + "means": lv.mixture.means,
@@ -379,11 +615,12 @@ def _hgmm_from_arrays(a: dict) -> HierarchicalGMM:
     return HierarchicalGMM(tuple(levels), leaves, a["hgmm/leaf_level"], {})
 
 
-def _jsonable(obj):
+def jsonable(obj):
+    """``obj`` with numpy scalars and arrays turned into Python numbers and lists."""
     if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
+        return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
+        return [jsonable(v) for v in obj]
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, np.ndarray):
@@ -391,4 +628,20 @@ def _jsonable(obj):
     return obj
 
 
-_surface_seeds = surface_seeds  # former private name, still used by tiling and the GUI model
+# --------------------------------------------------------------------------- re-exports
+# What the rest of the package needs from the stages, through this one door.
+ConstantPrior = _gp.ConstantPrior
+complexity = _hgmm.complexity
+format_level_history = _hgmm.format_level_history
+HGMMError = _hgmm.HGMMError
+PrepareError = _prepare.PrepareError
+prepare = _prepare.prepare
+fit_hgmm = _hgmm.fit_hgmm
+new_space_fraction = _octree.new_space_fraction
+extract_surface = _surface.extract_surface
+mesh_field = _surface.mesh_field
+check_surface_grid = _surface.check_surface_grid
+std_colour_max = _surface.std_colour_max
+variance_colors = _surface.variance_colors
+write_mesh_ply = _surface.write_mesh_ply
+read_mesh_ply = _surface.read_mesh_ply

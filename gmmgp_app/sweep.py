@@ -1,4 +1,5 @@
-"""``gmmgp sweep``: map one scan for several values of one config field.
+"""Map one scan for several values of one config field (``gmmgp sweep``, whose command
+line is :mod:`gmmgp_app.commands.sweep`).
 
 Every value is one step on the ``sweep`` timeline of a single rerun recording
 (stages as in :mod:`gmmgp_app.viz.rerun_observer`, the scene is cleared between
@@ -18,17 +19,13 @@ RMSE with ``--reference`` (a mesh, or a dense cloud, see
 
 from __future__ import annotations
 
-import argparse
-import json
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
 from .pipeline import FanoutObserver
 
-__all__ = ["SweepError", "add_sweep_arguments", "cmd_sweep", "parse_values", "run_sweep"]
+__all__ = ["SweepError", "parse_values", "run_sweep", "table_markdown"]
 
 #: Queries for rmse_sdf.
 N_QUERIES = 20000
@@ -54,14 +51,14 @@ def parse_values(param: str, values: str, base=None) -> list:
     -------
     list of the parsed values, in order.
     """
-    from .config import MappingConfig, _parse_value
+    from .config import MappingConfig, parse_value
 
     base = MappingConfig() if base is None else base
     raw = [v.strip() for v in str(values).split(",") if v.strip()]
     if not raw:
         raise SweepError(f"Expected --values as a comma separated list like 0.005,0.01,0.02, "
                          f"found {values!r}.")
-    parsed = [_parse_value(v) for v in raw]
+    parsed = [parse_value(v) for v in raw]
     for v in parsed:
         base.replace(param, v)  # raises ConfigError naming the field and the value
     return parsed
@@ -84,7 +81,7 @@ class _Collect:
             self.data = payload.result
 
 
-def _table_markdown(param: str, rows: list) -> str:
+def table_markdown(param: str, rows: list) -> str:
     cols = [c for c in ("leaves", "gp_points", "gp_blocks", "vertices", "rmse_sdf",
                         "surface_rmse", "seconds") if any(c in r for r in rows)]
     lines = [f"# Sweep of `{param}`", "", "| step | value | " + " | ".join(cols) + " |",
@@ -111,7 +108,8 @@ def run_sweep(scan, param: str, values: list, *, base=None, method: str = "gmmgp
     values : list
         Already parsed values (see :func:`parse_values`).
     base : MappingConfig, optional
-    method : {"gmmgp", "hgmm", "gpis"}
+    method : str
+        One of :data:`gmmgp_app.config.METHODS`.
     rrd : path, optional
         Recording to write (one file, every value a step on ``sweep``).
     reference : Reference, optional
@@ -210,102 +208,9 @@ def run_sweep(scan, param: str, values: list, *, base=None, method: str = "gmmgp
                     obs.scalar(f"sweep/metrics/{k}", row[k])
             if isinstance(row["value"], (int, float)) and not isinstance(row["value"], bool):
                 obs.scalar("sweep/metrics/value", row["value"])
-            obs.log("sweep/table", obs.rr.TextDocument(_table_markdown(param, rows),
+            obs.log("sweep/table", obs.rr.TextDocument(table_markdown(param, rows),
                                                        media_type="text/markdown"))
             obs.flush()
     if obs is not None:
         obs.close()
     return rows
-
-
-# --------------------------------------------------------------------------- CLI
-SWEEP_EXAMPLES = """examples:
-  gmmgp sweep assets/demo_street.npz --param hgmm.split_threshold \\
-        --values 0.005,0.01,0.02,0.04 --rrd out/sweep/sweep.rrd
-  gmmgp sweep assets/demo_street.npz --param gp.d_m --values 0.01,0.02,0.05 \\
-        --reference assets/demo_street_mesh.ply --out out/sweep_dm
-  gmmgp sweep scan.npz --param hgmm.n_children --values 4,8 --no-mesh --out out/children"""
-
-
-def add_sweep_arguments(parser: argparse.ArgumentParser, *, config_options: bool = True,
-                        reader_options: bool = True) -> argparse.ArgumentParser:
-    """Add the ``gmmgp sweep`` arguments to ``parser``.
-
-    Parameters
-    ----------
-    parser : argparse.ArgumentParser
-    config_options : bool
-        Add ``--config``, ``--set`` and ``--help-config`` (as ``gmmgp run`` does).
-    reader_options : bool
-        Add ``--units``, ``--classes``, ``--poses``, ``--max-scans``.
-    """
-    parser.add_argument("scan", nargs="+", help="scan file(s) or folder")
-    parser.add_argument("--param", required=True, metavar="SECTION.FIELD",
-                        help="config field to sweep, e.g. hgmm.split_threshold "
-                             "(any field of 'gmmgp run --help-config')")
-    parser.add_argument("--values", required=True, metavar="V1,V2,...",
-                        help="comma separated values, e.g. 0.005,0.01,0.02,0.04")
-    parser.add_argument("--rrd", help="record every value to this rerun .rrd file, one step "
-                                      "per value on the 'sweep' timeline")
-    parser.add_argument("--out", help="folder for sweep.json (default: beside --rrd, else .)")
-    parser.add_argument("--reference", help="reference mesh or dense cloud (original frame): "
-                                            "adds rmse_sdf and surface_rmse per value")
-    parser.add_argument("--method", default="gmmgp", choices=["gmmgp", "hgmm", "gpis"])
-    parser.add_argument("--no-mesh", action="store_true", help="skip surface extraction")
-    if reader_options:
-        from .cli import _add_reader_options
-
-        _add_reader_options(parser)
-    if config_options:
-        from .cli import _add_config_options
-
-        _add_config_options(parser)
-    if parser.epilog is None:
-        parser.epilog = SWEEP_EXAMPLES
-    return parser
-
-
-def cmd_sweep(args) -> int:
-    """Run ``gmmgp sweep``; returns the exit code (0)."""
-    from ._atomic import atomic_write_text
-    from .config import MappingConfig
-
-    if getattr(args, "help_config", False):
-        from .cli import _print_config_help
-
-        return _print_config_help()
-    cfg = MappingConfig.from_toml(args.config) if getattr(args, "config", None) \
-        else MappingConfig()
-    if getattr(args, "set", None):
-        cfg = cfg.with_overrides(args.set)
-    values = parse_values(args.param, args.values, cfg)
-    if args.out:
-        out = Path(args.out)
-    elif args.rrd:
-        out = Path(args.rrd).resolve().parent
-    else:
-        out = Path(".")
-    from .datasets import read_scan
-    from .evaluation import Reference
-    from .progress import ConsoleObserver
-
-    reference = Reference.load(args.reference) if args.reference else None
-    kw = {}
-    if hasattr(args, "units"):  # reader options were added to the parser
-        from .cli import reader_kwargs
-
-        kw = reader_kwargs(args)
-    scan = read_scan(args.scan[0] if len(args.scan) == 1 else args.scan, **kw)
-    quiet = getattr(args, "quiet", False)
-    console = ConsoleObserver(enabled=not quiet)
-    rows = run_sweep(scan, args.param, values, base=cfg, method=args.method, rrd=args.rrd,
-                     reference=reference, mesh=not args.no_mesh, console=console)
-    out.mkdir(parents=True, exist_ok=True)
-    result = {"param": args.param, "values": [r["value"] for r in rows],
-              "scan": str(scan.source), "method": args.method,
-              "reference": args.reference, "rrd": args.rrd, "rows": rows}
-    path = atomic_write_text(out / "sweep.json", json.dumps(result, indent=2, default=float))
-    print(_table_markdown(args.param, rows), end="")
-    if not quiet:
-        print(f"wrote {path}" + (f", {args.rrd}" if args.rrd else ""), file=sys.stderr)
-    return 0

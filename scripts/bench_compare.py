@@ -44,7 +44,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     from gmmgp_app import MappingConfig
-    from gmmgp_app.eval_cli import run_evaluation
+    from gmmgp_app.compare import run_evaluation
     from gmmgp_app.evaluation import Reference, evaluate_field, sample_queries
     from gmmgp_app.pipeline import build_map
     from gmmgp_app.report import markdown_table, plot_metrics, write_metrics_json

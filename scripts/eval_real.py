@@ -58,7 +58,7 @@ def scaled_config(cfg, s: float):
 
 def run_bunny(args):
     from gmmgp_app import MappingConfig, read_scan
-    from gmmgp_app.eval_cli import run_evaluation, write_outputs
+    from gmmgp_app.compare import run_evaluation, write_outputs
     from gmmgp_app.evaluation import DEFAULT_BINS, Reference
     from gmmgp_app.pipeline import build_map
 
@@ -83,7 +83,7 @@ def run_bunny(args):
 
 def run_kitti(args):
     from gmmgp_app import MappingConfig, read_scan
-    from gmmgp_app.eval_cli import run_evaluation, write_outputs
+    from gmmgp_app.compare import run_evaluation, write_outputs
     from gmmgp_app.evaluation import DEFAULT_BINS, Reference, oriented_normals
     from gmmgp_app.pipeline import build_map
 

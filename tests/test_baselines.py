@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from gmmgp_app.stages.loggpis import (LogGPISError, LogGPISParams, build_loggpis_map,
-                                      fit_loggpis, loggpis_distance)
+from gmmgp_app.pipeline import build_map
+from gmmgp_app.stages.loggpis import LogGPISError, LogGPISParams, fit_loggpis, loggpis_distance
 
 
 def _plane(half=0.6, step=0.02):
@@ -81,13 +81,13 @@ def test_loggpis_map_from_scan():
     pts = np.column_stack([rng.uniform(-1, 1, (4000, 2)), rng.normal(0, 0.002, 4000)])
     scan = Scan(pts, origins=np.tile([0.0, 0.0, 2.0], (4000, 1)))
     cfg = MappingConfig().replace("prepare.subsample_rate", 0.5)
-    smap = build_loggpis_map(scan, cfg, lam=30.0)
+    smap = build_map(scan, cfg, method="loggpis", loggpis_lambda=30.0)
     assert smap.signed is False and smap.method == "loggpis"
-    assert set(smap.summary["seconds"]) == {"prepare", "gp"}
+    assert set(smap.summary["seconds"]) == {"prepare", "loggpis"}
     d, var = smap.predict(np.array([[0.1, 0.2, 0.0], [0.1, 0.2, 0.01]]))
     # range noise (2 mm) lowers v at the surface: a few millimetres there
     assert d[0] < 6e-3 and d[0] < d[1] < 0.01 and np.all(var > 0)
-    assert smap.field.params.length_scale == pytest.approx(math.sqrt(3) / 30.0)
+    assert smap.gp.params.length_scale == pytest.approx(math.sqrt(3) / 30.0)
 
 
 def test_loggpis_lambda_defaults_to_the_gp_length_scale():

@@ -9,7 +9,8 @@ import pytest
 from lasfile import write_las
 
 import gmmgp_app as gm
-from gmmgp_app.cli import _stream_plan, build_parser, main
+from gmmgp_app.cli import build_parser, main
+from gmmgp_app.commands.run import plan_streaming
 
 GEO = np.array([500000.0, 5400000.0, 100.0])  # georeferenced: the reader shifts it
 LOCAL_OFFSET = np.array([500000.0, 5399000.0, 0.0])  # the reader's automatic offset
@@ -128,7 +129,7 @@ def test_streamed_laz_uses_sensor_origins(street, tmp_path, capsys):
 def _plan(*argv):
     args = build_parser().parse_args(["run", *map(str, argv), "--out", "x",
                                       "--tile-size", "5"])
-    return _stream_plan(args)
+    return plan_streaming(args)
 
 
 def _geokeys_feet():
@@ -200,7 +201,7 @@ def box(box_scene):
 
 
 def test_eval_refuses_methods_a_tiled_map_cannot_answer(box, tmp_path, capsys):
-    from gmmgp_app.eval_cli import EvalInputError, _TiledModel, run_evaluation, tiled_methods
+    from gmmgp_app.compare import EvalInputError, _TiledModel, run_evaluation, tiled_methods
     from gmmgp_app.tiling import load_tiled_map
 
     root, opts = box

@@ -64,7 +64,7 @@ def test_cli_style_overrides_parse_toml_values():
 
 
 def test_toml_round_trip(tmp_path):
-    cfg = MappingConfig().replace({"hgmm.split_threshold": 0.03, "prepare.voxel_size": 0.1})
+    cfg = MappingConfig().replace({"hgmm.split_threshold": 0.03, "prepare.subsample_voxel": 0.1})
     path = tmp_path / "c.toml"
     path.write_text(cfg.to_toml())
     assert MappingConfig.from_toml(path) == cfg
@@ -81,3 +81,16 @@ def test_toml_errors(tmp_path):
     unknown.write_text("[hgmm]\nsplit_treshold = 0.02\n")
     with pytest.raises(ConfigError, match="Unknown config field 'hgmm.split_treshold'"):
         MappingConfig.from_toml(unknown)
+
+
+def test_renamed_field_is_still_read_with_a_warning(tmp_path):
+    from gmmgp_app.config import ConfigDeprecationWarning
+
+    with pytest.warns(ConfigDeprecationWarning, match="'prepare.voxel_size' is now "
+                                                      "'prepare.subsample_voxel'"):
+        cfg = MappingConfig().replace("prepare.voxel_size", 0.2)
+    assert cfg.prepare.subsample_voxel == 0.2
+    path = tmp_path / "old.toml"
+    path.write_text("[prepare]\nvoxel_size = 0.3\n")
+    with pytest.warns(ConfigDeprecationWarning):
+        assert MappingConfig.from_toml(path).prepare.subsample_voxel == 0.3

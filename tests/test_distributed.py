@@ -496,7 +496,8 @@ def _assert_same_prediction(a, b, q):
 
 
 def test_saved_tiled_map_predicts_bit_for_bit(street, tiled, tmp_path):
-    from gmmgp_app.tiling import _TileStore, load_tiled_map
+    from gmmgp_app.tiling import load_tiled_map
+    from gmmgp_app.tiling.store import _TileStore
 
     scan, _ = street
     d = tiled.save(tmp_path / "tm")

@@ -276,7 +276,7 @@ def test_bunny_reference_is_open_and_signed_near_the_surface():
 
 # --------------------------------------------------------------------------- gmmgp eval
 def _eval_parser():
-    from gmmgp_app.eval_cli import add_eval_arguments
+    from gmmgp_app.commands.eval import add_eval_arguments
 
     p = argparse.ArgumentParser()
     add_eval_arguments(p)
@@ -298,7 +298,7 @@ def tiny_run(box_scene):
 
 @pytest.mark.slow
 def test_eval_cli_writes_every_output(tiny_run):
-    from gmmgp_app.eval_cli import cmd_eval
+    from gmmgp_app.commands.eval import run as cmd_eval
 
     out = tiny_run / "eval"
     args = _eval_parser().parse_args([
@@ -327,7 +327,8 @@ def test_eval_cli_writes_every_output(tiny_run):
 
 
 def test_eval_cli_errors(tiny_run, tmp_path):
-    from gmmgp_app.eval_cli import EvalInputError, cmd_eval
+    from gmmgp_app.commands.eval import run as cmd_eval
+    from gmmgp_app.compare import EvalInputError
     from gmmgp_app.pipeline import MapFormatError
 
     def run(*extra):
@@ -358,7 +359,7 @@ def test_eval_cli_errors(tiny_run, tmp_path):
 
 @pytest.mark.slow
 def test_eval_cli_sparse_box_within_10cm_rmse_and_5cm_chamfer(tiny_run):
-    from gmmgp_app.eval_cli import cmd_eval
+    from gmmgp_app.commands.eval import run as cmd_eval
 
     out = tiny_run / "eval_chamfer"
     args = _eval_parser().parse_args([

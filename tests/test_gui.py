@@ -183,6 +183,7 @@ def test_cli_helpers_fail_in_one_line(tmp_path, monkeypatch):
     import argparse
 
     from gmmgp_app.viz import gui
+    from gmmgp_app.viz.gui_script import load_script
 
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
@@ -194,15 +195,15 @@ def test_cli_helpers_fail_in_one_line(tmp_path, monkeypatch):
     bad = tmp_path / "s.json"
     bad.write_text("{not json")
     with pytest.raises(ViewerError, match="Cannot read the script"):
-        gui._load_script(bad)
+        load_script(bad)
     bad.write_text('{"stage": "hgmm"}')
     with pytest.raises(ViewerError, match="Expected a JSON list of step objects"):
-        gui._load_script(bad)
+        load_script(bad)
     monkeypatch.setenv("DISPLAY", ":12345")
     p = argparse.ArgumentParser()
     gui.add_view_arguments(p)
-    with pytest.raises(ViewerError, match="Expected --voxel between"):
-        gui.cmd_view(p.parse_args([str(bad), "--voxel", "5"]))
+    with pytest.raises(ViewerError, match="Expected --voxel-size between"):
+        gui.open_view(p.parse_args([str(bad), "--voxel-size", "5"]), MappingConfig())
 
 
 def test_compute_modules_never_import_the_gui():
@@ -280,7 +281,7 @@ def test_app_steps_through_stages_and_reruns_under_xvfb(tmp_path, box_scan):
     env.pop("WAYLAND_DISPLAY", None)
     try:
         r = subprocess.run([sys.executable, "-m", "gmmgp_app.viz.gui", str(box_scan),
-                            "--size", "1200x800", "--voxel", "0.15", "--set", "gp.d_m=0.05",
+                            "--size", "1200x800", "--voxel-size", "0.15", "--set", "gp.d_m=0.05",
                             "--script", str(out / "steps.json")],
                            env=env, capture_output=True, text=True, timeout=240)
     finally:

@@ -104,3 +104,89 @@ def test_load_map_names_a_tiled_map(tmp_path):
     (tmp_path / "tiled.json").write_text("{}")
     with pytest.raises(MapFormatError, match="holds a tiled map .*load_tiled_map"):
         gm.load_map(tmp_path)
+
+
+def _map_arrays(smap) -> dict:
+    """Everything a saved map holds, as arrays (the npz of SurfaceMap.save)."""
+    from gmmgp_app.pipeline import _hgmm_to_arrays
+
+    out = {"gp_points": smap.gp_points, "gp_normals": smap.gp_normals,
+           "seed_points": smap.seed_points, "offset": smap.offset}
+    if smap.hgmm is not None:
+        out.update(_hgmm_to_arrays(smap.hgmm))
+    if smap.gp is not None:
+        out.update({f"gp/{k}": v for k, v in smap.gp.to_arrays().items()})
+    return out
+
+
+@pytest.mark.slow
+def test_gui_model_result_equals_build_map_on_the_demo_scan():
+    """The app's model runs the same recipe: same hierarchy, GP, seeds and surface."""
+    from pathlib import Path
+
+    from gmmgp_app.viz.gui_model import StageResults, ViewerModel
+
+    scan = gm.read_scan(Path(__file__).resolve().parents[1] / "assets" / "demo_street.npz")
+    cfg = gm.MappingConfig()
+    smap = gm.build_map(scan, cfg)
+    seen = []
+    model = ViewerModel(StageResults(config=cfg, voxel_size=0.2, scan=scan), "demo")
+    res = model.compute("prepare", cfg, 0.2, on_stage=lambda name, r: seen.append(name))
+    assert seen == ["prepare", "hgmm", "gmr", "gp", "surface"]
+    a, b = _map_arrays(smap), _map_arrays(res.smap)
+    assert sorted(a) == sorted(b)
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    q = scan.points[::97] + np.random.default_rng(0).normal(0, 0.1, (len(scan.points[::97]), 3))
+    for x, y in zip(smap.predict(q, return_grad=True), res.smap.predict(q, return_grad=True)):
+        np.testing.assert_array_equal(x, y)
+    mesh = smap.extract_surface(voxel_size=0.2)
+    np.testing.assert_array_equal(mesh.vertices, res.mesh.vertices)
+    np.testing.assert_array_equal(mesh.faces, res.mesh.faces)
+    np.testing.assert_array_equal(mesh.vertex_variance, res.mesh.vertex_variance)
+    # a re-run from the GP stage reuses the hierarchy and equals build_map with that d_m
+    cfg2 = cfg.replace("gp.d_m", 0.05)
+    res2 = model.compute("gp", cfg2, 0.2, base=res)
+    assert res2.hgmm is res.hgmm
+    ref2 = _map_arrays(gm.build_map(scan, cfg2))
+    got2 = _map_arrays(res2.smap)
+    for k in ref2:
+        np.testing.assert_array_equal(ref2[k], got2[k], err_msg=k)
+
+
+def test_every_method_goes_through_build_map(sphere, tmp_path):
+    scan, _ = sphere
+    cfg = gm.MappingConfig().replace("hgmm.max_levels", 2)
+    q = np.random.default_rng(1).uniform(-1.2, 1.2, size=(200, 3))
+    from gmmgp_app.pipeline import METHODS
+
+    for method in METHODS:
+        smap = gm.build_map(scan, cfg, method=method)
+        assert smap.method == method
+        assert smap.signed is (method != "loggpis")
+        m, v = smap.predict(q)
+        assert np.all(np.isfinite(m)) and np.all(v >= 0)
+        back = gm.load_map(smap.save(tmp_path / method))
+        m2, v2 = back.predict(q)
+        np.testing.assert_array_equal(m, m2)
+        np.testing.assert_array_equal(v, v2)
+    with pytest.raises(ValueError, match="unsigned distance"):
+        smap.extract_surface()
+
+
+def test_recipes_only_name_stages_of_the_table():
+    from gmmgp_app.pipeline import (RECIPES, STAGES, UPDATE_RECIPE, PipelineError, RunContext,
+                                    run_stages)
+
+    for names in list(RECIPES.values()) + [UPDATE_RECIPE]:
+        assert all(n in STAGES for n in names)
+    # every input a recipe needs is given by an earlier stage (or the initial state)
+    for method, names in RECIPES.items():
+        have = {"scan", "summary"}
+        for n in names + ("map",):
+            assert set(STAGES[n].inputs) <= have, (method, n)
+            have |= set(STAGES[n].outputs)
+    with pytest.raises(PipelineError, match="Stage 'hgmm' needs data"):
+        run_stages(["hgmm"], {}, RunContext(gm.MappingConfig()))
+    with pytest.raises(PipelineError, match="has no stage 'gp'"):
+        gm.build_map(gm.Scan(np.zeros((20, 3))), method="hgmm", stop_after="gp")

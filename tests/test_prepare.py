@@ -106,7 +106,7 @@ def test_subsample_rate_voxel_and_seed():
     a = subsample(pts, c, np.random.default_rng(1))
     b = subsample(pts, c, np.random.default_rng(1))
     assert len(a) == 1500 and np.array_equal(a, b) and np.all(np.diff(a) > 0)
-    vc = MappingConfig().replace("prepare.voxel_size", 2.0).prepare
+    vc = MappingConfig().replace("prepare.subsample_voxel", 2.0).prepare
     idx = subsample(pts, vc, np.random.default_rng(1))
     keys = np.floor((pts[idx] - pts.min(0)) / 2.0).astype(int)
     # One point per occupied voxel: 5^3 voxels, all occupied at this density.

@@ -399,7 +399,8 @@ def test_sweep_records_one_step_per_value(tiny, tmp_path):
     import argparse
 
     from gmmgp_app.evaluation import Reference
-    from gmmgp_app.sweep import add_sweep_arguments, cmd_sweep
+    from gmmgp_app.commands.sweep import add_sweep_arguments
+    from gmmgp_app.commands.sweep import run as cmd_sweep
 
     p = argparse.ArgumentParser()
     add_sweep_arguments(p)

@@ -39,19 +39,24 @@ from ._common import (
     OFFSET_THRESHOLD_M,
     ScanReadError,
     ScanWarning,
+    auto_offset,
     check_file,
     filter_classes,
     finalize,
     merge,
+    parse_units,
     qname,
 )
-from .las import write_las
+from .las import read_las_header, write_las
 from .registry import SUPPORTED_EXTENSIONS, read_conf_file, read_file, read_folder, read_list
 
 __all__ = [
     "read_scan",
     "scan_summary",
     "write_las",
+    "read_las_header",
+    "parse_units",
+    "auto_offset",
     "ScanReadError",
     "ScanWarning",
     "SUPPORTED_EXTENSIONS",

@@ -31,7 +31,8 @@ from ._common import (
     unit_name,
 )
 
-__all__ = ["read_las", "crs_units", "EPSG_LINEAR_UNITS", "parse_geokeys", "wkt_units"]
+__all__ = ["read_las", "read_las_header", "crs_units", "EPSG_LINEAR_UNITS", "parse_geokeys",
+           "wkt_units"]
 
 #: EPSG linear unit codes -> metres per unit (the ones met in practice).
 EPSG_LINEAR_UNITS = {
@@ -356,6 +357,39 @@ def read_las(path: Path, *, units=None, **_) -> RawScan:
     src = str(path) + (f" (CRS unit from {where})" if where and units is None else "")
     return RawScan(points=pts, origins=origins, labels=labels, intensity=intensity, units=name,
                    factor=factor, source=src)
+
+
+def read_las_header(path) -> Optional[dict]:
+    """What streaming a LAS/LAZ file needs from its header, without reading points.
+
+    A header that cannot describe the file (declared sizes beyond it) is refused
+    here with the reader's error; one laspy cannot parse gives None (the reader
+    then reports it with the fix).
+
+    Returns
+    -------
+    dict with ``mins``, ``maxs`` ((3,) float64), ``origins`` (extra dimensions
+    origin_x/y/z present), ``horizontal``, ``vertical`` (CRS unit factors or None,
+    see :func:`crs_units`) and ``crs`` (a CRS record is present); or None.
+    """
+    import laspy
+
+    from ._common import check_file
+
+    path = Path(path)
+    check_file(path)
+    _check_declared_size(path)  # a corrupt header fails here, before any work
+    try:
+        with laspy.open(str(path)) as reader:
+            hdr = reader.header
+            has_org = {"origin_x", "origin_y", "origin_z"} <= set(
+                hdr.point_format.dimension_names)
+            horiz, vert, _ = crs_units(hdr)
+            return {"mins": np.asarray(hdr.mins, dtype=np.float64),
+                    "maxs": np.asarray(hdr.maxs, dtype=np.float64), "origins": has_org,
+                    "horizontal": horiz, "vertical": vert, "crs": vlr_crs_present(hdr)}
+    except (laspy.errors.LaspyException, ValueError, OSError):
+        return None
 
 
 def vlr_crs_present(header) -> bool:

@@ -32,6 +32,10 @@ __all__ = [
     "fit_block",
     "predict_block",
     "fit_local_gps",
+    "fit_gp_blocks_at",
+    "touched_blocks",
+    "points_near_blocks",
+    "refit_touched_blocks",
 ]
 
 #: Cholesky jitter is raised x10 from ``GPConfig.jitter`` up to this (relative) bound.
@@ -534,6 +538,103 @@ def _fit_blocks_on(executor, pts, sigma_p, targets, sel, n_used, cfg, progress,
     out = map_batched(executor, _fit_block_batch, tasks, sizes=[len(b) for b in batches],
                       progress=progress)
     return [fit for part in out for fit in part]
+
+
+def fit_gp_blocks_at(keys, points, normals, prior, cfg, executor=None) -> LocalGPField:
+    """Local GPs of the blocks ``keys`` only, each on the GP points of its region.
+
+    The blocks of :func:`fit_local_gps` restricted to given cells (the incremental
+    update of a map refits only the blocks new points touch); points per block are
+    capped as there, with the same seed.
+    """
+    grid = BlockGrid(keys, cfg.block_size, cfg.block_overlap)
+    m, v, g = prior.predict(points, return_grad=True)
+    targets = np.column_stack([-np.asarray(m), normals - np.asarray(g)])
+    sigma_p = np.sqrt(np.maximum(np.asarray(v, dtype=np.float64), 0.0))
+    pi, bi = grid.cover(points)
+    rng = np.random.default_rng(0)
+    items = []
+    for b in range(grid.n_blocks):
+        idx = pi[bi == b]
+        if len(idx) > cfg.max_block_points:
+            idx = np.sort(rng.choice(idx, cfg.max_block_points, replace=False))
+        items.append((points[idx], sigma_p[idx], targets[idx]))
+    from gmmgp_app.distributed import batch_by_cost, gp_block_seconds, map_batched
+
+    hyper = (float(cfg.length_scale), float(cfg.value_noise), float(cfg.gradient_noise),
+             float(cfg.jitter))
+    batches = batch_by_cost(gp_block_seconds([len(it[0]) for it in items]))
+    out = map_batched(executor, _fit_block_batch,
+                      [([items[i] for i in bt], hyper) for bt in batches])
+    blocks = [f for part in out for f in part]
+    return LocalGPField(prior, grid, blocks, {k: float(getattr(cfg, k)) for k in _HYPER}, {})
+
+
+def touched_blocks(gp: LocalGPField, new_points) -> BlockGrid:
+    """Cells of ``gp``'s block lattice whose training region holds a new point."""
+    bs, ov = gp.hyper["block_size"], gp.hyper["block_overlap"]
+    half = 0.5 * (1.0 + ov) * bs
+    # cells whose training region [c*bs + bs/2 - half, ...] contains a new point
+    reach = int(math.ceil(half / bs - 0.5))
+    base = np.unique(np.floor(new_points / bs).astype(np.int64), axis=0)
+    rng_ = np.arange(-reach, reach + 1)
+    offs = np.stack(np.meshgrid(rng_, rng_, rng_, indexing="ij"), -1).reshape(-1, 3)
+    touched = np.unique((base[:, None, :] + offs[None]).reshape(-1, 3), axis=0)
+    return BlockGrid(touched, bs, ov)
+
+
+def points_near_blocks(grid: BlockGrid, points, margin: float) -> np.ndarray:
+    """Index of ``points`` within about ``margin`` (m) of the training regions of
+    ``grid``'s blocks (a superset, through a coarse grid of cell >= margin: cells
+    around the blocks' centres; BlockGrid.cover with a huge overlap loops over
+    span^3 offsets)."""
+    coarse = margin + grid.block_size
+    ck = np.unique(np.floor(grid.centres / coarse).astype(np.int64), axis=0)
+    o1 = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    ck = np.unique((ck[:, None, :] + o1[None]).reshape(-1, 3), axis=0)
+    return np.flatnonzero(BlockGrid(ck, coarse, 0.0).lookup(
+        np.floor(points / coarse).astype(np.int64)) >= 0)
+
+
+def refit_touched_blocks(gp: LocalGPField, touched: BlockGrid, points, normals, cfg,
+                         executor=None):
+    """Replace the blocks of ``gp`` in ``touched`` by blocks fitted on GP points.
+
+    Only the touched cells that hold a GP point are fitted (as :func:`fit_local_gps`
+    would create them), each on the GP points of its whole training region; every
+    other block keeps its factorisation.
+
+    Returns
+    -------
+    (LocalGPField, (P', 3) GP points used, int blocks refitted)
+    """
+    bs, ov = gp.hyper["block_size"], gp.hyper["block_overlap"]
+    keep_pts = np.zeros(len(points), dtype=bool)
+    if len(points):
+        keep_pts[touched.cover(points)[0]] = True
+    pts, nrm = points[keep_pts], normals[keep_pts]
+    # old blocks outside the touched set stay as they are
+    old_touched = touched.lookup(gp.grid.keys) >= 0
+    keys = [gp.grid.keys[~old_touched]]
+    blocks = [b for b, t in zip(gp.blocks, old_touched) if not t]
+    n_refit = 0
+    if len(pts):
+        own = np.unique(np.floor(pts / bs).astype(np.int64), axis=0)
+        own = own[touched.lookup(own) >= 0]
+        new = fit_gp_blocks_at(own, pts, nrm, gp.prior, cfg, executor)
+        keys.append(new.grid.keys)
+        blocks += list(new.blocks)
+        n_refit = len(new.blocks)
+    all_keys = np.concatenate(keys)
+    grid = BlockGrid(all_keys, bs, ov)
+    # BlockGrid sorts its keys: put the blocks in the same order
+    order = grid.lookup(all_keys)
+    sorted_blocks = [None] * len(blocks)
+    for b, pos in zip(blocks, order):
+        sorted_blocks[pos] = b
+    field = LocalGPField(gp.prior, grid, sorted_blocks, gp.hyper,
+                         dict(gp.info, n_blocks=len(sorted_blocks), updated=True))
+    return field, pts, n_refit
 
 
 def _fit_block_batch(task) -> list:

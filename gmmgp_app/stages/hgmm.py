@@ -452,7 +452,7 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
     rng = np.random.default_rng(hcfg.seed) if rng is None else rng
     D = X.shape[1]
     gsorted = None
-    if groups is not None and getattr(hcfg, "tie_virtual", True):
+    if groups is not None and hcfg.tie_virtual:
         # Rows of a group made contiguous; node row lists stay sorted, so groups
         # stay contiguous inside every node.
         X, gsorted = _sort_by_groups(X, groups)
@@ -470,7 +470,7 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
         if gptr is None:
             return g + (predict_labels(g[0], Xrows),)
         return g + (predict_group_labels(g[0], g[1]["group_weights"], Xrows, gptr),)
-    normalize = getattr(hcfg, "complexity_metric", "correlation") == "correlation"
+    normalize = hcfg.complexity_metric == "correlation"
     em_kw = dict(max_iter=hcfg.max_iter, tol=hcfg.tol, reg_covar=hcfg.reg_covar)
     min_child_rows = _ROWS_PER_CHILD_PER_DIM * D
 
@@ -490,7 +490,7 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
         c = complexity(covs, normalize=normalize)
         n_rows = np.array([len(r) for r in node_rows], dtype=np.int64)
         want = c > hcfg.split_threshold
-        max_std = getattr(hcfg, "split_max_std", None)
+        max_std = hcfg.split_max_std
         if max_std is not None:
             d3 = min(3, D)
             want |= np.linalg.eigvalsh(covs[:, :d3, :d3])[:, -1] > max_std ** 2

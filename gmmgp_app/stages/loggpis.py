@@ -26,7 +26,6 @@ Choices made here (the paper only names the method):
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,7 +36,7 @@ from gmmgp_app.stages.kernels import matern32_value
 from gmmgp_app.stages.octree import BlockGrid
 
 __all__ = ["LogGPISError", "LogGPISParams", "LogGPISField", "fit_loggpis",
-           "loggpis_distance", "build_loggpis_map", "LogGPISMap"]
+           "loggpis_distance"]
 
 #: Smallest ``v`` read back as a distance; below it ``d = -log(V_MIN) / lambda``.
 V_MIN = 1e-12
@@ -182,6 +181,35 @@ class LogGPISField:
         var = np.where(covered, np.minimum(spread, s2 + noise), var)
         return mu, var
 
+    _PARAMS = ("lam", "value_noise", "prior_variance", "block_size", "block_overlap",
+               "max_block_points", "margin", "jitter")
+
+    def to_arrays(self) -> dict:
+        """Flat arrays (no pickle) that :meth:`from_arrays` reads back bit for bit."""
+        n = np.array([len(X) for X, _, _ in self.blocks], dtype=np.int64)
+        return {"params": np.array([float(getattr(self.params, k)) for k in self._PARAMS]),
+                "block_keys": self.grid.keys, "point_ptr": np.r_[0, np.cumsum(n)],
+                "X": np.concatenate([X for X, _, _ in self.blocks]) if self.blocks
+                else np.zeros((0, 3)),
+                "L": np.concatenate([L.ravel() for _, L, _ in self.blocks]) if self.blocks
+                else np.zeros(0),
+                "alpha": np.concatenate([a for _, _, a in self.blocks]) if self.blocks
+                else np.zeros(0)}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict) -> "LogGPISField":
+        """The field saved by :meth:`to_arrays`."""
+        vals = dict(zip(cls._PARAMS, (float(v) for v in arrays["params"])))
+        vals["max_block_points"] = int(vals["max_block_points"])
+        params = LogGPISParams(**vals)
+        ptr = arrays["point_ptr"]
+        lptr = np.r_[0, np.cumsum(np.diff(ptr) ** 2)]
+        blocks = [(arrays["X"][a:b], arrays["L"][la:lb].reshape(b - a, b - a),
+                   arrays["alpha"][a:b])
+                  for a, b, la, lb in zip(ptr[:-1], ptr[1:], lptr[:-1], lptr[1:])]
+        grid = BlockGrid(arrays["block_keys"], params.block_size, params.block_overlap)
+        return cls(params, grid, blocks, dict(n_blocks=len(blocks), loaded=True))
+
     def predict(self, xyz, return_grad: bool = False):
         """Unsigned distance mean (K,) and variance (K,) (see :func:`loggpis_distance`)."""
         if return_grad:
@@ -233,70 +261,3 @@ def fit_loggpis(points, params: LogGPISParams, *, rng=None) -> LogGPISField:
                 points_per_block_max=int(max(used)), lam=params.lam,
                 length_scale=params.length_scale)
     return LogGPISField(params, grid, blocks, info)
-
-
-class LogGPISMap:
-    """What ``build_map(..., method="loggpis")`` returns: a map with ``predict``.
-
-    Attributes
-    ----------
-    method : str ("loggpis")
-    signed : bool (False)
-    field : LogGPISField
-    gp_points : (P, 3) hit points the GP was trained on
-    offset : (3,)
-    config : MappingConfig
-    summary : dict with ``seconds`` (prepare, gp) and ``counts``
-    """
-
-    method = "loggpis"
-    signed = False
-
-    def __init__(self, field: LogGPISField, gp_points, offset, config, summary):
-        self.field = field
-        self.gp_points = gp_points
-        self.offset = np.asarray(offset, dtype=np.float64)
-        self.config = config
-        self.summary = summary
-        self.hgmm = None
-
-    def predict(self, xyz, return_grad: bool = False):
-        """Unsigned distance mean (K,), variance (K,)."""
-        return self.field.predict(xyz, return_grad=return_grad)
-
-
-def build_loggpis_map(scan, cfg=None, *, lam: float | None = None, data=None,
-                      **overrides) -> LogGPISMap:
-    """Prepare a scan as the other methods do, then fit Log-GPIS on its hit points.
-
-    Parameters
-    ----------
-    scan : Scan
-    cfg : MappingConfig, optional
-    lam : float, optional
-        lambda (1/m); default ``sqrt(3) / cfg.gp.length_scale``.
-    data : TrainingSet, optional
-        An already prepared scan (skips the prepare stage and its time).
-    **overrides
-        Other :class:`LogGPISParams` fields.
-
-    Returns
-    -------
-    LogGPISMap
-    """
-    from gmmgp_app.config import MappingConfig
-    from gmmgp_app.stages.prepare import prepare
-
-    cfg = MappingConfig() if cfg is None else cfg
-    params = LogGPISParams.from_config(cfg, lam, **overrides)
-    seconds = {}
-    if data is None:
-        t0 = time.perf_counter()
-        data = prepare(scan, cfg)
-        seconds["prepare"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    field = fit_loggpis(data.points, params, rng=np.random.default_rng(cfg.seed))
-    seconds["gp"] = time.perf_counter() - t0
-    summary = {"method": "loggpis", "n_scan_points": len(scan), "seconds": seconds,
-               "counts": {"gp": field.info}}
-    return LogGPISMap(field, data.points, scan.offset, cfg, summary)

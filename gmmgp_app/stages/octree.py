@@ -15,7 +15,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["OctreeError", "BlockGrid"]
+__all__ = ["OctreeError", "BlockGrid", "new_space_fraction"]
 
 _BITS = 21
 _BIAS = 1 << (_BITS - 1)
@@ -175,3 +175,15 @@ class BlockGrid:
         p, b = _cover_pairs(lo, hi, self._packed)
         order = np.argsort(b, kind="stable")  # by block, then by point (p is ascending)
         return p[order], b[order]
+
+
+def new_space_fraction(old_points, new_points, voxel: float) -> float:
+    """Fraction of ``new_points`` in cells of edge ``voxel`` (m) holding none of
+    ``old_points`` (1 when there are no old points, 0 when there are no new ones)."""
+    if len(new_points) == 0:
+        return 0.0
+    if len(old_points) == 0:
+        return 1.0
+    grid = BlockGrid.from_points(old_points, voxel, 0.0)
+    cells = np.floor(new_points / voxel).astype(np.int64)
+    return float(np.mean(grid.lookup(cells) < 0))

@@ -63,14 +63,14 @@ def subsample(points: np.ndarray, cfg: PrepareConfig,
               rng: np.random.Generator) -> np.ndarray:
     """Indices (sorted, int64) of the hit points kept for training.
 
-    With ``cfg.voxel_size`` set, one randomly chosen real point per occupied
+    With ``cfg.subsample_voxel`` set, one randomly chosen real point per occupied
     voxel (real points keep their sensor origins, unlike voxel centroids);
     otherwise ``round(rate * N)`` points drawn without replacement.
     """
     n = len(points)
-    if cfg.voxel_size is not None:
+    if cfg.subsample_voxel is not None:
         perm = rng.permutation(n)
-        keys = np.floor((points[perm] - points.min(axis=0)) / cfg.voxel_size).astype(np.int64)
+        keys = np.floor((points[perm] - points.min(axis=0)) / cfg.subsample_voxel).astype(np.int64)
         _, first = np.unique(keys, axis=0, return_index=True)
         return np.sort(perm[first])
     m = max(1, int(round(cfg.subsample_rate * n)))

@@ -18,8 +18,9 @@ import numpy as np
 from .._atomic import atomic_path
 from ..types import SurfaceMesh
 
-__all__ = ["extract_surface", "check_grid_size", "write_mesh_ply", "write_mesh_obj", "read_mesh_ply",
-           "estimate_grid_nodes", "GridTooLargeError"]
+__all__ = ["extract_surface", "surface_seeds", "mesh_field", "check_surface_grid",
+           "check_grid_size", "std_colour_max", "variance_colors", "write_mesh_ply",
+           "write_mesh_obj", "read_mesh_ply", "estimate_grid_nodes", "GridTooLargeError"]
 
 # Refuse grids that would need more than this many field evaluations up front.
 MAX_GRID_NODES = 200_000_000
@@ -62,6 +63,41 @@ def check_grid_size(seeds: np.ndarray, voxel_size: float, dilate: Optional[int] 
             f"(~{bound * 8 * 8 / 2**30:.1f} GiB of temporaries), more than the limit of "
             f"{MAX_GRID_NODES:,}; use a larger voxel size.")
     return dilate
+
+
+def surface_seeds(points: np.ndarray, cfg) -> np.ndarray:
+    """One scan point per cell of half the surface voxel: where the surface is sought.
+
+    All hit points (not only the training subsample) so that marching cubes covers
+    every observed surface; thinned so that dense scans do not bloat the map.
+
+    Parameters
+    ----------
+    points : (N, 3) float64
+        The scan's points (local frame).
+    cfg : SurfaceConfig
+        ``voxel_size`` (m): the cell is half of it.
+    """
+    cell = cfg.voxel_size / 2
+    keys = np.floor(points / cell).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return points[np.sort(first)]
+
+
+def check_surface_grid(points: np.ndarray, cfg) -> int:
+    """:func:`check_grid_size` of the surface a map of ``points`` would get under ``cfg``
+    (SurfaceConfig): refuses an impossible grid before any fitting."""
+    return check_grid_size(surface_seeds(points, cfg), cfg.voxel_size)
+
+
+def mesh_field(predict: Callable, seeds: np.ndarray, cfg, voxel_size: Optional[float] = None,
+               max_std: Optional[float] = None, progress=None) -> SurfaceMesh:
+    """:func:`extract_surface` with the voxel and std cut of ``cfg`` (SurfaceConfig)
+    unless given: the one place where a map's surface settings are resolved."""
+    return extract_surface(predict, seeds,
+                           voxel_size=cfg.voxel_size if voxel_size is None else voxel_size,
+                           max_std=cfg.max_std if max_std is None else max_std,
+                           progress=progress)
 
 
 def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.05, *,
@@ -378,6 +414,13 @@ def variance_colors(variance: np.ndarray, vmax: Optional[float] = None,
     t = np.clip(std / max(vmax, 1e-12), 0, 1)
     rgba = matplotlib.colormaps[cmap](t)
     return (rgba[:, :3] * 255 + 0.5).astype(np.uint8)
+
+
+def std_colour_max(meshes) -> Optional[float]:
+    """Top of the std colour scale shared by ``meshes``: the largest 98th percentile of
+    their vertex standard deviations (None when they have no vertex)."""
+    return max((float(np.sqrt(np.quantile(m.vertex_variance, 0.98)))
+                for m in meshes if len(m.vertices)), default=None)
 
 
 def write_mesh_ply(mesh: SurfaceMesh, path, offset=None, vmax: Optional[float] = None) -> Path:

@@ -20,20 +20,12 @@ newer run has started (a generation counter); the view is rebuilt from the curre
 results, then ``post_redraw``.
 
 Automation (tests, README screenshots): ``--script steps.json`` runs a list of
-steps after the first computation, e.g.::
-
-    [{"stage": "hgmm"}, {"level": 1}, {"screenshot": "hgmm1.png", "window": true},
-     {"threshold": 0.03}, {"run": true}, {"state": "state.json"}, {"quit": true}]
-
-Step keys: stage, level, layer + on, colour_by_variance, threshold, d_m, voxel, run
-(waits unless ``"wait": false``), probe ([x, y, z] or "center"), screenshot (+ window:
-whole window through the X server instead of the 3D view alone), save, state, camera
-(eye, center), sleep, quit.
+steps after the first computation (:mod:`.gui_script`, which drives the app through
+its public methods).
 """
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import sys
@@ -45,8 +37,9 @@ import numpy as np
 
 from .gui_model import (STAGE_LABELS, STAGES, Cancelled, StageResults, ViewerError,
                         ViewerModel, first_affected_stage)
+from .gui_script import ScriptRunner, load_script
 
-__all__ = ["add_view_arguments", "cmd_view", "ViewerApp", "ViewerError", "run_app"]
+__all__ = ["add_view_arguments", "open_view", "ViewerApp", "ViewerError", "run_app"]
 
 LAYERS = ("points", "ellipsoids", "gp_points", "blocks", "mesh")
 LAYER_LABELS = {"points": "Points", "ellipsoids": "Ellipsoids (HGMM level)",
@@ -63,12 +56,12 @@ VOXEL_RANGE = (0.02, 1.0)
 LEGEND_CELLS = 24
 
 
-# --------------------------------------------------------------------------- CLI
+# --------------------------------------------------------------------------- options
 def add_view_arguments(parser) -> None:
-    """Options of ``gmmgp view`` (added to the sub-parser by cli.py)."""
+    """The app's options (``gmmgp view`` adds the shared configuration options)."""
     parser.add_argument("target", help="scan file, saved map folder (map/) or a "
                         "'gmmgp run' output folder")
-    parser.add_argument("--voxel", type=float, default=0.1,
+    parser.add_argument("--voxel-size", type=float, default=0.1, metavar="M",
                         help="marching-cubes voxel of the surface in metres (default 0.1; "
                              "the map's 0.05 is sharper but about 4x slower)")
     parser.add_argument("--size", default="1600x1000", metavar="WxH",
@@ -77,28 +70,23 @@ def add_view_arguments(parser) -> None:
                         help="stage shown first (default: the last one computed)")
     parser.add_argument("--script", metavar="JSON",
                         help="run these steps after the first computation (automation and "
-                             "screenshots; see the module docstring of gmmgp_app.viz.gui)")
-    g = parser.add_argument_group("configuration")
-    g.add_argument("--config", help="TOML file with [prepare], [hgmm], [gmr], [gp], [surface]")
-    g.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
-                   help="override one field, e.g. --set hgmm.split_threshold=0.02 (repeatable)")
+                             "screenshots; see gmmgp_app.viz.gui_script)")
 
 
-def cmd_view(args) -> int:
-    """Open the app on ``args.target``; returns the exit code once the window closes."""
-    from ..config import MappingConfig
+def open_view(args, cfg) -> int:
+    """Open the app on ``args.target`` with ``cfg``; the exit code once the window closes.
 
+    Errors are raised (ViewerError and the readers' errors); the command line turns
+    them into exit codes.
+    """
     check_display()
-    cfg = MappingConfig.from_toml(args.config) if args.config else MappingConfig()
-    cfg = cfg.with_overrides(args.set) if args.set else cfg
     size = _parse_size(args.size)
-    if not (VOXEL_RANGE[0] <= args.voxel <= VOXEL_RANGE[1]):
-        raise ViewerError(f"Expected --voxel between {VOXEL_RANGE[0]} and {VOXEL_RANGE[1]} m, "
-                          f"found {args.voxel}; the app extracts surfaces interactively.")
-    steps = None
-    if args.script:
-        steps = _load_script(args.script)
-    model = ViewerModel.open(args.target, cfg, voxel_size=args.voxel)
+    if not (VOXEL_RANGE[0] <= args.voxel_size <= VOXEL_RANGE[1]):
+        raise ViewerError(f"Expected --voxel-size between {VOXEL_RANGE[0]} and "
+                          f"{VOXEL_RANGE[1]} m, found {args.voxel_size}; the app extracts "
+                          "surfaces interactively.")
+    steps = load_script(args.script) if args.script else None
+    model = ViewerModel.open(args.target, cfg, voxel_size=args.voxel_size)
     return run_app(model, size=size, first_stage=args.stage, script=steps)
 
 
@@ -121,19 +109,6 @@ def _parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def _load_script(path) -> list:
-    p = Path(path)
-    try:
-        steps = json.loads(p.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise ViewerError(f"Cannot read the script '{p}' ({e}); expected a JSON list of "
-                          "steps like [{\"stage\": \"hgmm\"}, {\"quit\": true}].") from None
-    if not isinstance(steps, list) or not all(isinstance(s, dict) for s in steps):
-        raise ViewerError(f"Expected a JSON list of step objects in '{p}', found "
-                          f"{type(steps).__name__}.")
-    return steps
-
-
 def run_app(model: ViewerModel, size=(1600, 1000), first_stage=None, script=None,
             hard_exit: bool = True) -> int:
     """Create the window, start the first computation and run the event loop.
@@ -148,7 +123,7 @@ def run_app(model: ViewerModel, size=(1600, 1000), first_stage=None, script=None
     viewer = ViewerApp(model, size=size, first_stage=first_stage, hard_exit=hard_exit)
     viewer.start_initial_run()
     if script is not None:
-        viewer.run_script(script)
+        ScriptRunner(viewer, script).start()
     app.run()
     return viewer.exit_code
 
@@ -157,7 +132,7 @@ def run_app(model: ViewerModel, size=(1600, 1000), first_stage=None, script=None
 class ViewerApp:
     """The window (view) and its event handlers (controller) around a ViewerModel.
 
-    All methods except the worker bodies and :meth:`run_script`'s driver run on the
+    All methods except the worker bodies and the script runner's driver run on the
     GUI main thread.
     """
 
@@ -500,7 +475,7 @@ class ViewerApp:
         secs = results.seconds.get(name, 0.0)
         self.status_label.text = f"{STAGE_LABELS[name]} done ({secs:.1f} s)"
         if not self._user_stage:
-            self.stage = name if name != "prepare" else "prepare"
+            self.stage = name
             self.layers = set(STAGE_LAYERS[self.stage])
         if name == "hgmm":
             self.level = min(self.level, len(results.hgmm.levels) - 1)
@@ -874,10 +849,6 @@ class ViewerApp:
         self.scene.force_redraw()
         self.window.post_redraw()
 
-    def _redraw_now(self):
-        self.scene.force_redraw()
-        self.window.post_redraw()
-
     def window_frame(self):
         """(x, y, width, height) of the window on the screen, in pixels."""
         f = self.window.os_frame
@@ -939,173 +910,46 @@ class ViewerApp:
                 "generation": self.generation, "dropped_results": self.dropped_results,
                 "seconds": self.model.results.seconds, "errors": list(self.errors)}
 
-    def run_script(self, steps, settle: float = 0.8, timeout: float = 600.0):
-        """Run automation steps in a driver thread (each step executes on the main thread)."""
-        def on_main(fn):
-            done, box = threading.Event(), {}
+    # ------------------------------------------------------------------ automation API
+    def post(self, fn) -> None:
+        """Run ``fn`` on the main (GUI) thread."""
+        self.app.post_to_main_thread(self.window, fn)
 
-            def call():
-                try:
-                    box["value"] = fn()
-                except Exception as e:  # noqa: BLE001 - reported, then the app quits
-                    box["error"] = e
-                done.set()
-            self.app.post_to_main_thread(self.window, call)
-            if not done.wait(timeout):
-                raise TimeoutError("a GUI step did not run within the timeout")
-            if "error" in box:
-                raise box["error"]
-            return box.get("value")
+    def request_redraw(self) -> None:
+        """Ask for a new frame of the 3D view and the window."""
+        self.scene.force_redraw()
+        self.window.post_redraw()
 
-        def wait_idle():
-            if not self.idle.wait(timeout):
-                raise TimeoutError(f"the computation did not finish within {timeout:.0f} s")
+    def render_view(self, on_image) -> None:
+        """Call ``on_image(image)`` once the 3D view's next frame is drawn (main thread)."""
+        self.scene.scene.scene.render_to_image(on_image)
+        self.request_redraw()
 
-        def drive():
-            try:
-                wait_idle()
-                on_main(lambda: None)  # let the last stage's refresh land
-                for step in steps:
-                    t0 = time.perf_counter()
-                    self._script_step(step, on_main, wait_idle, settle)
-                    if os.environ.get("GMMGP_GUI_TRACE"):
-                        print(f"[gmmgp view]   took {time.perf_counter() - t0:.2f} s",
-                              file=sys.stderr, flush=True)
-            except Exception as e:  # noqa: BLE001
-                msg = f"script failed: {type(e).__name__}: {e}"
-                print(msg, file=sys.stderr, flush=True)
-                self.errors.append(msg)
-                self.exit_code = 1
-                self.app.post_to_main_thread(self.window, self.quit)
+    def scan_centre(self) -> list:
+        """Median of the shown scan's points (a point to probe)."""
+        return np.median(self.model.results.scan.points, axis=0).tolist()
 
-        threading.Thread(target=drive, name="gmmgp-script", daemon=True).start()
-
-    def _script_step(self, step, on_main, wait_idle, settle):
-        if os.environ.get("GMMGP_GUI_TRACE"):
-            print(f"[gmmgp view] {time.strftime('%H:%M:%S')} step {json.dumps(step)}",
-                  file=sys.stderr, flush=True)
-        if "stage" in step:
-            on_main(lambda: self.set_stage(step["stage"]))
-        if "level" in step:
-            on_main(lambda: self.set_level(int(step["level"])))
-        if "layer" in step:
-            on_main(lambda: self.set_layer(step["layer"], bool(step.get("on", True))))
-        if "colour_by_variance" in step:
-            on_main(lambda: self.set_colour_by_variance(bool(step["colour_by_variance"])))
-        if "threshold" in step:
-            on_main(lambda: self.set_threshold(float(step["threshold"])))
-        if "d_m" in step:
-            on_main(lambda: self.set_d_m(float(step["d_m"])))
-        if "voxel" in step:
-            on_main(lambda: self.set_voxel(float(step["voxel"])))
-        if "camera" in step:
-            cam = step["camera"]
-            on_main(lambda: self.set_camera(cam["center"], cam["eye"], cam.get("up", (0, 0, 1))))
-        if step.get("run"):
-            on_main(self.run)
-            if step.get("wait", True):
-                wait_idle()
-                on_main(lambda: None)
-        if "probe" in step:
-            p = step["probe"]
-            if p == "center":
-                p = np.median(self.model.results.scan.points, axis=0).tolist()
-            on_main(lambda: self.probe(p))
-        if "screenshot" in step:
-            path = Path(step["screenshot"])
-            time.sleep(settle)  # let the window draw the last change
-            if step.get("window"):
-                self._grab_when_drawn(path, on_main)
-            else:
-                ev = threading.Event()
-                on_main(lambda: self.screenshot(path, lambda q: ev.set()))
-                self._wait_for_frame(ev, f"screenshot {path}")
-        if "save" in step:
-            ev, box = threading.Event(), {}
-            on_main(lambda: self.save_map(step["save"], lambda m: (box.update(msg=m), ev.set())))
-            if not ev.wait(120):
-                raise TimeoutError("saving the map took more than 120 s")
-        if "state" in step:
-            st = on_main(self.state)
-            Path(step["state"]).write_text(json.dumps(st, indent=2, default=float))
-        if "sleep" in step:
-            time.sleep(float(step["sleep"]))
-        if step.get("quit"):
-            on_main(self.quit)
-
-
-    def _wait_for_frame(self, ev: threading.Event, what: str, timeout: float = 180.0):
-        """Wait (driver thread) for ``ev``, set once a requested frame has been drawn.
-
-        Frames are drawn on demand, and a request can miss the frame in flight, so ask
-        again when none came -- with back-off: on a CPU renderer under load one frame
-        takes seconds, and re-asking every 0.25 s queued frames faster than they were
-        drawn (stalls of minutes, also at exit while the queue drained).
-        """
-        t_end = time.monotonic() + timeout
-        delay = 1.0
-        while not ev.wait(delay):
-            if time.monotonic() > t_end:
-                raise TimeoutError(f"{what} was not rendered within {timeout:.0f} s")
-            self.app.post_to_main_thread(self.window, self._redraw_now)
-            delay = min(2.0 * delay, 8.0)
-
-    def _frame_fence(self, on_main):
-        """Return once the window has drawn one more complete frame.
-
-        A read-back of the 3D view is served by the next frame, so its callback is a
-        fence: frames are drawn one at a time, never queued ahead of the renderer.
-        """
-        ev = threading.Event()
-
-        def request():
-            self.scene.scene.scene.render_to_image(lambda _img: ev.set())
-            self._redraw_now()
-        on_main(request)
-        self._wait_for_frame(ev, "a frame")
-
-    def _grab_when_drawn(self, path: Path, on_main, rounds: int = 6):
-        """Grab the whole window (panel included) from the X server once it is drawn.
-
-        Presented frames reach the X server a frame or two late (the Vulkan swapchain
-        holds several images), so draw two complete frames per round and grab until
-        two grabs (almost) agree.
-        """
-        previous = None
-        for _ in range(rounds):
-            for _ in range(2):
-                self._frame_fence(on_main)
-            img = _grab_window(on_main(self.window_frame))
-            if previous is not None:
-                a, b = np.asarray(img), np.asarray(previous)
-                if a.shape == b.shape and np.mean(np.any(a != b, axis=2)) < 1e-3:
-                    break
-            previous = img
-        path.parent.mkdir(parents=True, exist_ok=True)
-        img.save(path)
-
-
-def _grab_window(frame):
-    """The window's pixels (panel included) from the X server, as a PIL image."""
-    from PIL import ImageGrab
-
-    x, y, w, h = frame
-    return ImageGrab.grab(bbox=(x, y, x + w, y + h), xdisplay=os.environ.get("DISPLAY"))
-
+    def fail(self, msg: str) -> None:
+        """Record a failed automation step: exit code 1 and quit (main thread)."""
+        print(msg, file=sys.stderr, flush=True)
+        self.errors.append(msg)
+        self.exit_code = 1
+        self.quit()
 
 def main(argv=None) -> int:
-    """``python -m gmmgp_app.viz.gui TARGET [options]`` (same as ``gmmgp view``)."""
+    """``python -m gmmgp_app.viz.gui TARGET [options]``: ``gmmgp view`` without the
+    command line's error handling (errors propagate; use ``gmmgp view`` for one-line
+    messages and exit codes)."""
     import argparse
+
+    from ..commands.options import add_config_options, load_config
 
     parser = argparse.ArgumentParser(prog="python -m gmmgp_app.viz.gui",
                                      description="The gmmgp desktop app (gmmgp view).")
     add_view_arguments(parser)
+    add_config_options(parser)
     args = parser.parse_args(argv)
-    try:
-        return cmd_view(args)
-    except ValueError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    return open_view(args, load_config(args))
 
 
 if __name__ == "__main__":

@@ -6,16 +6,19 @@ thread, reusing the results of the stages before it; it never touches a widget
 and reports each finished stage through a callback, so the controller can hand
 the result to the main thread (and drop it if a newer run has started).
 
-Which stages a setting invalidates (:data:`RERUN_FROM`)::
+The stages themselves are run by :func:`gmmgp_app.pipeline.run_stages` on the
+pipeline's recipe (the same code as ``build_map``); this model only keeps their
+results. Which stages a setting invalidates (:func:`first_affected_stage`)::
 
-    hgmm.split_threshold -> hgmm, gmr, gp, surface
-    gp.d_m               -> gp, surface
-    surface voxel size   -> surface
+    hgmm (or gmr) settings -> hgmm, gmr, gp, surface
+    gp settings, e.g. d_m  -> gp, surface
+    surface voxel size     -> surface
 """
 
 from __future__ import annotations
 
 import dataclasses
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
@@ -25,15 +28,16 @@ import numpy as np
 from ..config import MappingConfig
 from ..types import HierarchicalGMM, Scan, SurfaceMesh, TrainingSet
 
-__all__ = ["STAGES", "STAGE_LABELS", "RERUN_FROM", "ViewerError", "StageResults",
+__all__ = ["STAGES", "STAGE_LABELS", "ViewerError", "StageResults",
            "ViewerModel", "first_affected_stage"]
 
-#: Stages in pipeline order; "surface" is marching cubes on the final field.
+#: Stages the app shows, in pipeline order; "surface" is marching cubes on the final field.
 STAGES = ("scan", "prepare", "hgmm", "gmr", "gp", "surface")
 STAGE_LABELS = {"scan": "Scan", "prepare": "Prepared rows", "hgmm": "HGMM",
                 "gmr": "GMR error", "gp": "GP points", "surface": "Surface"}
-#: First stage to recompute when a setting changes.
-RERUN_FROM = {"hgmm.split_threshold": "hgmm", "gp.d_m": "gp", "surface.voxel_size": "surface"}
+#: The pipeline stages behind each shown stage (gmmgp recipe, then the map and its mesh).
+_PIPELINE_STAGES = {"prepare": ("prepare",), "hgmm": ("hgmm",), "gmr": ("gmr",),
+                    "gp": ("select", "gp", "map"), "surface": ("surface",)}
 
 
 class ViewerError(ValueError):
@@ -214,11 +218,7 @@ class ViewerModel:
         -------
         StageResults
         """
-        from ..pipeline import SurfaceMap, _surface_seeds
-        from ..stages.gmr import GMRField
-        from ..stages.gp import fit_local_gps, select_gp_points
-        from ..stages.hgmm import fit_hgmm
-        from ..stages.prepare import prepare
+        from ..pipeline import RunContext, run_stages
 
         r = self.results if base is None else base
         if start not in STAGES[1:]:
@@ -239,48 +239,35 @@ class ViewerModel:
         if start == "surface":
             clear.pop("smap", None)
         r = dataclasses.replace(r, config=cfg, voxel_size=voxel_size, **clear)
+        # the pipeline's state from the results kept (None = not computed)
+        state = {k: v for k, v in (("scan", r.scan), ("data", r.data), ("hgmm", r.hgmm),
+                                   ("prior", r.prior), ("gmr_error", r.gmr_error),
+                                   ("smap", r.smap)) if v is not None}
+        shown = {stages[-1]: name for name, stages in _PIPELINE_STAGES.items()}
+        fields = {"prepare": ("data",), "hgmm": ("hgmm",), "gmr": ("prior", "gmr_error"),
+                  "gp": ("gp_points", "gp", "smap"), "surface": ("mesh",)}
+        summary = {"seconds": {}, "counts": {}}
+        t0 = [time.perf_counter()]
 
-        def done(name, **kw):
+        def after(name, st):
             nonlocal r
-            r = dataclasses.replace(r, seconds=dict(seconds), **kw)
-            if on_stage is not None:
-                on_stage(name, r)
+            if name in shown:
+                stage = shown[name]
+                seconds[stage] = time.perf_counter() - t0[0]
+                r = dataclasses.replace(r, seconds=dict(seconds),
+                                        **{k: st.get(k) for k in fields[stage]})
+                if on_stage is not None:
+                    on_stage(stage, r)
+                t0[0] = time.perf_counter()
             if cancelled():
                 raise Cancelled(name)
 
-        import time
-
-        for name in order:
-            if cancelled():
-                raise Cancelled(name)
-            t0 = time.perf_counter()
-            if name == "prepare":
-                data = prepare(r.scan, cfg)
-                seconds[name] = time.perf_counter() - t0
-                done(name, data=data)
-            elif name == "hgmm":
-                h = fit_hgmm(r.data, cfg.hgmm)
-                prior = GMRField.from_config(h.leaves, cfg.gmr)
-                seconds[name] = time.perf_counter() - t0
-                done(name, hgmm=h, prior=prior)
-            elif name == "gmr":
-                m = r.prior.predict(r.data.points)[0]
-                seconds[name] = time.perf_counter() - t0
-                done(name, gmr_error=m)
-            elif name == "gp":
-                mask = select_gp_points(r.gmr_error, cfg.gp.d_m)
-                pts, nrm = r.data.points[mask], r.data.normals[mask]
-                gp = fit_local_gps(pts, nrm, r.prior, cfg.gp) if len(pts) else None
-                smap = SurfaceMap("gmmgp", cfg, r.scan.offset, r.prior, hgmm=r.hgmm, gp=gp,
-                                  gp_points=pts, gp_normals=nrm,
-                                  seed_points=_surface_seeds(r.scan, cfg))
-                seconds[name] = time.perf_counter() - t0
-                done(name, gp_points=pts, gp=gp, smap=smap)
-            elif name == "surface":
-                bar = _ProgressBar(progress) if progress is not None else None
-                mesh = r.smap.extract_surface(voxel_size, progress=bar)
-                seconds[name] = time.perf_counter() - t0
-                done(name, mesh=mesh)
+        bar = _ProgressBar(progress) if progress is not None else None
+        ctx = RunContext(cfg, "gmmgp", voxel_size=voxel_size, surface_progress=bar)
+        names = [p for s in order for p in _PIPELINE_STAGES[s]]
+        if cancelled():
+            raise Cancelled(start)
+        run_stages(names, state, ctx, summary=summary, on_stage=after)
         return r
 
     # ------------------------------------------------------------------ queries

@@ -53,6 +53,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .gui_model import STAGES as STAGE_ORDER  # the stages shown, in pipeline order
+
 __all__ = [
     "STAGE_ORDER",
     "RerunError",
@@ -66,7 +68,6 @@ __all__ = [
     "start_local_server",
 ]
 
-STAGE_ORDER = ("scan", "prepare", "hgmm", "gmr", "gp", "surface")
 #: |m(x)| at which the GMR error colour saturates, in units of d_m.
 ERROR_SATURATION_DM = 5.0
 #: Largest complexity of a D-dimensional Gaussian (isotropic) is 1/D; rows are 4D.
@@ -405,7 +406,7 @@ class RerunObserver:
             self.scalar("metrics/hgmm/nodes_per_level", gm.n_components)
             self.scalar("metrics/hgmm/split_per_level", int(split.sum()))
         self.set_time(stage=self.step)
-        from ..stages.hgmm import complexity
+        from ..pipeline import complexity
 
         leaves = hgmm.leaves
         c, h, q = ellipsoid_params(leaves.means, leaves.covariances)
@@ -419,8 +420,7 @@ class RerunObserver:
 
     def _normalized_c(self) -> bool:
         cfg = self.config
-        return cfg is None or getattr(cfg.hgmm, "complexity_metric", "correlation") \
-            == "correlation"
+        return cfg is None or cfg.hgmm.complexity_metric == "correlation"
 
     def _d_m(self) -> float:
         return float(self.config.gp.d_m) if self.config is not None else 0.02
@@ -463,12 +463,10 @@ class RerunObserver:
 
     def _log_surface(self, meshes, extra) -> None:
         """``meshes``: dict method -> SurfaceMesh, all on one std colour scale."""
-        from ..stages.surface import variance_colors
+        from ..pipeline import std_colour_max, variance_colors
 
         rr = self.rr
-        stds = [float(np.sqrt(np.quantile(m.vertex_variance, 0.98)))
-                for m in meshes.values() if len(m.vertices)]
-        vmax = max(stds) if stds else None
+        vmax = std_colour_max(meshes.values())
         for method, mesh in meshes.items():
             self.count(f"vertices_{method}", len(mesh.vertices))
             if len(mesh.faces) == 0:

@@ -1,90 +1,43 @@
-"""``gmmgp eval``: the paper's comparison of methods on one scan, against a reference.
-
-``cli.py`` registers :func:`add_eval_arguments` on the ``eval`` sub-parser and
-dispatches to :func:`cmd_eval`; the functions here raise exceptions (ValueError
-subclasses) and ``cli.py`` turns them into exit codes.
+"""The paper's comparison of methods on one scan, against a reference (``gmmgp eval``).
 
 The recipe:
 
-1. load the saved map of ``DIR/map`` and its configuration (a tiled map of
-   ``run --tile-size`` answers for gmmgp, and hgmm as its tiles' stitched priors,
-   only: the other methods would be built untiled on the whole scan);
-2. read the scan (``--scan``, or the paths recorded in the map's summary) and
-   prepare it once: its hit points are the binning axis and the query seeds;
+1. the saved map of a run and its configuration (a tiled map of ``run
+   --tile-size`` answers for gmmgp, and hgmm as its tiles' stitched priors, only:
+   the other methods would be built untiled on the whole scan);
+2. the scan, prepared once: its hit points are the binning axis and the query seeds;
 3. queries: hit points moved along their normal by up to the last bin edge;
-4. every method of ``--methods`` (the saved one is reused, the others are built on
-   the same scan and configuration) is predicted at the queries and scored
-   against the reference (:mod:`gmmgp_app.evaluation`);
+4. every method (the saved one is reused, the others are built on the same scan and
+   configuration through :func:`gmmgp_app.pipeline.build_map`) is predicted at the
+   queries and scored against the reference (:mod:`gmmgp_app.evaluation`);
 5. surfaces (the run's ``mesh_*.ply`` when present, else extracted) are compared
    with the reference (Chamfer, Hausdorff);
-6. ``metrics.json``, ``metrics.csv``, ``metrics.md`` and PNG figures go to ``--out``
-   (default ``DIR/eval``), each written atomically.
+6. ``metrics.json``, ``metrics.csv``, ``metrics.md`` and PNG figures, each written
+   atomically (:func:`write_outputs`).
+
+The command line is :mod:`gmmgp_app.commands.eval`.
 """
 
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["add_eval_arguments", "cmd_eval", "run_evaluation", "EVAL_METHODS",
-           "EvalInputError", "tiled_methods"]
+from .config import METHODS
 
-EVAL_METHODS = ("gmmgp", "hgmm", "gpis", "loggpis")
+__all__ = ["run_evaluation", "EVAL_METHODS", "EvalInputError", "tiled_methods",
+           "write_outputs", "load_reference", "parse_methods", "parse_bins"]
 
-EXAMPLES = """examples:
-  gmmgp run assets/demo_street.npz --out out/demo
-  gmmgp eval out/demo --scan assets/demo_street.npz --reference assets/demo_street_mesh.ply
-  gmmgp eval out/demo --scan assets/demo_street.npz --reference ref.ply --methods gmmgp,gpis,loggpis
-  gmmgp eval out/kitti --scan ../shared/data/kitti_odometry_seq00/velodyne/000000.bin \\
-      --reference ../shared/data/kitti_odometry_seq00/velodyne \\
-      --reference-poses ../shared/data/kitti_odometry_seq00/poses_gicp_estimated.txt"""
+EVAL_METHODS = METHODS
 
 
 class EvalInputError(ValueError):
     """Bad arguments to ``gmmgp eval`` (unknown method, missing scan, ...)."""
 
 
-def add_eval_arguments(p) -> None:
-    """Add the ``eval`` arguments to an argparse (sub-)parser."""
-    p.add_argument("directory", help="output folder of 'gmmgp run' (holds map/)")
-    p.add_argument("--reference", required=True,
-                   help="reference surface: a mesh (.ply/.obj/.stl/.off; exact distance) or a "
-                        "dense point cloud / folder of scans (nearest-neighbour distance)")
-    p.add_argument("--methods", default=None,
-                   help="comma-separated subset of gmmgp,hgmm,gpis,loggpis "
-                        "(default: all four)")
-    p.add_argument("--scan", nargs="+",
-                   help="the scan the map was built from (default: the paths recorded in "
-                        "the map, when there are any)")
-    p.add_argument("--out", help="output folder (default: DIRECTORY/eval)")
-    p.add_argument("--queries", type=int, default=20000,
-                   help="number of test points (default 20000)")
-    p.add_argument("--bins", default=None,
-                   help="distance bin edges in metres, e.g. 0,0.05,0.1,0.2,0.3,0.5 "
-                        "(the default, the paper's range)")
-    p.add_argument("--lambda", dest="lam", type=float, default=None,
-                   help="Log-GPIS lambda in 1/m (default sqrt(3) / gp.length_scale)")
-    p.add_argument("--voxel-size", type=float, default=None,
-                   help="voxel size of extracted surfaces (default: the map's surface.voxel_size)")
-    p.add_argument("--no-surface", action="store_true",
-                   help="skip the Chamfer / Hausdorff distances of the surfaces")
-    p.add_argument("--reference-poses",
-                   help="pose file for a folder of reference scans (KITTI 3x4 rows)")
-    p.add_argument("--reference-skip", type=int, default=None,
-                   help="drop the first N scans of a reference folder (e.g. 1 when scan 0 "
-                        "is the training scan)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the query sampling")
-    g = p.add_argument_group("reading the scan")
-    g.add_argument("--units", help="input units of the scan: m, ft, us-ft, or a factor")
-    g.add_argument("--poses", help="pose file for a folder of scans")
-    g.add_argument("--max-scans", type=int, help="use at most this many scans of a folder")
-    p.epilog = EXAMPLES
-
-
-def _parse_methods(text) -> list:
+def parse_methods(text) -> list:
     if text is None:
         return list(EVAL_METHODS)
     names = [m.strip() for m in text.split(",") if m.strip()]
@@ -95,7 +48,7 @@ def _parse_methods(text) -> list:
     return list(dict.fromkeys(names))
 
 
-def _parse_bins(text):
+def parse_bins(text):
     from .evaluation import DEFAULT_BINS
 
     if text is None:
@@ -111,63 +64,8 @@ def _parse_bins(text):
     return edges
 
 
-def cmd_eval(args) -> int:
-    """Run ``gmmgp eval`` from parsed arguments; returns the exit code (0)."""
-    quiet = getattr(args, "quiet", False)
-    log = (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))
-    directory = Path(args.directory)
-    methods = _parse_methods(args.methods)
-    bins = _parse_bins(args.bins)
-    if args.queries < 10:
-        raise EvalInputError(f"Expected --queries >= 10, found {args.queries}.")
-    out = Path(args.out) if args.out else directory / "eval"
-
-    from .datasets import read_scan
-    from .pipeline import load_map
-
-    if (directory / "map" / "tiled.json").is_file():
-        from .tiling import load_tiled_map
-
-        smap = load_tiled_map(directory / "map", load_points=False)
-        provided = tiled_methods(smap)
-        if args.methods is None:  # the default: what the tiled map can answer for
-            methods = provided
-            log(f"tiled map: evaluating {','.join(provided)} (the other methods need an "
-                "untiled run)")
-        _check_tiled_methods(methods, provided)
-    else:
-        smap = load_map(directory / "map")
-    scan_paths = args.scan or smap.summary.get("scan", {}).get("paths")
-    if not scan_paths:
-        raise EvalInputError(
-            f"The map in '{directory}' does not record its scan; pass it with --scan "
-            "(the same file(s) given to 'gmmgp run').")
-    from .cli import reader_kwargs
-
-    scan_kw = reader_kwargs(args) or dict(smap.summary.get("scan", {}).get("reader", {}))
-    log(f"reading scan {', '.join(map(str, scan_paths))}")
-    scan = read_scan(scan_paths[0] if len(scan_paths) == 1 else list(scan_paths), **scan_kw)
-    n_saved = smap.summary.get("n_points" if _is_tiled(smap) else "n_scan_points")
-    if n_saved is not None and int(n_saved) != len(scan):
-        raise EvalInputError(
-            f"The scan has {len(scan)} points but the map was built from {n_saved}; pass the "
-            "scan (and reader options) used with 'gmmgp run'.")
-    log(f"reading reference {args.reference}")
-    ref_kw = {}
-    if args.reference_poses:
-        ref_kw["poses"] = args.reference_poses
-    reference = _load_reference(args.reference, ref_kw, args.reference_skip)
-    results = run_evaluation(scan, smap, reference, methods, bins=bins,
-                             n_queries=args.queries, seed=args.seed, lam=args.lam,
-                             surfaces=not args.no_surface, voxel_size=args.voxel_size,
-                             run_dir=directory, log=log)
-    results["scan"] = [str(p) for p in scan_paths]
-    written = write_outputs(results, out)
-    log("wrote " + ", ".join(str(w) for w in written))
-    return 0
-
-
-def _load_reference(path, reader_kwargs, skip):
+def load_reference(path, reader_kwargs, skip):
+    """The reference of ``--reference`` (a folder of scans minus its first ``skip``)."""
     from .evaluation import Reference
 
     if skip:
@@ -235,14 +133,12 @@ def run_evaluation(scan, smap, reference, methods, *, bins, n_queries: int = 200
     """
     from .config import MappingConfig
     from .evaluation import evaluate_field, sample_queries
-    from .pipeline import build_map
-    from .stages.loggpis import build_loggpis_map
-    from .stages.prepare import prepare
+    from .pipeline import build_map, prepare
 
     log = log or (lambda *a: None)
-    tiled = _is_tiled(smap)
+    tiled = is_tiled(smap)
     if tiled:
-        _check_tiled_methods(methods, tiled_methods(smap))
+        check_tiled_methods(methods, tiled_methods(smap))
     cfg = smap.config if smap is not None else MappingConfig()
     offset = scan.offset
     t0 = time.perf_counter()
@@ -275,8 +171,8 @@ def run_evaluation(scan, smap, reference, methods, *, bins, n_queries: int = 200
             model = _PriorOnly(smap)
             train = {k: v for k, v in saved.items() if k != "gp"}
         elif method == "loggpis":
-            model = build_loggpis_map(scan, cfg, lam=lam)
-            train = dict(model.summary["seconds"])
+            model = build_map(scan, cfg, method="loggpis", loggpis_lambda=lam)
+            train = {k: float(v) for k, v in model.summary["seconds"].items()}
         else:
             model = build_map(scan, cfg, method=method)
             train = {k: float(v) for k, v in model.summary["seconds"].items()}
@@ -287,7 +183,7 @@ def run_evaluation(scan, smap, reference, methods, *, bins, n_queries: int = 200
         entry = {"train_seconds": train, "test_seconds": field.pop("test_seconds"),
                  "signed": bool(signed), "field": field, "surface": None}
         if method == "loggpis":
-            entry["lambda"] = float(model.field.params.lam)
+            entry["lambda"] = float(model.gp.params.lam)
         if surfaces and signed and (reference.mesh is not None or reference.points is not None):
             entry["surface"] = _surface_metrics(model, method, reference, scan, vs, run_dir,
                                                 surface_samples, seed, log)
@@ -300,7 +196,7 @@ def run_evaluation(scan, smap, reference, methods, *, bins, n_queries: int = 200
     return results
 
 
-def _is_tiled(smap) -> bool:
+def is_tiled(smap) -> bool:
     from .tiling import TiledMap
 
     return isinstance(smap, TiledMap)
@@ -313,7 +209,7 @@ def tiled_methods(tmap) -> list:
     return [tmap.method] + (["hgmm"] if tmap.method == "gmmgp" else [])
 
 
-def _check_tiled_methods(methods, provided) -> None:
+def check_tiled_methods(methods, provided) -> None:
     missing = [m for m in methods if m not in provided]
     if missing:
         raise EvalInputError(
@@ -381,10 +277,8 @@ def _tiled_priors(tmap):
     same tile weights."""
     from .tiling import TiledMap
 
-    out = TiledMap(tmap.spec, {}, tmap.config, "hgmm", offset=tmap.offset,
-                   summary=tmap.summary, owners=tmap.owners)
-    out.tiles = _PriorTiles(tmap.tiles)
-    return out
+    return TiledMap(tmap.spec, _PriorTiles(tmap.tiles), tmap.config, "hgmm",
+                    offset=tmap.offset, summary=tmap.summary, owners=tmap.owners)
 
 
 class _PriorOnly:
@@ -401,15 +295,12 @@ class _PriorOnly:
                                        return_grad=return_grad)
 
     def extract_surface(self, voxel_size=None):
-        from .stages.surface import extract_surface
-
-        vs = self.config.surface.voxel_size if voxel_size is None else voxel_size
-        return extract_surface(self.predict, self.seed_points, voxel_size=vs)
+        return self.smap.prior_surface(voxel_size)
 
 
 def _surface_metrics(model, method, reference, scan, voxel_size, run_dir, n, seed, log):
     from .evaluation import surface_distances
-    from .stages.surface import read_mesh_ply
+    from .pipeline import read_mesh_ply
 
     saved = Path(run_dir) / f"mesh_{method}.ply" if run_dir is not None else None
     if saved is not None and saved.is_file() \
@@ -418,7 +309,7 @@ def _surface_metrics(model, method, reference, scan, voxel_size, run_dir, n, see
         verts, source = mesh.vertices, str(saved)
     else:
         log(f"{method}: extracting the surface at {voxel_size} m")
-        mesh = _extract(model, method, voxel_size)
+        mesh = model.extract_surface(voxel_size=voxel_size)
         verts, source = mesh.vertices + scan.offset, f"extracted at {voxel_size} m"
     if len(mesh.faces) == 0:
         return None
@@ -429,10 +320,6 @@ def _surface_metrics(model, method, reference, scan, voxel_size, run_dir, n, see
     res.update(mesh=source, vertices=int(len(mesh.vertices)), faces=int(len(mesh.faces)),
                voxel_size=float(voxel_size))
     return res
-
-
-def _extract(model, method, voxel_size):
-    return model.extract_surface(voxel_size=voxel_size)
 
 
 def write_outputs(results: dict, out) -> list:

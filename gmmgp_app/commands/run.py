@@ -1,0 +1,329 @@
+"""``gmmgp run``: map a scan (prepare, HGMM, GMR, GP), save the map and its meshes;
+with ``--tile-size`` tile by tile (:mod:`gmmgp_app.tiling`)."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .options import (EXIT_OK, METHODS, add_command, add_config_options, add_reader_options,
+                      add_voxel_option, load_config, print_config_help, reader_kwargs,
+                      read_scan_args)
+
+EXAMPLES = """examples:
+  gmmgp run assets/demo_street.npz --out out/demo
+  gmmgp run scan.laz --out out/scan --set hgmm.split_threshold=0.02 --set gp.d_m=0.03
+  gmmgp run scan.ply --out out/scan --method hgmm          # GMR-only baseline
+  gmmgp run assets/demo_street.npz --out out/demo --stage hgmm   # print the HGMM levels
+  gmmgp run scan.npz --out out/scan --config my.toml
+  gmmgp run scan.laz --out out/scan --workers 2                 # GP blocks on a local Dask cluster
+  gmmgp run scan.laz --out out/scan --scheduler tcp://HOST:8786 # ... or on an existing one
+  gmmgp run city.laz --out out/city --tile-size 20 --workers 2  # 20 m tiles, stitched"""
+
+
+def add_parser(subparsers):
+    p = add_command(subparsers, "run", help="map a scan: prepare, HGMM, GMR, GP; save the map",
+                    epilog=EXAMPLES)
+    p.add_argument("scan", nargs="*", help="scan file(s) or folder")
+    p.add_argument("--out", help="output folder (map/, summary.json, ...); required")
+    p.add_argument("--method", default="gmmgp", choices=METHODS,
+                   help="gmmgp (default, the paper's method), hgmm (GMR only), gpis, loggpis "
+                        "(an unsigned distance: no mesh)")
+    p.add_argument("--stage", default="all", choices=["prepare", "hgmm", "gmr", "all"],
+                   help="stop after this stage (hgmm prints the level history)")
+    p.add_argument("--rrd", help="record every stage to this rerun .rrd file (headless)")
+    p.add_argument("--spawn", action="store_true", help="also open a rerun viewer")
+    p.add_argument("--serve", action="store_true",
+                   help="also serve the recording to viewers (bound to 127.0.0.1)")
+    p.add_argument("--no-mesh", action="store_true", help="skip surface extraction")
+    g = p.add_argument_group("large scans: map in tiles (DIR/map is then a tiled map)")
+    g.add_argument("--tile-size", type=float, metavar="M",
+                   help="map in square tiles of this edge (m) in x and y, each an independent "
+                        "map, stitched smoothly; e.g. 20")
+    g.add_argument("--tile-overlap", type=float, metavar="M",
+                   help="with --tile-size: training margin and blending band around each "
+                        "tile (m; default 2, at most half the tile size)")
+    g.add_argument("--min-tile-points", type=int, metavar="N",
+                   help="with --tile-size: a tile with fewer points joins its nearest mapped "
+                        "tile (default 200)")
+    g.add_argument("--no-stream", action="store_true",
+                   help="with --tile-size: read a single LAS/LAZ file whole instead of "
+                        "streaming it chunk by chunk into tiles on disk")
+    g = p.add_argument_group("parallel execution of the GP blocks (of the tiles with "
+                             "--tile-size)")
+    g.add_argument("--workers", type=int, default=0,
+                   help="start a local Dask cluster with N single-threaded workers")
+    g.add_argument("--scheduler", help="use an existing Dask cluster, e.g. tcp://HOST:8786")
+    g.add_argument("--processes", action="store_true",
+                   help="with --workers: a local process pool instead of Dask")
+    add_voxel_option(p, "default: surface.voxel_size, 0.05")
+    add_reader_options(p)
+    add_config_options(p)
+    return p
+
+
+def run(args) -> int:
+    if args.help_config:
+        return print_config_help()
+    if not args.scan or not args.out:
+        raise ValueError("Expected a scan and --out DIR, e.g. "
+                         "'gmmgp run assets/demo_street.npz --out out/demo'.")
+    cfg = load_config(args, voxel=True)  # validate settings before the (slow) read
+    spec = _tile_spec(args)
+
+    from .._atomic import atomic_write_text
+    from ..pipeline import FanoutObserver, build_map, jsonable
+    from ..progress import ConsoleObserver
+
+    out = Path(args.out)
+    _check_writable(out)
+    console = ConsoleObserver(enabled=not args.quiet)
+    observers = [console]
+    recorder = None
+    if args.rrd or args.spawn or args.serve:
+        from ..viz.rerun_observer import RerunObserver
+
+        recorder = RerunObserver(args.rrd, spawn=args.spawn, serve=args.serve, config=cfg)
+        observers.append(recorder)
+    observer = FanoutObserver(*observers)
+    t0 = time.perf_counter()
+    stream, fallback = plan_streaming(args) if spec is not None else (None, None)
+    if stream is not None:
+        return _run_tiled(args, cfg, spec, None, out, console, t0, 0.0, stream=stream)
+    scan = read_scan_args(args.scan, args)
+    read_s = time.perf_counter() - t0
+    stop = None if args.stage == "all" else args.stage
+    if stop is None and not args.no_mesh and args.method != "loggpis":
+        from ..pipeline import check_surface_grid
+
+        check_surface_grid(scan.points, cfg.surface)  # refuse an impossible grid before fitting
+    if spec is not None:
+        return _run_tiled(args, cfg, spec, scan, out, console, t0, read_s, fallback=fallback)
+    from ..distributed import open_executor
+
+    with open_executor(workers=args.workers or None, scheduler=args.scheduler,
+                       kind="processes" if args.processes else "dask") as executor:
+        bar = _TaskBar(console, "GP blocks")
+        smap = build_map(scan, cfg, method=args.method, observer=observer, stop_after=stop,
+                         executor=executor, progress=bar)
+        bar.close()
+    smap.summary["seconds"] = {"read": read_s, **smap.summary["seconds"]}
+    if args.stage == "hgmm" and smap.hgmm is not None:
+        from ..pipeline import format_level_history
+
+        print(format_level_history(smap.hgmm))
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        smap.summary["scan"] = {"paths": [str(Path(s).resolve()) for s in args.scan],
+                                "reader": reader_kwargs(args)}
+        smap.save(out / "map")
+        written = [out / "map"]
+        if args.stage == "all" and not args.no_mesh:
+            written += _write_meshes(smap, out, observer, console)
+        if recorder is not None:
+            recorder.close()  # writes the recording's footer now, not at interpreter exit
+        atomic_write_text(out / "config.toml", cfg.to_toml())
+        smap.summary["seconds"]["total"] = time.perf_counter() - t0
+        atomic_write_text(out / "summary.json", json.dumps(jsonable(smap.summary), indent=2))
+        written += [out / "config.toml", out / "summary.json"]
+    except OSError as exc:  # e.g. a full disk: numpy/zipfile do not name the file
+        if exc.filename is None:
+            exc.filename = str(out)
+        raise
+    if args.rrd:
+        written.append(Path(args.rrd))
+    if not args.quiet:
+        print("wrote " + ", ".join(str(w) for w in written), file=sys.stderr)
+    return EXIT_OK
+
+
+
+def _tile_spec(args):
+    """The TileSpec of ``run --tile-size`` (None without it), refusing the options a
+    tiled run cannot honour before anything is read or written."""
+    if args.tile_size is None:
+        for flag, value in (("--tile-overlap", args.tile_overlap),
+                            ("--min-tile-points", args.min_tile_points),
+                            ("--no-stream", args.no_stream or None)):
+            if value is not None:
+                raise ValueError(f"{flag} only applies to tiled mapping, found it without "
+                                 "--tile-size; add e.g. --tile-size 20.")
+        return None
+    if args.stage != "all":
+        raise ValueError(f"--tile-size maps every stage of each tile, found --stage "
+                         f"{args.stage}; drop --stage or --tile-size.")
+    for flag, value in (("--rrd", args.rrd), ("--spawn", args.spawn),
+                        ("--serve", args.serve)):
+        if value:
+            raise ValueError(f"{flag} records the stages of a single map, found it with "
+                             f"--tile-size (tiles are mapped independently); drop {flag} or "
+                             "--tile-size.")
+    from ..tiling import TileSpec
+
+    kw = {"size": args.tile_size}
+    # the default overlap shrinks with tiles smaller than 4 m instead of failing
+    kw["overlap"] = (min(TileSpec.overlap, args.tile_size / 2) if args.tile_overlap is None
+                     else args.tile_overlap)
+    if args.min_tile_points is not None:
+        kw["min_points"] = args.min_tile_points
+    return TileSpec(**kw)
+
+
+#: Points per chunk when streaming a LAS/LAZ file into tiles (one chunk in memory).
+
+def plan_streaming(args) -> tuple:
+    """``(plan, fallback)`` of :func:`gmmgp_app.tiling.stream_plan` for ``run --tile-size``,
+    printing its notice (reading a LAS/LAZ whole costs memory) as one line."""
+    from ..tiling import stream_plan
+
+    plan, fallback, notice = stream_plan(args.scan, reader_kwargs(args), args.no_stream)
+    if notice is not None:
+        print(f"gmmgp run: notice: {notice}", file=sys.stderr)
+    return plan, fallback
+
+
+def _run_tiled(args, cfg, spec, scan, out: Path, console, t0: float, read_s: float, *,
+               stream=None, fallback=None) -> int:
+    """``run --tile-size``: map tile by tile, save the tiled map, mesh the stitched field.
+
+    With ``stream`` (:func:`gmmgp_app.tiling.stream_plan`; ``scan`` is then None) the LAS/LAZ file is
+    streamed into per-tile pieces under a temporary folder inside ``out`` (the same
+    file system as the output, which must hold the map anyway, unlike a possibly
+    small /tmp); the folder is removed once the map is saved to ``out/map`` (the save
+    copies the tiles), also on errors and Ctrl-C, and the mesh is extracted from the
+    saved map, which is what later commands open.
+    """
+    import dataclasses
+    import shutil
+    import tempfile
+
+    from .._atomic import atomic_write_text
+    from ..distributed import open_executor
+    from ..pipeline import jsonable, std_colour_max, write_mesh_ply
+    from ..tiling import build_tiled_map, load_tiled_map, stream_tiles
+    from ..tiling.las import STREAM_CHUNK_POINTS
+
+    created = not out.exists()
+    work = None
+    ok = False
+    try:
+        t1 = time.perf_counter()
+        with open_executor(workers=args.workers or None, scheduler=args.scheduler,
+                           kind="processes" if args.processes else "dask") as executor:
+            bar = _TaskBar(console, "tiles")
+            if stream is None:
+                tmap = build_tiled_map(scan, cfg, spec, method=args.method, executor=executor,
+                                       progress=bar, keep_points=True)
+            else:
+                out.mkdir(parents=True, exist_ok=True)
+                work = Path(tempfile.mkdtemp(prefix=".stream-", dir=out))
+                tmap = stream_tiles(stream, cfg, spec, args.method, work, executor, bar)
+            bar.close()
+        seconds = {"read": read_s, "tiles": time.perf_counter() - t1}
+        # per tile: a streamed map loads each tile from its work folder, a few at a time
+        per_tile = [sum(t.summary.get("seconds", {}).values()) for _, t in tmap.tiles.items()]
+        summary = {"method": args.method, "tiled": True, "tile_spec": dataclasses.asdict(spec),
+                   **tmap.summary, "n_absorbed_tiles": len(tmap.owners),
+                   "n_skipped_tiles": len(tmap.summary.get("skipped_tiles", {})),
+                   "tile_seconds": {"median": float(np.median(per_tile)),
+                                    "max": float(np.max(per_tile)),
+                                    "sum": float(np.sum(per_tile))},
+                   "scan": {"paths": [str(Path(s).resolve()) for s in args.scan],
+                            "reader": reader_kwargs(args)},
+                   "streamed": stream is not None,
+                   "stream": (None if stream is None else
+                              {"chunk_points": STREAM_CHUNK_POINTS,
+                               "origins": bool(stream["origins"])}),
+                   "stream_fallback": fallback,
+                   "seconds": seconds, "counts": {}}
+        tmap.summary = summary
+        out.mkdir(parents=True, exist_ok=True)
+        t2 = time.perf_counter()
+        tmap.save(out / "map")
+        seconds["save"] = time.perf_counter() - t2
+        if work is not None:
+            shutil.rmtree(work)
+            work = None
+            # from here on the map is the saved one: nothing may point into the work folder
+            tmap = load_tiled_map(out / "map", load_points=False)
+        written = [out / "map"]
+        if not args.no_mesh:
+            t3 = time.perf_counter()
+            mesh = tmap.extract_surface(progress=console.progress)
+            seconds["surface"] = time.perf_counter() - t3
+            summary["counts"]["surface"] = {args.method: {"vertices": len(mesh.vertices),
+                                                          "faces": len(mesh.faces)}}
+            written.append(write_mesh_ply(mesh, out / f"mesh_{args.method}.ply",
+                                          offset=tmap.offset, vmax=std_colour_max([mesh])))
+        atomic_write_text(out / "config.toml", cfg.to_toml())
+        seconds["total"] = time.perf_counter() - t0
+        atomic_write_text(out / "summary.json", json.dumps(jsonable(summary), indent=2))
+        written += [out / "config.toml", out / "summary.json"]
+        ok = True
+    except OSError as exc:  # e.g. a full disk: numpy/zipfile do not name the file
+        if exc.filename is None:
+            exc.filename = str(out)
+        raise
+    finally:
+        if work is not None:
+            shutil.rmtree(work, ignore_errors=True)
+        if not ok and created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()  # a failed streamed run leaves no empty output folder behind
+    if not args.quiet:
+        how = "streamed, " if stream is not None else ""
+        print(f"mapped {summary['n_tiles']} tiles ({how}{len(tmap.owners)} small ones joined "
+              f"a neighbour, {summary['n_skipped_tiles']} skipped)", file=sys.stderr)
+        print("wrote " + ", ".join(str(w) for w in written), file=sys.stderr)
+    return EXIT_OK
+
+
+
+def _write_meshes(smap, out: Path, observer, console) -> list:
+    """Marching-cubes surfaces of the map and of its HGMM prior (GMR alone)."""
+    from ..pipeline import StagePayload, std_colour_max, write_mesh_ply
+
+    t0 = time.perf_counter()
+    meshes = {}
+    if smap.method != "hgmm" and smap.signed:  # loggpis: no zero level set to mesh
+        meshes[smap.method] = smap.extract_surface(progress=console.progress)
+    if smap.hgmm is not None:
+        meshes["hgmm"] = smap.prior_surface(progress=console.progress)
+    seconds = time.perf_counter() - t0
+    smap.summary["seconds"]["surface"] = seconds
+    smap.summary["counts"]["surface"] = {k: {"vertices": len(m.vertices), "faces": len(m.faces)}
+                                         for k, m in meshes.items()}
+    observer.on_stage("surface", StagePayload(meshes, seconds))
+    # Same colour scale for every mesh so they can be compared side by side.
+    vmax = std_colour_max(meshes.values())
+    return [write_mesh_ply(m, out / f"mesh_{k}.ply", offset=smap.offset, vmax=vmax)
+            for k, m in meshes.items()]
+
+
+class _TaskBar:
+    """``progress(done, total)`` callback drawing one bar, created on first use."""
+
+    def __init__(self, console, desc):
+        self.console, self.desc, self.bar = console, desc, None
+
+    def __call__(self, done, total):
+        if self.bar is None:
+            self.bar = self.console.progress(total, self.desc)
+        self.bar.update(done - self.bar.n)
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _check_writable(out: Path) -> None:
+    probe = out
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
+        raise PermissionError(f"Cannot write to output folder '{out}' ('{probe}' is not a "
+                              "writable folder); choose another --out.")

@@ -1,0 +1,30 @@
+"""``gmmgp view``: the interactive desktop app (:mod:`gmmgp_app.viz.gui`)."""
+
+from __future__ import annotations
+
+from .options import add_command, add_config_options, load_config
+
+EXAMPLES = """examples:
+  gmmgp view assets/demo_street.npz
+  gmmgp view out/demo/map
+  xvfb-run -s "-screen 0 1600x1000x24" gmmgp view scan.ply     # on a machine without a display"""
+
+
+def add_parser(subparsers):
+    from ..viz.gui import add_view_arguments
+
+    p = add_command(subparsers, "view", help="open the interactive desktop app",
+                    epilog=EXAMPLES)
+    add_view_arguments(p)
+    add_config_options(p)
+    return p
+
+
+def run(args) -> int:
+    from ..viz.gui import open_view
+
+    if args.help_config:
+        from .options import print_config_help
+
+        return print_config_help()
+    return open_view(args, load_config(args))
