@@ -13,7 +13,7 @@ variant the map is built, its surface extracted (default 5 cm voxels) and scored
 Examples
 --------
     python scripts/bench_demo_surface.py
-    python scripts/bench_demo_surface.py --variant voxel10cm:prepare.voxel_size=0.1
+    python scripts/bench_demo_surface.py --variant voxel10cm:prepare.subsample_voxel=0.1
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     variants = {"default": []}
     for v in args.variant or ["rate65:prepare.subsample_rate=0.65",
-                              "voxel10cm:prepare.voxel_size=0.1"]:
+                              "voxel10cm:prepare.subsample_voxel=0.1"]:
         name, _, sets = v.partition(":")
         variants[name] = [s for s in sets.split(",") if s]
 

@@ -7,8 +7,9 @@
 #
 # Set-up = system libraries Open3D needs (installed with apt-get when running as root,
 # otherwise the exact command is printed), a virtual environment in .venv, and the
-# package installed in editable mode with its test extra. A second run skips every
-# step whose inputs did not change (stamp: hash of pyproject.toml + python version).
+# package installed in editable mode with its test extra, at the versions of
+# requirements.lock. A second run skips every step whose inputs did not change
+# (stamp: hash of pyproject.toml + requirements.lock + python version).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$(pwd)
@@ -41,11 +42,12 @@ if [ ! -x .venv/bin/python ]; then
   echo "[setup] creating .venv with $($PY --version)"
   $PY -m venv .venv
 fi
-stamp=$( (cat pyproject.toml; .venv/bin/python --version) | sha256sum | cut -d' ' -f1)
+stamp=$( (cat pyproject.toml requirements.lock; .venv/bin/python --version) | sha256sum | cut -d' ' -f1)
 if [ "$(cat .venv/.setup-stamp 2>/dev/null)" != "$stamp" ]; then
   echo "[setup] installing gmmgp_app and its dependencies into .venv (first run: a few minutes)"
   .venv/bin/python -m pip install -q --upgrade pip
-  .venv/bin/python -m pip install -q -e ".[test]"
+  .venv/bin/python -m pip install -q -r requirements.lock      # pinned: reproducible installs
+  .venv/bin/python -m pip install -q --no-deps -e ".[test]"
   echo "$stamp" > .venv/.setup-stamp
 else
   echo "[setup] .venv is up to date"
