@@ -28,6 +28,7 @@ from typing import Any, Callable, Optional
 import numpy as np
 
 from ._atomic import atomic_dir
+from ._json import jsonable
 from .config import METHODS, MappingConfig
 from .stages import gmr as _gmr
 from .stages import gp as _gp
@@ -181,6 +182,16 @@ class SurfaceMap:
                                    self.config.surface, voxel_size, max_std, progress)
 
     # ------------------------------------------------------------------ save/load
+    def to_arrays(self) -> dict:
+        """Every array of the map by name (what :meth:`save` writes to ``arrays.npz``)."""
+        arrays = {"offset": self.offset, "gp_points": self.gp_points,
+                  "gp_normals": self.gp_normals, "seed_points": self.seed_points}
+        if self.hgmm is not None:
+            arrays.update(_hgmm_to_arrays(self.hgmm))
+        if self.gp is not None:
+            arrays.update({f"gp/{k}": v for k, v in self.gp.to_arrays().items()})
+        return arrays
+
     def save(self, directory) -> Path:
         """Write the map to ``directory`` (npz + json, no pickle), atomically.
 
@@ -189,13 +200,7 @@ class SurfaceMap:
         """
         directory = Path(directory)
         with atomic_dir(directory) as tmp:
-            arrays = {"offset": self.offset, "gp_points": self.gp_points,
-                      "gp_normals": self.gp_normals, "seed_points": self.seed_points}
-            if self.hgmm is not None:
-                arrays.update(_hgmm_to_arrays(self.hgmm))
-            if self.gp is not None:
-                arrays.update({f"gp/{k}": v for k, v in self.gp.to_arrays().items()})
-            np.savez_compressed(tmp / "arrays.npz", **arrays)
+            np.savez_compressed(tmp / "arrays.npz", **self.to_arrays())
             meta = {
                 "format_version": MAP_FORMAT_VERSION,
                 "method": self.method,
@@ -613,19 +618,6 @@ def _hgmm_from_arrays(a: dict) -> HierarchicalGMM:
     leaves = GaussianMixture(a["hgmm/leaves/weights"], a["hgmm/leaves/means"],
                              a["hgmm/leaves/covariances"])
     return HierarchicalGMM(tuple(levels), leaves, a["hgmm/leaf_level"], {})
-
-
-def jsonable(obj):
-    """``obj`` with numpy scalars and arrays turned into Python numbers and lists."""
-    if isinstance(obj, dict):
-        return {str(k): jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [jsonable(v) for v in obj]
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    return obj
 
 
 # --------------------------------------------------------------------------- re-exports

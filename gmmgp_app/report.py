@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ._atomic import atomic_path, atomic_write_text
+from ._json import jsonable
 
 __all__ = ["plot_metrics", "metrics_rows", "write_metrics_csv", "write_metrics_json",
            "markdown_table", "METHOD_STYLE"]
@@ -191,21 +192,7 @@ def _fmt_csv(v):
 
 def write_metrics_json(results: dict, path) -> Path:
     """``metrics.json`` with NaN written as null (strict JSON)."""
-    return atomic_write_text(path, json.dumps(_nan_to_none(results), indent=2))
-
-
-def _nan_to_none(o):
-    if isinstance(o, dict):
-        return {str(k): _nan_to_none(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_nan_to_none(v) for v in o]
-    if isinstance(o, np.generic):
-        o = o.item()
-    if isinstance(o, float) and not math.isfinite(o):
-        return None
-    if isinstance(o, np.ndarray):
-        return _nan_to_none(o.tolist())
-    return o
+    return atomic_write_text(path, json.dumps(jsonable(results, nan_as_null=True), indent=2))
 
 
 def markdown_table(results: dict, metrics=("rmse_sdf", "rmse_edf", "ll_sdf", "ll_edf")) -> str:

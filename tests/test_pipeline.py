@@ -108,15 +108,7 @@ def test_load_map_names_a_tiled_map(tmp_path):
 
 def _map_arrays(smap) -> dict:
     """Everything a saved map holds, as arrays (the npz of SurfaceMap.save)."""
-    from gmmgp_app.pipeline import _hgmm_to_arrays
-
-    out = {"gp_points": smap.gp_points, "gp_normals": smap.gp_normals,
-           "seed_points": smap.seed_points, "offset": smap.offset}
-    if smap.hgmm is not None:
-        out.update(_hgmm_to_arrays(smap.hgmm))
-    if smap.gp is not None:
-        out.update({f"gp/{k}": v for k, v in smap.gp.to_arrays().items()})
-    return out
+    return smap.to_arrays()
 
 
 @pytest.mark.slow

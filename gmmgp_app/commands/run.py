@@ -77,7 +77,8 @@ def run(args) -> int:
     spec = _tile_spec(args)
 
     from .._atomic import atomic_write_text
-    from ..pipeline import FanoutObserver, build_map, jsonable
+    from .._json import jsonable
+    from ..pipeline import FanoutObserver, build_map
     from ..progress import ConsoleObserver
 
     out = Path(args.out)
@@ -204,7 +205,8 @@ def _run_tiled(args, cfg, spec, scan, out: Path, console, t0: float, read_s: flo
 
     from .._atomic import atomic_write_text
     from ..distributed import open_executor
-    from ..pipeline import jsonable, std_colour_max, write_mesh_ply
+    from .._json import jsonable
+    from ..pipeline import std_colour_max, write_mesh_ply
     from ..tiling import build_tiled_map, load_tiled_map, stream_tiles
     from ..tiling.las import STREAM_CHUNK_POINTS
 

@@ -21,7 +21,7 @@ def add_parser(subparsers):
 
 
 def run(args) -> int:
-    from .synth import write_scene
+    from ..synth import write_scene
 
     paths = write_scene(args.name, args.out, seed=args.seed, density=args.density)
     for k, v in paths.items():

@@ -86,6 +86,22 @@ class RawScan:
 # --------------------------------------------------------------------------- paths
 
 
+def read_open3d_points(path: Path, fmt: str, n: int, noun: str) -> np.ndarray:
+    """(n, 3) float64 points of a PLY/PCD file read by Open3D (quietly), refusing a file
+    whose header declares ``n`` ``noun`` but holds another number (corrupt/truncated)."""
+    import open3d as o3d
+
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        pc = o3d.io.read_point_cloud(str(path), format=fmt)
+    pts = np.asarray(pc.points, dtype=np.float64)
+    if len(pts) != n:
+        raise ScanReadError(
+            f"{fmt.upper()} file {qname(path)} declares {n} {noun} but Open3D read "
+            f"{len(pts)}; the file is corrupt or truncated."
+        )
+    return pts
+
+
 def check_file(path: Path) -> Path:
     """Fail with a helpful message unless ``path`` is a readable, non-empty file."""
     path = Path(path)

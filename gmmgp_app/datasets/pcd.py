@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._common import RawScan, ScanReadError, qname, require_points
+from ._common import RawScan, ScanReadError, qname, read_open3d_points, require_points
 
 __all__ = ["read_pcd"]
 
@@ -97,7 +97,6 @@ def read_pcd(path: Path, **_) -> RawScan:
     ScanReadError
         Bad header, zero points, or data shorter than the header declares.
     """
-    import open3d as o3d
 
     fields, sizes, types, counts, n, data, header_len = _parse_header(path)
     require_points(n, path)
@@ -142,12 +141,4 @@ def read_pcd(path: Path, **_) -> RawScan:
             f"which Open3D misreads; convert it to binary or ascii PCD (e.g. pcl_convert_pcd_"
             f"ascii_binary) or to PLY."
         )
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        pc = o3d.io.read_point_cloud(str(path), format="pcd")
-    pts = np.asarray(pc.points, dtype=np.float64)
-    if len(pts) != n:
-        raise ScanReadError(
-            f"PCD file {qname(path)} declares {n} points but Open3D read {len(pts)}; "
-            f"the file is corrupt or truncated."
-        )
-    return RawScan(points=pts, source=str(path))
+    return RawScan(points=read_open3d_points(path, "pcd", n, "points"), source=str(path))

@@ -10,9 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
-from ._common import RawScan, ScanReadError, qname, require_points
+from ._common import RawScan, ScanReadError, qname, read_open3d_points, require_points
 
 __all__ = ["read_ply", "parse_ply_header"]
 
@@ -141,16 +139,7 @@ def read_ply(path: Path, **_) -> RawScan:
     ScanReadError
         Not PLY, no x/y/z vertex element, zero vertices, or truncated data.
     """
-    import open3d as o3d
 
     fmt, elements, header_len = parse_ply_header(path)
     n = _check_ply_size(path, fmt, elements, header_len)
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        pc = o3d.io.read_point_cloud(str(path), format="ply")
-    pts = np.asarray(pc.points, dtype=np.float64)
-    if len(pts) != n:
-        raise ScanReadError(
-            f"PLY file {qname(path)} declares {n} vertices but Open3D read {len(pts)}; "
-            f"the file is corrupt or truncated."
-        )
-    return RawScan(points=pts, source=str(path))
+    return RawScan(points=read_open3d_points(path, "ply", n, "vertices"), source=str(path))

@@ -184,7 +184,7 @@ class TiledMap:
             ``directory``.
         """
         from .._atomic import atomic_dir
-        from ..pipeline import jsonable
+        from .._json import jsonable
 
         directory = Path(directory)
         keys = self.keys
