@@ -1,7 +1,8 @@
 """The mapping recipe: a table of stages and one runner, used by every caller.
 
-    scan ──prepare──> TrainingSet ──hgmm──> HierarchicalGMM ──gmr──> prior m(x), sigma_p(x)
-         ──select |m(x)| > d_m──> GP points ──gp──> LocalGPField ──map──> SurfaceMap ──surface──> mesh
+    scan ─prepare─> TrainingSet ─hgmm─> HierarchicalGMM ─gmr─> prior m(x), sigma_p(x)
+         ─select |m(x)| > d_m─> GP points ─gp─> LocalGPField
+         ─map─> SurfaceMap ─surface─> mesh
 
 :data:`STAGES` names every stage with the function that computes it, what it
 takes and what it gives (the names of a run's *state*); :data:`RECIPES` lists the

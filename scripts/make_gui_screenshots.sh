@@ -5,7 +5,7 @@
 #   OUT=/tmp/shots scripts/make_gui_screenshots.sh
 #
 # The app runs headless under its own Xvfb display (xvfb-run), driven by a --script of
-# steps (see gmmgp_app/viz/gui.py); each PNG is the whole window, side panel included,
+# steps (see gmmgp_app/viz/gui_script.py); each PNG is the whole window, side panel included,
 # grabbed from the X server. With Mesa's CPU Vulkan driver one frame sometimes takes
 # minutes on a loaded machine, so each attempt has a time limit and is retried.
 set -euo pipefail

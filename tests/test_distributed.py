@@ -497,7 +497,7 @@ def _assert_same_prediction(a, b, q):
 
 def test_saved_tiled_map_predicts_bit_for_bit(street, tiled, tmp_path):
     from gmmgp_app.tiling import load_tiled_map
-    from gmmgp_app.tiling.store import _TileStore
+    from gmmgp_app.tiling.store import TileStore
 
     scan, _ = street
     d = tiled.save(tmp_path / "tm")
@@ -507,7 +507,7 @@ def test_saved_tiled_map_predicts_bit_for_bit(street, tiled, tmp_path):
     assert len(list((d / "points").iterdir())) == len(tiled.tile_points)
     loaded = load_tiled_map(d, cache_tiles=1)
     # tiles stay on disk until a query needs them, one at a time here
-    assert isinstance(loaded.tiles, _TileStore) and not loaded.tiles._cache
+    assert isinstance(loaded.tiles, TileStore) and not loaded.tiles._cache
     assert loaded.keys == tiled.keys and loaded.owners == tiled.owners
     assert loaded.spec == tiled.spec and loaded.method == tiled.method
     assert loaded.config == tiled.config and np.array_equal(loaded.offset, tiled.offset)

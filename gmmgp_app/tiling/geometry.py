@@ -18,7 +18,7 @@ class TilingError(ValueError):
     """Bad tiling parameters or input to a tiled map."""
 
 
-def _tile_dirname(key) -> str:
+def tile_dirname(key) -> str:
     """``tile_I_J``: a tile's folder (saved map) or file stem (its points)."""
     return f"tile_{int(key[0])}_{int(key[1])}"
 
@@ -126,7 +126,7 @@ def _smoothstep(t):
     return t * t * (3.0 - 2.0 * t), 6.0 * t * (1.0 - t)
 
 
-def _canonical(points, origins):
+def canonical_order(points, origins):
     """Sort points (and origins) lexicographically: a tile's map depends on its set only."""
     order = np.lexsort((points[:, 2], points[:, 1], points[:, 0]))
     return points[order], (None if origins is None else origins[order])
@@ -158,12 +158,12 @@ def tile_owners(counts: dict, min_points: int) -> dict:
     return owners
 
 
-def _owners_summary(owners: dict) -> dict:
+def owners_summary(owners: dict) -> dict:
     """``{"(i, j)": "(k, l)"}``: the owners as the JSON-friendly ``absorbed_tiles`` summary."""
     return {str(k): str(o) for k, o in owners.items()}
 
 
-def _members(owners: dict, key) -> list:
+def members(owners: dict, key) -> list:
     """The tile ``key`` and the small tiles it owns, sorted."""
     return [key] + sorted(k for k, o in owners.items() if o == key)
 
@@ -174,7 +174,7 @@ def _as_void(points: np.ndarray) -> np.ndarray:
     return a.view(np.dtype((np.void, a.dtype.itemsize * a.shape[1]))).ravel()
 
 
-def _union(parts) -> tuple:
+def union_points(parts) -> tuple:
     """Point sets of several tiles as one, without the points their overlap margins
     share: ``[(points, origins or None), ...]`` -> (points, origins), canonical order.
 
@@ -187,7 +187,7 @@ def _union(parts) -> tuple:
         keep_pts.append(pts[new])
         keep_org.append(None if org is None else org[new])
     has_org = all(o is not None for o in keep_org)
-    return _canonical(np.concatenate(keep_pts),
+    return canonical_order(np.concatenate(keep_pts),
                       np.concatenate(keep_org) if has_org else None)
 
 
@@ -195,7 +195,7 @@ def split_into_tiles(scan: Scan, spec: TileSpec) -> dict:
     """Cut a scan into the tiles of ``spec``: ``{(i, j): Scan}`` (canonical order)."""
     out = {}
     for key, idx in spec.assign(scan.points).items():
-        pts, org = _canonical(scan.points[idx],
+        pts, org = canonical_order(scan.points[idx],
                               None if scan.origins is None else scan.origins[idx])
         out[key] = Scan(points=pts, origins=org, offset=scan.offset, source=f"tile {key}")
     return out

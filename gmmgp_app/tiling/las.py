@@ -8,9 +8,9 @@ from typing import Callable, Optional
 import numpy as np
 
 from ..config import MappingConfig
-from .geometry import TileSpec, TilingError, _members, _owners_summary, tile_owners
-from .store import _TileStore
-from .tasks import _build_tile, _map_from_bytes
+from .geometry import TileSpec, TilingError, members, owners_summary, tile_owners
+from .store import TileStore
+from .tasks import build_tile, map_from_bytes
 from .tiled_map import TiledMap
 
 __all__ = ["spill_las_to_tiles", "build_tiled_map_from_las", "stream_plan", "stream_tiles",
@@ -207,21 +207,21 @@ def build_tiled_map_from_las(path, cfg: Optional[MappingConfig] = None,
     for key in sorted(pieces):
         if counts[key] >= spec.min_points:
             files = [(pieces[m][0], pieces[m][1] if len(pieces[m][1]) == len(pieces[m][0])
-                      else []) for m in _members(owners, key)]
+                      else []) for m in members(owners, key)]
             tasks.append((key, files, None, cfg, method))
-    store = _TileStore(work_dir / "maps", [], cache=cache_tiles)
+    store = TileStore(work_dir / "maps", [], cache=cache_tiles)
     skipped = {}
     # submit in waves so that at most a few finished tile maps wait in memory
     wave = 4
     done = 0
     total = len(tasks)
     for s in range(0, len(tasks), wave):
-        part = map_batched(executor, _build_tile, tasks[s:s + wave])
+        part = map_batched(executor, build_tile, tasks[s:s + wave])
         for key, b in part:
             if isinstance(b, str):
                 skipped[key] = b
             else:
-                store[key] = _map_from_bytes(b)
+                store[key] = map_from_bytes(b)
         done += len(part)
         if progress is not None:
             progress(done, total)
@@ -230,5 +230,5 @@ def build_tiled_map_from_las(path, cfg: Optional[MappingConfig] = None,
                           f"'{path}', found none that could be mapped.")
     return TiledMap(spec, store, cfg, method, offset=off, owners=owners,
                     summary=dict(n_tiles=len(store), n_points=n,
-                                 absorbed_tiles=_owners_summary(owners),
+                                 absorbed_tiles=owners_summary(owners),
                                  skipped_tiles={str(k): v for k, v in skipped.items()}))

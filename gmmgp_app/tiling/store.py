@@ -3,12 +3,12 @@ memory), so memory stays bounded by a few tiles however long the street."""
 
 from __future__ import annotations
 
-from .geometry import _tile_dirname
+from .geometry import tile_dirname
 
-__all__ = ["_TileStore"]
+__all__ = ["TileStore"]
 
 
-class _TileStore:
+class TileStore:
     """Tile maps saved on disk, loaded on demand (a few kept in memory).
 
     A mapping ``{(i, j): SurfaceMap}``: memory stays bounded by ``cache`` tiles
@@ -32,7 +32,7 @@ class _TileStore:
         self._written: dict = {}  # read-only store: tiles replaced since loading
 
     def _path(self, key):
-        return self.directory / _tile_dirname(key)
+        return self.directory / tile_dirname(key)
 
     def __contains__(self, key):
         return key in set(self._keys)

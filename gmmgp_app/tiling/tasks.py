@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 
 from ..types import Scan
-from .geometry import _canonical, _union
+from .geometry import canonical_order, union_points
 
 
 
-def _build_tile(task):
+def build_tile(task):
     """Executor task: map one tile (module level so that it pickles)."""
     key, points, origins, cfg, method = task
     from ..pipeline import HGMMError, PrepareError, build_map
@@ -20,19 +20,19 @@ def _build_tile(task):
         parts = [(np.concatenate([np.load(f) for f in pf]),
                   np.concatenate([np.load(f) for f in of]) if of else None)
                  for pf, of in points]
-        pts, org = _union(parts)
+        pts, org = union_points(parts)
     else:
-        pts, org = _canonical(np.asarray(points, dtype=np.float64), origins)
+        pts, org = canonical_order(np.asarray(points, dtype=np.float64), origins)
     try:
         smap = build_map(Scan(points=pts, origins=org, source=f"tile {key}"), cfg, method)
     except (PrepareError, HGMMError) as exc:
         # too sparse for normals, or too few hit points with one for the HGMM: its
         # neighbours answer its queries (reported in ``skipped_tiles``)
         return key, f"{type(exc).__name__}: {exc}"
-    return key, _map_to_bytes(smap)
+    return key, map_to_bytes(smap)
 
 
-def _map_to_bytes(smap) -> dict:
+def map_to_bytes(smap) -> dict:
     """A SurfaceMap as ``{file name: bytes}`` of its saved folder (no pickle of internals:
     the GMR field holds a lock, and the saved format is what crosses machines safely)."""
     import tempfile
@@ -43,7 +43,7 @@ def _map_to_bytes(smap) -> dict:
         return {p.name: p.read_bytes() for p in (Path(d) / "m").iterdir()}
 
 
-def _map_from_bytes(files: dict):
+def map_from_bytes(files: dict):
     import tempfile
     from pathlib import Path
 
@@ -55,13 +55,13 @@ def _map_from_bytes(files: dict):
         return load_map(d)
 
 
-def _run_tiles(executor, tasks, progress):
+def run_tiles(executor, tasks, progress):
     from ..distributed import map_batched
 
     maps, skipped = {}, {}
-    for k, b in map_batched(executor, _build_tile, tasks, progress=progress):
+    for k, b in map_batched(executor, build_tile, tasks, progress=progress):
         if isinstance(b, str):
             skipped[k] = b
         else:
-            maps[k] = _map_from_bytes(b)
+            maps[k] = map_from_bytes(b)
     return maps, skipped

@@ -12,10 +12,10 @@ import numpy as np
 
 from ..config import MappingConfig
 from ..types import Scan
-from .geometry import (TileSpec, TilingError, _members, _owners_summary, _tile_dirname,
-                       _union, split_into_tiles, tile_owners)
-from .store import _TileStore
-from .tasks import _run_tiles
+from .geometry import (TileSpec, TilingError, members, owners_summary, tile_dirname,
+                       union_points, split_into_tiles, tile_owners)
+from .store import TileStore
+from .tasks import run_tiles
 
 __all__ = ["TiledMap", "build_tiled_map", "load_tiled_map"]
 
@@ -147,7 +147,7 @@ class TiledMap:
     def _weighs(self, key, xyz) -> np.ndarray:
         """Where mapped tile ``key`` has a non-zero weight (its square or one it owns)."""
         w = np.zeros(len(xyz))
-        for k in _members(self.owners, key):
+        for k in members(self.owners, key):
             w += self.spec.weights(xyz[:, :2], k)[0]
         return w > 0
 
@@ -191,8 +191,8 @@ class TiledMap:
         with atomic_dir(directory) as tmp:
             (tmp / "tiles").mkdir()
             for key in keys:
-                dest = tmp / "tiles" / _tile_dirname(key)
-                if isinstance(self.tiles, _TileStore):
+                dest = tmp / "tiles" / tile_dirname(key)
+                if isinstance(self.tiles, TileStore):
                     self.tiles.export(key, dest)
                 else:
                     self.tiles[key].save(dest)
@@ -202,7 +202,7 @@ class TiledMap:
                     arrays = {"points": np.asarray(pts, dtype=np.float64)}
                     if org is not None:
                         arrays["origins"] = np.asarray(org, dtype=np.float64)
-                    np.savez(tmp / "points" / f"{_tile_dirname(key)}.npz", **arrays)
+                    np.savez(tmp / "points" / f"{tile_dirname(key)}.npz", **arrays)
             meta = {
                 "format": TILED_MAP_FORMAT,
                 "format_version": TILED_MAP_FORMAT_VERSION,
@@ -284,13 +284,13 @@ def build_tiled_map(scan: Scan, cfg: Optional[MappingConfig] = None,
     for k, t in tiles.items():
         if len(t) < spec.min_points:
             continue
-        pts, org = _union([(tiles[m].points, tiles[m].origins) for m in _members(owners, k)])
+        pts, org = union_points([(tiles[m].points, tiles[m].origins) for m in members(owners, k)])
         tasks.append((k, pts, org, cfg, method))
     if not tasks:
         raise TilingError(f"Expected at least one tile with {spec.min_points} points, found "
                           f"{max((len(t) for t in tiles.values()), default=0)}; use larger "
                           "tiles or lower TileSpec.min_points.")
-    maps, skipped = _run_tiles(executor, tasks, progress)
+    maps, skipped = run_tiles(executor, tasks, progress)
     if not maps:
         raise TilingError(f"Expected at least one tile to map, all {len(skipped)} failed; "
                           f"first: {next(iter(skipped.values()))}")
@@ -298,7 +298,7 @@ def build_tiled_map(scan: Scan, cfg: Optional[MappingConfig] = None,
     return TiledMap(spec, maps, cfg, method, offset=scan.offset, tile_points=kept,
                     owners=owners,
                     summary=dict(n_tiles=len(maps), n_points=len(scan),
-                                 absorbed_tiles=_owners_summary(owners),
+                                 absorbed_tiles=owners_summary(owners),
                                  skipped_tiles={str(k): v for k, v in skipped.items()}))
 
 
@@ -307,7 +307,7 @@ def load_tiled_map(directory, cache_tiles: int = 4, *, load_points: bool = True)
     """Open a tiled map written by :meth:`TiledMap.save`; it predicts identically.
 
     The tiles stay on disk and are loaded on demand, ``cache_tiles`` at a time
-    (:class:`_TileStore`); tiles replaced by :meth:`TiledMap.update` are kept in
+    (:class:`TileStore`); tiles replaced by :meth:`TiledMap.update` are kept in
     memory and the saved folder is left as it was (save the updated map to keep
     them).
 
@@ -359,8 +359,8 @@ def load_tiled_map(directory, cache_tiles: int = 4, *, load_points: bool = True)
     except KeyError as exc:
         raise TilingError(f"'{meta_path}' lacks the field {exc}; save the tiled map "
                           "again.") from None
-    missing = [_tile_dirname(k) for k in keys
-               if not (directory / "tiles" / _tile_dirname(k) / "map.json").is_file()]
+    missing = [tile_dirname(k) for k in keys
+               if not (directory / "tiles" / tile_dirname(k) / "map.json").is_file()]
     if missing:
         raise TilingError(f"Tiled map '{directory}' is incomplete: tiles/{missing[0]} is "
                           f"missing ({len(missing)} of {len(keys)} tiles); save the tiled "
@@ -368,7 +368,7 @@ def load_tiled_map(directory, cache_tiles: int = 4, *, load_points: bool = True)
     tile_points = {}
     if load_points:
         for key in point_keys:
-            path = directory / "points" / f"{_tile_dirname(key)}.npz"
+            path = directory / "points" / f"{tile_dirname(key)}.npz"
             if not path.is_file():
                 raise TilingError(f"Tiled map '{directory}' is incomplete: points/"
                                   f"{path.name} is missing; save the tiled map again or "
@@ -376,6 +376,6 @@ def load_tiled_map(directory, cache_tiles: int = 4, *, load_points: bool = True)
             with np.load(path, allow_pickle=False) as z:
                 tile_points[key] = (z["points"], z["origins"] if "origins" in z.files
                                     else None)
-    store = _TileStore(directory / "tiles", keys, cache=cache_tiles, read_only=True)
+    store = TileStore(directory / "tiles", keys, cache=cache_tiles, read_only=True)
     return TiledMap(spec, store, cfg, method, offset=offset, tile_points=tile_points,
                     summary=meta.get("summary", {}), owners=owners)

@@ -14,8 +14,9 @@ import numpy as np
 
 from ..config import MappingConfig
 from ..types import Scan
-from .geometry import TilingError, _canonical, _members, _owners_summary, _union, tile_owners
-from .tasks import _run_tiles
+from .geometry import (TilingError, canonical_order, members, owners_summary, tile_owners,
+                       union_points)
+from .tasks import run_tiles
 
 __all__ = ["update_tiled_map", "update_gp_blocks"]
 
@@ -45,7 +46,7 @@ def update_tiled_map(tmap, scan: Scan, refit_hgmm: bool = False, executor=None,
         all_o = (None if (old_o is None and len(old_p)) or new_o is None
                  else np.concatenate([old_o if old_o is not None else np.zeros((0, 3)),
                                       new_o]))
-        tmap.tile_points[key] = _canonical(all_p, all_o)
+        tmap.tile_points[key] = canonical_order(all_p, all_o)
         new_points[key] = new_p
     counts = {k: len(p) for k, (p, _) in tmap.tile_points.items()}
     owners = tile_owners(counts, tmap.spec.min_points)
@@ -53,16 +54,16 @@ def update_tiled_map(tmap, scan: Scan, refit_hgmm: bool = False, executor=None,
     # small square they own, or a change in which small squares they own
     touched = {k if counts[k] >= tmap.spec.min_points else owners.get(k) for k in parts}
     moved = {t for t in set(owners.values()) | set(tmap.owners.values())
-             if _members(owners, t) != _members(tmap.owners, t)}
+             if members(owners, t) != members(tmap.owners, t)}
     touched = sorted(t for t in touched | moved
                      if t is not None and counts.get(t, 0) >= tmap.spec.min_points)
     rebuild, report = [], dict(rebuilt_tiles=[], gp_updated_tiles=[], refit_blocks=0)
     for key in touched:
-        members = _members(owners, key)
-        all_p, all_o = _union([tmap.tile_points[k] for k in members])
-        new_p = np.concatenate([new_points.get(k, np.zeros((0, 3))) for k in members])
+        group = members(owners, key)
+        all_p, all_o = union_points([tmap.tile_points[k] for k in group])
+        new_p = np.concatenate([new_points.get(k, np.zeros((0, 3))) for k in group])
         old_p = np.concatenate([old_points.get(k, (np.zeros((0, 3)), None))[0]
-                                for k in members])
+                                for k in group])
         if (refit_hgmm or key in moved or key not in tmap.tiles
                 or tmap.tiles[key].gp is None
                 or _new_space(old_p, new_p, new_space_voxel) > (
@@ -74,8 +75,8 @@ def update_tiled_map(tmap, scan: Scan, refit_hgmm: bool = False, executor=None,
             report["gp_updated_tiles"].append(key)
             report["refit_blocks"] += n
     tmap.owners = owners
-    tmap.summary["absorbed_tiles"] = _owners_summary(owners)
-    maps, skipped = _run_tiles(executor, rebuild, progress)
+    tmap.summary["absorbed_tiles"] = owners_summary(owners)
+    maps, skipped = run_tiles(executor, rebuild, progress)
     report["skipped_tiles"] = skipped
     for key, smap in maps.items():
         tmap.tiles[key] = smap
