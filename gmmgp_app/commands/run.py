@@ -194,8 +194,8 @@ def _run_tiled(args, cfg, spec, scan, out: Path, console, t0: float, read_s: flo
 
     With ``stream`` (:func:`gmmgp_app.tiling.stream_plan`; ``scan`` is then None) the
     LAS/LAZ file is streamed into per-tile pieces under a temporary folder inside
-    ``out`` (the same file system as the output, which must hold the map anyway, unlike a possibly
-    small /tmp); the folder is removed once the map is saved to ``out/map`` (the save
+    ``out`` (the same file system as the output, which must hold the map anyway,
+    unlike a possibly small /tmp); the folder is removed once the map is saved to ``out/map`` (the save
     copies the tiles), also on errors and Ctrl-C, and the mesh is extracted from the
     saved map, which is what later commands open.
     """
