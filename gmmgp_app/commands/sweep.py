@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from .options import (EXIT_OK, METHODS, add_command, add_config_options, add_reader_options,
-                      load_config, print_config_help, read_scan_args)
+                      add_voxel_option, load_config, print_config_help, read_scan_args)
 
 EXAMPLES = """examples:
   gmmgp sweep assets/demo_street.npz --param hgmm.split_threshold \\
@@ -40,6 +40,7 @@ def add_sweep_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPar
                                             "adds rmse_sdf and surface_rmse per value")
     parser.add_argument("--method", default="gmmgp", choices=METHODS)
     parser.add_argument("--no-mesh", action="store_true", help="skip surface extraction")
+    add_voxel_option(parser, "default: surface.voxel_size, 0.05")
     add_reader_options(parser)
     add_config_options(parser)
     if parser.epilog is None:
@@ -56,7 +57,7 @@ def run(args) -> int:
 
     if args.help_config:
         return print_config_help()
-    cfg = load_config(args)
+    cfg = load_config(args, voxel=True)
     values = parse_values(args.param, args.values, cfg)
     if args.out:
         out = Path(args.out)
