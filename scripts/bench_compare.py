@@ -46,10 +46,9 @@ def main(argv=None) -> int:
     from gmmgp_app import MappingConfig
     from gmmgp_app.compare import run_evaluation
     from gmmgp_app.evaluation import Reference, evaluate_field, sample_queries
-    from gmmgp_app.pipeline import build_map
+    from gmmgp_app.pipeline import RunContext, build_map, run_stages
     from gmmgp_app.report import markdown_table, plot_metrics, write_metrics_json
     from gmmgp_app._atomic import atomic_write_text
-    from gmmgp_app.stages.loggpis import build_loggpis_map
     from gmmgp_app.stages.prepare import prepare
     from gmmgp_app.synth import scan_scene
 
@@ -73,7 +72,10 @@ def main(argv=None) -> int:
     lam0 = results["methods"]["loggpis"]["lambda"]
     sweep[f"{lam0:.1f}"] = results["methods"]["loggpis"]
     for lam in [float(x) for x in args.lambdas.split(",") if x.strip()]:
-        m = build_loggpis_map(scan, cfg, lam=lam, data=data)
+        # the prepared scan is reused: only the Log-GPIS stage runs again
+        summary = {"seconds": {}, "counts": {}}
+        m = run_stages(("loggpis", "map"), {"scan": scan, "data": data, "summary": summary},
+                       RunContext(cfg, "loggpis", loggpis_lambda=lam), summary=summary)["smap"]
         f = evaluate_field(m.predict, reference, queries, data.points, bins, signed=False,
                            truth=truth)
         sweep[f"{lam:.1f}"] = {"train_seconds": m.summary["seconds"],
