@@ -75,14 +75,16 @@ def run(args) -> int:
                          "'gmmgp run assets/demo_street.npz --out out/demo'.")
     cfg = load_config(args, voxel=True)  # validate settings before the (slow) read
     spec = _tile_spec(args)
+    out = Path(args.out)
+    # before the compute modules load: their numba caches need a writable place, and an
+    # unwritable --out is the error to report first
+    _check_writable(out)
 
     from .._atomic import atomic_write_text
     from .._json import jsonable
     from ..pipeline import FanoutObserver, build_map
     from ..progress import ConsoleObserver
 
-    out = Path(args.out)
-    _check_writable(out)
     console = ConsoleObserver(enabled=not args.quiet)
     observers = [console]
     recorder = None
