@@ -139,7 +139,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("synth", help="make a synthetic scene with exact ground truth",
                        epilog=_EXAMPLES["synth"])
-    p.add_argument("name", help="scene: plane, sphere, box, street, street2")
+    p.add_argument("name", help="scene: plane, sphere, box, street, street2, street_van")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--density", type=float, default=1.0, help="scan density multiplier")
