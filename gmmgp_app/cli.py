@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .commands import check as _check_cmd
+
 EXIT_OK, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 2, 130
 
 _EXAMPLES = {
@@ -195,6 +197,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("sweep", help="map a scan for several values of one config field "
             "(one rerun recording, a 'sweep' timeline)", epilog=SWEEP_EXAMPLES)
     add_sweep_arguments(p)
+    _check_cmd.add_parser(sub)
     return parser
 
 
@@ -638,7 +641,8 @@ def _jsonable(obj):
 
 # --------------------------------------------------------------------------- entry point
 _COMMANDS = {"info": cmd_info, "synth": cmd_synth, "run": cmd_run,
-             "view": cmd_view, "eval": cmd_eval, "sweep": cmd_sweep}
+             "view": cmd_view, "eval": cmd_eval, "sweep": cmd_sweep,
+             "check": _check_cmd.run}
 
 
 def main(argv=None) -> int:
