@@ -156,9 +156,6 @@ def run(args) -> int:
             kw["units"] = args.units
     scan = read_scan(args.scan, **kw)
     t2 = time.perf_counter()
-    if not quiet:
-        print(f"checking {len(scan):,} points against {args.map}"
-              f"{' (aligning)' if args.align else ''} ...", file=sys.stderr)
     res = check_scan(scan, smap, align=args.align, init=init, z_threshold=args.z_threshold,
                      noise=args.noise, known_std=args.known_std)
     t3 = time.perf_counter()
