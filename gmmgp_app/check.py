@@ -405,7 +405,7 @@ def _apply(T, x):
 
 
 def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, max_iter,
-                  frame=None, tol_t=1e-6, tol_r=1e-7, max_step_t=0.5, max_step_r=0.05):
+                  frame=None, tol_t=1e-5, tol_r=1e-6, max_step_t=0.5, max_step_r=0.05):
     """Robust Gauss-Newton from ``T0``, never stepping along the ``frozen`` directions.
 
     ``frozen`` holds unit vectors of the scaled space (rotation times the lever of
@@ -548,7 +548,7 @@ def _register(smap, x, T0, *, noise, known_std, c_robust, loss, max_iter, degene
 # --------------------------------------------------------------------------- entry point
 def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float = 3.0,
                noise: float = 0.01, known_std: float = 0.1, segment_radius: float = 0.3,
-               min_segment_points: int = 5, max_points: int = 30000,
+               min_segment_points: int = 5, max_points: int = 15000,
                sample_voxel: float = 0.1, max_iter: int = 30, robust_c: float = 4.685, loss: str = "tukey",
                degeneracy_ratio: float = 3e-4, cluster_size: float = 6.0,
                seed: int = 0) -> CheckResult:
@@ -732,9 +732,9 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
         converged=False if fit is None else fit.converged, summary=summary)
 
 
-def _surface_std(smap, y, m, s, g, known_std, steps: int = 2):
+def _surface_std(smap, y, m, s, g, known_std, steps: int = 1):
     """Std of the map's surface nearest each point: at the point where the map is sure
-    there, else at its foot on the zero level set (``steps`` Newton projections
+    there, else at its foot on the zero level set (``steps`` Newton projections (one: the map is nearly a distance field)
     ``y - m g / |g|^2``), whichever is smaller.
 
     Why not the std at the point itself: away from the data the prior's variance
