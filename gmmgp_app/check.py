@@ -548,7 +548,7 @@ def _register(smap, x, T0, *, noise, known_std, c_robust, loss, max_iter, degene
 # --------------------------------------------------------------------------- entry point
 def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float = 3.0,
                noise: float = 0.01, known_std: float = 0.1, segment_radius: float = 0.3,
-               min_segment_points: int = 5, max_points: int = 15000,
+               min_segment_points: int = 5, max_points: int = 30000,
                sample_voxel: float = 0.1, max_iter: int = 30, robust_c: float = 4.685, loss: str = "tukey",
                degeneracy_ratio: float = 3e-4, cluster_size: float = 6.0,
                seed: int = 0) -> CheckResult:
