@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -139,12 +140,15 @@ def run(args) -> int:
     t0 = time.perf_counter()
     quiet = getattr(args, "quiet", False)
     out = Path(args.out)
-    probe = out
-    while not probe.exists():
-        probe = probe.parent
-    if not probe.is_dir():
-        raise NotADirectoryError(f"Cannot write to output folder '{out}' ('{probe}' is not a "
-                                 "folder); choose another --out.")
+    for target, flag in ((out, "--out"), (Path(args.rrd).parent if args.rrd else None, "--rrd")):
+        if target is None:
+            continue
+        probe = target
+        while not probe.exists():
+            probe = probe.parent
+        if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
+            raise PermissionError(f"Cannot write to '{target}' ('{probe}' is not a writable "
+                                  f"folder); choose another {flag}.")
     init = load_transform(args.init) if args.init else None
     smap = load_any_map(args.map)
     t1 = time.perf_counter()
@@ -167,15 +171,16 @@ def run(args) -> int:
     fields = {"distance": res.distance, "std": res.std, "std_surface": res.std_surface,
               "z_score": res.z, "known": res.known, "changed": res.changed,
               "segment": res.segment}
-    out.mkdir(parents=True, exist_ok=True)
-    written = [write_points_ply(out / "points.ply", scan.points + scan.offset, fields)]
-    if args.align:
-        written.append(write_points_ply(out / "aligned.ply", res.points, fields))
-    written.append(write_z_histogram(out / "z_hist.png", res.z, res.known, args.z_threshold))
-    if args.rrd:
+    written = []
+    if args.rrd:  # first: a recording that cannot be written leaves OUT untouched
         from ..viz.check_rrd import write_check_rrd
 
         written.append(write_check_rrd(res, args.rrd))
+    out.mkdir(parents=True, exist_ok=True)
+    written.append(write_points_ply(out / "points.ply", scan.points + scan.offset, fields))
+    if args.align:
+        written.append(write_points_ply(out / "aligned.ply", res.points, fields))
+    written.append(write_z_histogram(out / "z_hist.png", res.z, res.known, args.z_threshold))
     from .._atomic import atomic_write_text
     from ..pipeline import _jsonable
 
