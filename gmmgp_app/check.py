@@ -405,7 +405,7 @@ def _apply(T, x):
 
 
 def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, max_iter,
-                  frame=None, tol_t=1e-5, tol_r=1e-6, max_step_t=0.5, max_step_r=0.05):
+                  frame=None, tol_t=5e-5, tol_r=5e-6, max_step_t=0.5, max_step_r=0.05):
     """Robust Gauss-Newton from ``T0``, never stepping along the ``frozen`` directions.
 
     ``frozen`` holds unit vectors of the scaled space (rotation times the lever of
@@ -450,6 +450,29 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, max
             converged = True
             break
     return T, it, converged, history
+
+
+def _coarse_to_fine(smap, x, T0, frozen, frame, max_iter, kw, coarse_points=5000):
+    """Gauss-Newton on every ``len(x) // coarse_points``-th point until the steps are
+    under 1 mm and 0.006 deg, then on all of ``x`` (the costly map queries of the
+    first, long steps are made on few points)."""
+    history: list = []
+    it = 0
+    T = T0
+    if frame is None:
+        # the full sample's first pivot and lever, so that both stages share them
+        y = _apply(T0, x)
+        pivot = y.mean(0)
+        lever = max(float(np.sqrt(((y - pivot) ** 2).sum(1).mean())), 1e-3)
+        frame = (pivot, np.r_[np.ones(3), np.full(3, 1.0 / lever)])
+    stride = len(x) // coarse_points
+    if stride >= 2:
+        T, it, _, history = _gauss_newton(smap, x[::stride], T0, frozen, max_iter=max_iter,
+                                          frame=frame, tol_t=1e-3, tol_r=1e-4, **kw)
+        history = [dict(h, stage="coarse") for h in history]
+    T, it2, converged, h2 = _gauss_newton(smap, x, T, frozen, max_iter=max_iter, frame=frame,
+                                          **kw)
+    return T, it + it2, converged, history + h2
 
 
 def _information(smap, x, T, *, noise2, known_std, c_robust, loss):
@@ -498,7 +521,7 @@ def _register(smap, x, T0, *, noise, known_std, c_robust, loss, max_iter, degene
     """
     noise2 = noise * noise
     kw = dict(noise2=noise2, known_std=known_std, c_robust=c_robust, loss=loss)
-    T, it, converged, history = _gauss_newton(smap, x, T0, [], max_iter=max_iter, **kw)
+    T, it, converged, history = _coarse_to_fine(smap, x, T0, [], None, max_iter, kw)
     info = _information(smap, x, T, **kw)
     Hs = info["H"] * info["D"][:, None] * info["D"][None, :]
     lam, V = np.linalg.eigh(Hs)
@@ -511,9 +534,9 @@ def _register(smap, x, T0, *, noise, known_std, c_robust, loss, max_iter, degene
                                                   V[:, k].copy(), float(ratio)))
     if degenerate:
         # the frozen vectors refer to the solution's pivot and lever: keep them
-        T, it2, converged, history2 = _gauss_newton(
-            smap, x, T0, [d.vector for d in degenerate], max_iter=max_iter,
-            frame=(info["pivot"], info["D"]), **kw)
+        T, it2, converged, history2 = _coarse_to_fine(
+            smap, x, T0, [d.vector for d in degenerate], (info["pivot"], info["D"]),
+            max_iter, kw)
         history = history + [{"restart": "frozen " + ", ".join(d.name for d in degenerate)}] \
             + history2
         it += it2
