@@ -33,7 +33,10 @@ map frame about a pivot ``c`` (the weighted centroid of the aligned points)::
     T <- exp(xi) T,   first order:  y' = y + phi x (y - c) + rho,  xi = (rho, phi)
 
 with ``rho`` in metres (map frame axes) and ``phi`` in radians (rotation vector).
-The residual's Jacobian is ``J_i = [g_i^T, ((y_i - c) x g_i)^T]``.
+The residual's Jacobian is ``J_i = [g_i^T, ((y_i - c) x g_i)^T]``. The registration
+uses one point per 0.1 m cell (at most 30k), first every n-th of them (5k) until
+the steps are under 1 mm, then all of them until under 50 um and 5 urad; on a
+loaded map 75-90 % of its time is the map's ``predict``.
 
 Degenerate directions: the normal matrix ``H = sum w_i J_i^T J_i`` is scaled so
 that rotations count as the displacement they cause at the points' RMS distance
