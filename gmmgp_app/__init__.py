@@ -37,6 +37,8 @@ _PUBLIC = {
     "build_map": "gmmgp_app.pipeline",
     "SurfaceMap": "gmmgp_app.pipeline",
     "load_map": "gmmgp_app.pipeline",
+    "check_scan": "gmmgp_app.check",
+    "CheckResult": "gmmgp_app.check",
 }
 
 __all__ = sorted(_PUBLIC) + ["__version__"]

@@ -17,7 +17,7 @@ from importlib import import_module
 from .commands.options import EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_OK, Parser
 
 #: The commands, in the order ``gmmgp --help`` lists them (modules of gmmgp_app.commands).
-COMMANDS = ["info", "synth", "run", "view", "eval", "sweep"]
+COMMANDS = ["info", "synth", "run", "view", "eval", "sweep", "check"]
 
 
 def _command(name: str):

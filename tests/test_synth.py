@@ -250,7 +250,7 @@ def test_box_volume_and_street_contents(street):
 
 
 def test_scenes_tuple_lists_every_scene():
-    assert SCENES == ("plane", "sphere", "box", "street", "street2")
+    assert SCENES == ("plane", "sphere", "box", "street", "street2", "street_van")
     for name in SCENES:
         assert make_scene(name).name == name
 

@@ -13,7 +13,7 @@ EXAMPLES = """examples:
 def add_parser(subparsers):
     p = add_command(subparsers, "synth", help="make a synthetic scene with exact ground truth",
                     epilog=EXAMPLES)
-    p.add_argument("name", help="scene: plane, sphere, box, street, street2")
+    p.add_argument("name", help="scene: plane, sphere, box, street, street2, street_van")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--density", type=float, default=1.0, help="scan density multiplier")

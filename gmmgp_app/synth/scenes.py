@@ -11,6 +11,10 @@ Scenes
             recesses 0.2 m deep, balconies, a round pole and a parked car.
 ``street2`` a second layout: a side street, an L-shaped corner building, two
             cars and two poles, other window rhythm.
+``street_van`` ``street`` with a delivery van (5.5 x 2.0 x 2.4 m, label ``van``)
+            parked at the kerb of the y > 0 side, from x = 0.2 L: the scene a
+            second drive sees when the first one mapped ``street`` (change
+            detection, :mod:`gmmgp_app.check`).
 
 How the streets stay a single closed 2-manifold
 -----------------------------------------------
@@ -51,12 +55,12 @@ __all__ = [
     "mesh_topology",
 ]
 
-SCENES = ("plane", "sphere", "box", "street", "street2")
+SCENES = ("plane", "sphere", "box", "street", "street2", "street_van")
 
 #: Per-point object classes of the synthetic scenes.
 LABELS = {0: "unlabelled", 1: "ground", 2: "facade", 3: "balcony", 4: "pole", 5: "car",
-          6: "window", 7: "object"}
-GROUND, FACADE, BALCONY, POLE, CAR, WINDOW, OBJECT = 1, 2, 3, 4, 5, 6, 7
+          6: "window", 7: "object", 8: "van"}
+GROUND, FACADE, BALCONY, POLE, CAR, WINDOW, OBJECT, VAN = 1, 2, 3, 4, 5, 6, 7, 8
 
 
 class SynthError(ValueError):
@@ -369,6 +373,15 @@ def _car(solid, x0, y0, length=4.4, width=1.8):
             solid.add((wx, wy, 0.0), (wx + 0.6, wy + 0.25, 0.35), CAR)
 
 
+def _van(solid, x0, y0, length=5.5, width=2.0):
+    """Van-like block: a tall box body on four wheel blocks (label VAN)."""
+    x1, y1 = x0 + length, y0 + width
+    solid.add((x0, y0, 0.4), (x1, y1, 2.4), VAN)
+    for wx in (x0 + 0.6, x1 - 1.3):
+        for wy in (y0 + 0.05, y1 - 0.3):
+            solid.add((wx, wy, 0.0), (wx + 0.7, wy + 0.25, 0.4), VAN)
+
+
 def _street_solid(layout: str, length: float):
     s = _CellSolid()
     L = length
@@ -378,7 +391,7 @@ def _street_solid(layout: str, length: float):
     s.add((-4.0, 5.0, 0.0), (L + 4.0, 8.0, 0.15), GROUND)
     s.add((-4.0, -8.0, 0.0), (L + 4.0, -5.0, 0.15), GROUND)
     poles = []
-    if layout == "street":
+    if layout in ("street", "street_van"):
         third = L / 3.0
         _facade(s, 0.0, third, +1, 8.0, 6.0, 12.0, balcony_every=2)
         _facade(s, third, 2 * third, +1, 8.0, 6.0, 15.0, balcony_every=3, bay=3.0)
@@ -386,6 +399,8 @@ def _street_solid(layout: str, length: float):
         _facade(s, 0.0, L, -1, 8.0, 6.0, 18.0, balcony_every=4, bay=3.0)
         _car(s, 0.55 * L, -4.8)
         poles.append(((0.3 * L + 0.37, -6.5), 0.15))
+        if layout == "street_van":
+            _van(s, 0.2 * L, 2.8)
     elif layout == "street2":
         # side street between x = 0.4 L and 0.4 L + 8 on the y > 0 side
         xs = 0.4 * L
@@ -498,6 +513,7 @@ _DEFAULTS = {
     "box": dict(half_extent=(1.0, 0.6, 0.4), yaw_deg=30.0, center=(0.0, 0.0, 0.0)),
     "street": dict(length=36.0),
     "street2": dict(length=36.0),
+    "street_van": dict(length=36.0),
 }
 
 
@@ -506,12 +522,12 @@ def make_scene(name: str, **params) -> SyntheticScene:
 
     Parameters
     ----------
-    name : {"plane", "sphere", "box", "street", "street2"}
+    name : {"plane", "sphere", "box", "street", "street2", "street_van"}
     **params
         plane: ``size`` (m, side of the square slab, default 40), ``thickness`` (m, 1).
         sphere: ``radius`` (m, 1), ``subdivisions`` (icosphere level, 5 -> 20480 faces),
         ``center``. box: ``half_extent`` (m, (1, 0.6, 0.4)), ``yaw_deg`` (30), ``center``.
-        street, street2: ``length`` (m, 36; between 20 and 200).
+        street, street2, street_van: ``length`` (m, 36; between 20 and 200).
 
     Returns
     -------

@@ -1,0 +1,276 @@
+"""Registration and check of a new scan against a map, side by side with Open3D's ICP.
+
+Pairs:
+  synthetic   first drive through ``street`` (lane +1.5, seed 0) mapped; second drive
+              through ``street_van`` (lane -1.5, seed 1, a parked van) moved by a known
+              transform (0.5 deg about a slanted axis, 5.1 cm): exact truth.
+  kitti i     KITTI seq. 00 scans 000000-000005 (../shared/data) each checked against
+              the map of scan 000000, starting from the pose file's estimate perturbed
+              by 0.3 m and 2 deg (random directions, seeded). Truth only for scan 0
+              (identity); otherwise the methods are compared with each other and with
+              the pose file (itself a GICP estimate, not ground truth).
+
+Methods on each pair, from the same initial guess: ``gmmgp`` (check_scan(align=True):
+robust Gauss-Newton on the map's distances), Open3D point-to-plane ICP (Tukey loss)
+and Open3D generalized ICP, both on the full clouds against the first scan's points
+(normals from a 0.3 m / 30-neighbour search). Times are wall-clock medians of
+``--repeat`` runs; "check" is check_scan without alignment at the found transform,
+"predict" the share of the map's predict() inside gmmgp's alignment.
+
+Writes OUT/bench_check.json and OUT/bench_check.md.
+
+    .venv/bin/python scripts/bench_check.py --out out/bench_check
+    .venv/bin/python scripts/bench_check.py --out out/bench_check --no-kitti --repeat 1
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+KITTI = ROOT.parent / "shared" / "data" / "kitti_odometry_seq00"
+
+
+class _TimedMap:
+    """Forwards predict() to a map and adds up its time and points."""
+
+    def __init__(self, smap):
+        self.smap, self.seconds, self.points, self.calls = smap, 0.0, 0, 0
+        self.offset = smap.offset
+        self.seed_points = getattr(smap, "seed_points", None)
+
+    def predict(self, xyz, return_grad=False):
+        t = time.perf_counter()
+        out = self.smap.predict(xyz, return_grad=return_grad)
+        self.seconds += time.perf_counter() - t
+        self.points += len(xyz)
+        self.calls += 1
+        return out
+
+    def reset(self):
+        self.seconds, self.points, self.calls = 0.0, 0, 0
+
+
+def _rot(axis, deg):
+    from gmmgp_app.check import _rotvec_to_matrix
+
+    a = np.asarray(axis, float)
+    return _rotvec_to_matrix(np.radians(deg) * a / np.linalg.norm(a))
+
+
+def _diff(Ta, Tb):
+    """Rotation (deg) and translation (m, at the map origin) of Ta Tb^-1."""
+    D = Ta @ np.linalg.inv(Tb)
+    ang = np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1)))
+    return float(ang), float(np.linalg.norm(D[:3, 3]))
+
+
+def _o3d_clouds(target_pts, source_pts):
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target_pts))
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source_pts))
+    param = o3d.geometry.KDTreeSearchParamHybrid(radius=0.3, max_nn=30)
+    tgt.estimate_normals(param)
+    src.estimate_normals(param)
+    return reg, src, tgt
+
+
+def _run_o3d(kind, src, tgt, reg, init, max_dist):
+    crit = reg.ICPConvergenceCriteria(relative_fitness=1e-9, relative_rmse=1e-9,
+                                      max_iteration=100)
+    t = time.perf_counter()
+    if kind == "p2plane":
+        est = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=0.1))
+        r = reg.registration_icp(src, tgt, max_dist, init, est, crit)
+    else:
+        r = reg.registration_generalized_icp(
+            src, tgt, max_dist, init, reg.TransformationEstimationForGeneralizedICP(), crit)
+    return np.asarray(r.transformation), time.perf_counter() - t
+
+
+def _pair(name, smap, scan_pts, init, truth, *, noise, max_dist, target_pts, repeat, pose=None):
+    from gmmgp_app.check import check_scan
+
+    tm = _TimedMap(smap)
+    row = {"pair": name, "points": int(len(scan_pts))}
+    times, res = [], None
+    for _ in range(repeat):
+        tm.reset()
+        t = time.perf_counter()
+        res = check_scan(scan_pts, tm, align=True, init=init, noise=noise)
+        times.append(time.perf_counter() - t)
+    pred_s, pred_pts, calls = tm.seconds, tm.points, tm.calls
+    ct = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        check_scan(scan_pts, smap, init=res.transform, noise=noise)
+        ct.append(time.perf_counter() - t)
+    T = {"gmmgp": res.transform}
+    secs = {"gmmgp": float(np.median(times))}
+    reg, src, tgt = _o3d_clouds(target_pts, scan_pts)
+    for kind in ("p2plane", "gicp"):
+        tt = []
+        for _ in range(repeat):
+            Tk, s = _run_o3d(kind, src, tgt, reg, init, max_dist)
+            tt.append(s)
+        T[kind], secs[kind] = Tk, float(np.median(tt))
+    row.update({
+        "seconds_align": secs, "seconds_check_only": float(np.median(ct)),
+        "gmmgp_predict_seconds": pred_s, "gmmgp_predict_points": pred_pts,
+        "gmmgp_predict_calls": calls, "gmmgp_iterations": res.iterations,
+        "gmmgp_degenerate": [d.name for d in res.degenerate],
+        "gmmgp_std_m": np.sqrt(np.diag(res.covariance))[:3].tolist(),
+        "gmmgp_std_deg": np.degrees(np.sqrt(np.diag(res.covariance))[3:]).tolist(),
+        "fraction_known": res.summary["fraction_known"],
+        "fraction_changed": res.summary["fraction_changed"],
+        "robust_rms_m": res.summary["robust_rms_m"],
+        "init_error": None if truth is None else dict(zip(("deg", "m"), _diff(truth, init))),
+    })
+    if truth is not None:
+        row["error_vs_truth"] = {k: dict(zip(("deg", "m"), _diff(truth, v))) for k, v in T.items()}
+        from scipy.spatial.transform import Rotation
+
+        D = truth @ np.linalg.inv(res.transform)
+        xi = np.r_[D[:3, :3] @ res.pivot + D[:3, 3] - res.pivot,
+                   Rotation.from_matrix(D[:3, :3]).as_rotvec()]
+        row["gmmgp_truth_mahalanobis2"] = float(xi @ np.linalg.pinv(res.covariance) @ xi)
+    keys = list(T)
+    row["pairwise"] = {f"{a}-{b}": dict(zip(("deg", "m"), _diff(T[a], T[b])))
+                       for i, a in enumerate(keys) for b in keys[i + 1:]}
+    if pose is not None:
+        row["vs_pose_file"] = {k: dict(zip(("deg", "m"), _diff(pose, v))) for k, v in T.items()}
+    return row, res
+
+
+def synthetic(args):
+    import gmmgp_app as gm
+    from gmmgp_app.synth import scan_scene
+
+    first, street = scan_scene("street", density=args.density, seed=0,
+                               scene_params=dict(length=args.length))
+    t = time.perf_counter()
+    smap = gm.build_map(first)
+    build = time.perf_counter() - t
+    second, _ = scan_scene("street_van", density=args.density, seed=1,
+                           scene_params=dict(length=args.length), lane_y=-1.5)
+    T = np.eye(4)
+    T[:3, :3] = _rot((0.3, -0.5, 0.8), 0.5)
+    T[:3, 3] = (0.03, -0.035, 0.02)
+    moved = (second.points - T[:3, 3]) @ T[:3, :3]
+    row, res = _pair("synthetic street", smap, moved, np.eye(4), T, noise=0.01, max_dist=0.5,
+                     target_pts=first.points, repeat=args.repeat)
+    van = second.labels == 8
+    far = van & (np.abs(street.sdf(second.points)) > 0.2)
+    row["van_flagged"] = float(res.changed[far].mean())
+    row["false_flags_elsewhere"] = float(res.changed[~van].mean())
+    row["map_build_seconds"] = build
+    row["map_points"] = int(len(first))
+    return [row]
+
+
+def kitti(args):
+    import gmmgp_app as gm
+    from gmmgp_app.datasets import read_scan
+    from gmmgp_app.datasets.kitti import read_poses
+
+    poses = read_poses(KITTI / "poses_gicp_estimated.txt")
+    scans = [read_scan(KITTI / "velodyne" / f"{i:06d}.bin") for i in range(6)]
+    t = time.perf_counter()
+    smap = gm.build_map(scans[0])
+    build = time.perf_counter() - t
+    rng = np.random.default_rng(args.seed)
+    rows = []
+    for i, scan in enumerate(scans):
+        P = np.eye(4)
+        P[:3] = poses[i]
+        u = rng.normal(size=3)
+        a = rng.normal(size=3)
+        dT = np.eye(4)
+        dT[:3, :3] = _rot(a, 2.0)
+        dT[:3, 3] = 0.3 * u / np.linalg.norm(u)
+        init = dT @ P
+        truth = np.eye(4) if i == 0 else None
+        row, _ = _pair(f"kitti {i:06d}", smap, scan.points, init, truth, noise=0.02,
+                       max_dist=1.0, target_pts=scans[0].points, repeat=args.repeat,
+                       pose=P)
+        row["map_build_seconds"] = build
+        row["init_vs_pose_file"] = dict(zip(("deg", "m"), _diff(P, init)))
+        rows.append(row)
+        print(f"  {row['pair']}: done", file=sys.stderr, flush=True)
+    return rows
+
+
+def markdown(rows) -> str:
+    out = ["| pair | points | method | rot. err (deg) | transl. err (mm) | align (s) | "
+           "check only (s) |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        ref = r.get("error_vs_truth")
+        for k in ("gmmgp", "p2plane", "gicp"):
+            if ref is not None:
+                e = ref[k]
+                err = (f"{e['deg']:.4f}", f"{1e3 * e['m']:.2f}")
+            else:  # against gmmgp and the pose file
+                e = r["vs_pose_file"][k]
+                err = (f"{e['deg']:.4f} vs pose file", f"{1e3 * e['m']:.1f} vs pose file")
+            chk = f"{r['seconds_check_only']:.2f}" if k == "gmmgp" else ""
+            out.append(f"| {r['pair']} | {r['points']:,} | {k} | {err[0]} | {err[1]} | "
+                       f"{r['seconds_align'][k]:.2f} | {chk} |")
+    out += ["", "| pair | gmmgp-p2plane (deg / mm) | gmmgp-gicp (deg / mm) | "
+            "p2plane-gicp (deg / mm) | gmmgp predict (s, calls) | degenerate |",
+            "|---|---|---|---|---|---|"]
+    for r in rows:
+        pw = r["pairwise"]
+        f = lambda d: f"{d['deg']:.4f} / {1e3 * d['m']:.1f}"  # noqa: E731
+        out.append(f"| {r['pair']} | {f(pw['gmmgp-p2plane'])} | {f(pw['gmmgp-gicp'])} | "
+                   f"{f(pw['p2plane-gicp'])} | {r['gmmgp_predict_seconds']:.2f} "
+                   f"({r['gmmgp_predict_calls']}) of {r['seconds_align']['gmmgp']:.2f} | "
+                   f"{', '.join(r['gmmgp_degenerate']) or '-'} |")
+    return "\n".join(out) + "\n"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", default="out/bench_check")
+    ap.add_argument("--density", type=float, default=0.1)
+    ap.add_argument("--length", type=float, default=36.0)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--no-kitti", action="store_true")
+    ap.add_argument("--no-synthetic", action="store_true")
+    args = ap.parse_args(argv)
+    rows = []
+    if not args.no_synthetic:
+        rows += synthetic(args)
+        print(markdown(rows), file=sys.stderr, flush=True)
+    if not args.no_kitti:
+        if KITTI.is_dir():
+            rows += kitti(args)
+        else:
+            print(f"KITTI data not found at {KITTI}; skipped", file=sys.stderr)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    from gmmgp_app._json import jsonable as _jsonable
+
+    meta = {"argv": sys.argv[1:], "python": platform.python_version(),
+            "machine": platform.machine(), "cpus": __import__("os").cpu_count()}
+    (out / "bench_check.json").write_text(json.dumps(_jsonable({"meta": meta, "rows": rows}),
+                                                     indent=2))
+    md = markdown(rows)
+    (out / "bench_check.md").write_text(md)
+    print(md)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
