@@ -32,6 +32,7 @@ _EXAMPLES = {
   gmmgp run assets/demo_street.npz --out out/demo
   gmmgp run scan.laz --out out/scan --set hgmm.split_threshold=0.02 --set gp.d_m=0.03
   gmmgp run scan.ply --out out/scan --method hgmm          # GMR-only baseline
+  gmmgp run scan.ply --out out/scan --prior-mesh           # + mesh_hgmm.ply of the prior
   gmmgp run assets/demo_street.npz --out out/demo --stage hgmm   # print the HGMM levels
   gmmgp run scan.npz --out out/scan --config my.toml
   gmmgp run scan.laz --out out/scan --workers 2                 # GP blocks on a local Dask cluster
@@ -157,6 +158,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--serve", action="store_true",
                    help="also serve the recording to viewers (bound to 127.0.0.1)")
     p.add_argument("--no-mesh", action="store_true", help="skip surface extraction")
+    p.add_argument("--prior-mesh", action="store_true",
+                   help="also write mesh_hgmm.ply, the surface of the HGMM prior (GMR alone); "
+                        "off by default: it costs a second surface extraction")
     g = p.add_argument_group("large scans: map in tiles (DIR/map is then a tiled map)")
     g.add_argument("--tile-size", type=float, metavar="M",
                    help="map in square tiles of this edge (m) in x and y, each an independent "
@@ -297,7 +301,8 @@ def cmd_run(args) -> int:
         smap.save(out / "map")
         written = [out / "map"]
         if args.stage == "all" and not args.no_mesh:
-            written += _write_meshes(smap, out, observer, console)
+            written += _write_meshes(smap, out, observer, console,
+                                     prior_mesh=getattr(args, "prior_mesh", False))
         if recorder is not None:
             recorder.close()  # writes the recording's footer now, not at interpreter exit
         atomic_write_text(out / "config.toml", cfg.to_toml())
@@ -554,8 +559,9 @@ def _std_colour_max(meshes) -> float | None:
                 for m in meshes if len(m.vertices)), default=None)
 
 
-def _write_meshes(smap, out: Path, observer, console) -> list:
-    """Marching-cubes surfaces of the map and of its HGMM prior (GMR alone)."""
+def _write_meshes(smap, out: Path, observer, console, prior_mesh: bool = False) -> list:
+    """Marching-cubes surface of the map, and with ``prior_mesh`` also of its HGMM prior
+    (GMR alone; always for ``--method hgmm``, whose map is the prior)."""
     from .pipeline import StagePayload
     from .stages.surface import extract_surface, write_mesh_ply
 
@@ -564,7 +570,7 @@ def _write_meshes(smap, out: Path, observer, console) -> list:
     meshes = {}
     if smap.method != "hgmm":
         meshes[smap.method] = smap.extract_surface(progress=console.progress)
-    if smap.hgmm is not None:
+    if smap.hgmm is not None and (prior_mesh or smap.method == "hgmm"):
         meshes["hgmm"] = extract_surface(smap.prior.predict, smap.seed_points,
                                          voxel_size=sc.voxel_size, max_std=sc.max_std,
                                          progress=console.progress)
