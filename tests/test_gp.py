@@ -266,3 +266,20 @@ def test_value_path_equals_the_pair_predictor(sphere_scene):
     assert np.count_nonzero(m1 != prior.predict(q)[0]) > 500   # many queries in blocks
     np.testing.assert_allclose(m1, m2, rtol=1e-10, atol=1e-13)
     np.testing.assert_allclose(v1, v2, rtol=1e-10, atol=1e-13)
+
+
+def test_gp_runs_blas_on_one_thread_and_restores_it():
+    """Small block solves on a multithreaded BLAS spin on a loaded machine: the GP
+    stage limits BLAS to one thread while it runs and restores the setting after."""
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    from gmmgp_app.stages._blas import one_blas_thread
+
+    def blas_threads():
+        return [i["num_threads"] for i in threadpoolctl.threadpool_info()
+                if i["user_api"] == "blas"]
+
+    before = blas_threads()
+    with one_blas_thread():
+        inside = blas_threads()
+    assert inside and all(n == 1 for n in inside)
+    assert blas_threads() == before

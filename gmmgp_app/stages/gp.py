@@ -20,6 +20,7 @@ import numba as nb
 import numpy as np
 from scipy.linalg import cho_solve, solve_triangular
 
+from gmmgp_app.stages._blas import single_threaded_blas
 from gmmgp_app.stages.kernels import matern32_cross, matern32_joint
 from gmmgp_app.stages.octree import BlockGrid
 
@@ -275,6 +276,7 @@ class LocalGPField:
             return np.zeros((0, 3))
         return np.unique(np.concatenate([b.X for b in self.blocks]), axis=0)
 
+    @single_threaded_blas
     def predict(self, xyz, return_grad: bool = False):
         """Posterior signed distance at query points.
 
@@ -427,6 +429,7 @@ class LocalGPField:
 
 
 # ---------------------------------------------------------------- fitting
+@single_threaded_blas
 def fit_local_gps(points, normals, prior, cfg, *, rng=None, executor=None,
                   progress=None, min_task_seconds: float = 0.01) -> LocalGPField:
     """Fit the local GPs on residuals of ``prior`` (paper Sec. IV).
