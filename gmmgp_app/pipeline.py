@@ -161,7 +161,9 @@ class SurfaceMap:
                 arrays.update(_hgmm_to_arrays(self.hgmm))
             if self.gp is not None:
                 arrays.update({f"gp/{k}": v for k, v in self.gp.to_arrays().items()})
-            np.savez_compressed(tmp / "arrays.npz", **arrays)
+            # uncompressed: the arrays are mostly float64 factors that zlib shrinks by a few
+            # per cent, at 16 s for the 1.3M-point street (docs/speed.md)
+            np.savez(tmp / "arrays.npz", **arrays)
             meta = {
                 "format_version": MAP_FORMAT_VERSION,
                 "method": self.method,
@@ -329,7 +331,18 @@ def surface_seeds(scan: Scan, cfg: MappingConfig) -> np.ndarray:
     """
     cell = cfg.surface.voxel_size / 2
     keys = np.floor(scan.points / cell).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
+    if len(keys) == 0:
+        return scan.points[:0]
+    lo = keys.min(0)
+    dims = keys.max(0) - lo + 1
+    if float(np.prod(dims.astype(np.float64))) < 2.0 ** 62:
+        # one int64 per cell, ordered as the rows: same first indices as the row-wise
+        # unique (stable), about 30x faster on a 1.3M-point scan
+        keys -= lo
+        packed = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
+        _, first = np.unique(packed, return_index=True)
+    else:
+        _, first = np.unique(keys, axis=0, return_index=True)
     return scan.points[np.sort(first)]
 
 
