@@ -37,9 +37,6 @@ __all__ = [
 
 #: Cholesky jitter is raised x10 from ``GPConfig.jitter`` up to this (relative) bound.
 MAX_RELATIVE_JITTER = 1e-2
-#: Blocks with more covariance rows (4n) than this are solved per block with BLAS when
-#: predicting values; smaller ones per (query, block) pair by the compiled predictor.
-_TRSM_MIN_ROWS = 160
 
 _HYPER = ("length_scale", "value_noise", "gradient_noise", "block_size", "block_overlap")
 
@@ -453,40 +450,15 @@ class LocalGPField:
         return m, v
 
     def _value_pairs(self, x, sig, qi, bi, a):
-        """Value posterior for (query, block) pairs sorted by block.
-
-        Pairs of small blocks (``4n <= _TRSM_MIN_ROWS``) go to the compiled per-pair
-        predictor :func:`_predict_pairs` (a forward substitution of a few hundred
-        flops; a BLAS call per block cost more in overhead). Larger blocks share one
-        triangular solve with many right-hand sides per block (``trsm``), about 10x
-        faster than one forward substitution per pair once a block has tens of
-        queries. The two give the same numbers up to round-off (a test checks it).
-        """
+        """Value posterior for (query, block) pairs sorted by block, one compiled
+        triangular solve per block for all its queries (:func:`_value_blocks`; BLAS
+        ``trsm`` per block did the same with a call overhead per block)."""
         flat = self._flat()
-        rows = 4 * np.diff(flat["ptr"])
-        big = rows[bi] > _TRSM_MIN_ROWS
-        if not big.all():
-            small = ~big
-            dm_s, red_s, _ = _predict_pairs(x, sig, qi[small], bi[small], flat["ptr"],
-                                            flat["X"], flat["sp"], flat["L"], flat["Loff"],
-                                            flat["alpha"], a, False)
-            if not big.any():
-                return dm_s, red_s
+        starts, ends = _runs(bi)
         dm = np.empty(len(qi))
         red = np.empty(len(qi))
-        if not big.all():
-            dm[small], red[small] = dm_s, red_s
-        pos = np.flatnonzero(big)
-        qb, bb = qi[pos], bi[pos]
-        for s, e in zip(*_runs(bb)):
-            blk = self.blocks[bb[s]]
-            kv = _value_cross(x, sig, qb[s:e], blk.X, blk.sigma_p, a)   # (q, 4n)
-            dm[pos[s:e]] = kv @ blk.alpha
-            # L v = k*  <=>  (L^T)^T v = k*: L^T of a C-ordered L is Fortran-ordered,
-            # and kv^T too, so LAPACK gets both without a copy.
-            v = solve_triangular(np.ascontiguousarray(blk.L).T, kv.T, trans="T", lower=False,
-                                 check_finite=False, overwrite_b=True)
-            red[pos[s:e]] = np.einsum("ij,ij->j", v, v)
+        _value_blocks(x, sig, qi, bi, starts, ends, flat["ptr"], flat["X"], flat["sp"],
+                      flat["L"], flat["Loff"], flat["alpha"], a, dm, red)
         return dm, red
 
     def _flat(self) -> dict:
@@ -747,6 +719,58 @@ def _value_cross(x, sig, q, X, sp, a):
             out[p, 4 * i + 2] = a2e * d1
             out[p, 4 * i + 3] = a2e * d2
     return out
+
+
+@nb.njit(parallel=True, cache=True)
+def _value_blocks(x, sig, qi, bi, starts, ends, ptr, X, sp, L, Loff, alpha, a, dm, red):
+    """Value posterior of every (query, block) pair, pairs sorted by block; run
+    ``[starts[t], ends[t])`` holds the queries of one block (eqs. gpm2, gpv2).
+
+    Per block: the scaled cross-covariances ``k*`` of all its queries as the columns
+    of a (4n, q) matrix, ``k*^T alpha``, then ``L V = K*`` by forward substitution
+    row by row, each row update running over all q queries at once (what BLAS
+    ``trsm`` does), and ``|v|^2`` per query. Blocks run in parallel.
+    """
+    for t in nb.prange(len(starts)):
+        s, e = starts[t], ends[t]
+        b = bi[s]
+        p0, p1 = ptr[b], ptr[b + 1]
+        n4 = 4 * (p1 - p0)
+        nq = e - s
+        V = np.empty((n4, nq))
+        for j in range(nq):
+            q = qi[s + j]
+            for i in range(p1 - p0):
+                d0 = x[q, 0] - X[p0 + i, 0]
+                d1 = x[q, 1] - X[p0 + i, 1]
+                d2 = x[q, 2] - X[p0 + i, 2]
+                r = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+                ex = math.exp(-a * r)
+                sc = sig[q] * sp[p0 + i]
+                a2e = sc * a * a * ex
+                V[4 * i, j] = sc * (1.0 + a * r) * ex
+                V[4 * i + 1, j] = a2e * d0
+                V[4 * i + 2, j] = a2e * d1
+                V[4 * i + 3, j] = a2e * d2
+        for j in range(nq):
+            mu = 0.0
+            for k in range(n4):
+                mu += V[k, j] * alpha[4 * p0 + k]
+            dm[s + j] = mu
+        base = Loff[b]
+        acc = np.zeros(nq)
+        for r_ in range(n4):
+            row = base + r_ * n4
+            for c_ in range(r_):
+                l = L[row + c_]
+                for j in range(nq):
+                    V[r_, j] -= l * V[c_, j]
+            d = L[row + r_]
+            for j in range(nq):
+                V[r_, j] /= d
+                acc[j] += V[r_, j] * V[r_, j]
+        for j in range(nq):
+            red[s + j] = acc[j]
 
 
 @nb.njit(parallel=True, cache=True, fastmath=False)
