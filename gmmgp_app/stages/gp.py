@@ -615,7 +615,9 @@ def fit_local_gps(points, normals, prior, cfg, *, rng=None, executor=None,
         sel.append(idx)
     n_cand = np.array(n_cand)
     n_used = np.array([len(idx) for idx in sel])
-    if executor is None:
+    from gmmgp_app.distributed import SerialExecutor
+
+    if executor is None or type(executor) is SerialExecutor:  # in this process: no copies
         cat = np.concatenate(sel) if sel else np.zeros(0, dtype=np.int64)
         blocks, flat = _fit_many(pts[cat], sigma_p[cat], targets[cat], n_used,
                                  cfg.length_scale, cfg.value_noise, cfg.gradient_noise,
