@@ -123,12 +123,13 @@ def find_old_pythons() -> list:
     out = []
     for c in dict.fromkeys(cands):
         try:
-            ver = subprocess.run([c, "-c", "import sys; print(sys.version_info[:2])"],
-                                 capture_output=True, text=True, timeout=30).stdout.strip()
-        except (OSError, subprocess.TimeoutExpired):
+            ver = subprocess.run([c, "-c", "import sys; print(*sys.version_info[:2])"],
+                                 capture_output=True, text=True, timeout=30).stdout.split()
+            ver = tuple(int(x) for x in ver)
+        except (OSError, ValueError, subprocess.TimeoutExpired):
             continue
-        if ver and eval(ver) < (3, 11) and eval(ver) >= (3, 7):
-            out.append((eval(ver), c))
+        if (3, 7) <= ver < (3, 11):
+            out.append((ver, c))
     return [c for _, c in sorted(out, reverse=True)]
 
 
