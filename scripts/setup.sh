@@ -53,6 +53,7 @@ else
   echo "[setup] .venv is up to date"
 fi
 
+.venv/bin/python scripts/warm_cache.py --if-stale  # numba kernels compiled into their cache once
 # --------------------------------------------------------------- jobs
 case "${1:-}" in
   "") ;;

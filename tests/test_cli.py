@@ -71,9 +71,9 @@ def test_synth_then_run_writes_map_meshes_and_summary(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert set(summary["seconds"]) >= {"read", "prepare", "hgmm", "gmr", "gp", "surface"}
     assert summary["counts"]["hgmm"]["leaves"] > 0
-    for name in ("mesh_gmmgp.ply", "mesh_hgmm.ply", "config.toml", "map/map.json",
-                 "map/arrays.npz"):
+    for name in ("mesh_gmmgp.ply", "config.toml", "map/map.json", "map/arrays.npz"):
         assert (out / name).is_file(), name
+    assert not (out / "mesh_hgmm.ply").exists()  # the prior's mesh is opt-in (--prior-mesh)
     from gmmgp_app.stages.surface import read_mesh_ply
 
     mesh = read_mesh_ply(out / "mesh_gmmgp.ply")
@@ -88,3 +88,17 @@ def test_stage_hgmm_prints_the_level_history(tmp_path):
              "-q")
     assert r.returncode == 0, r.stderr
     assert "level" in r.stdout and "leaves" in r.stdout
+
+
+def test_prior_mesh_is_opt_in(tmp_path):
+    r = _run("synth", "box", "--out", tmp_path / "box", "--density", "0.2")
+    assert r.returncode == 0, r.stderr
+    out = tmp_path / "run"
+    r = _run("run", tmp_path / "box" / "scan.npz", "--out", out, "-q", "--prior-mesh",
+             "--set", "surface.voxel_size=0.1")
+    assert r.returncode == 0, r.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["counts"]["surface"]) == {"gmmgp", "hgmm"}
+    from gmmgp_app.stages.surface import read_mesh_ply
+
+    assert len(read_mesh_ply(out / "mesh_hgmm.ply").faces) > 100

@@ -256,8 +256,9 @@ def test_compiled_pair_predictor_matches_numpy_block_predictor():
 
 
 def test_value_path_equals_the_pair_predictor(sphere_scene):
-    """predict() without gradients solves each block once for all its queries (BLAS);
-    with gradients it runs the compiled per-pair predictor: same mean and variance."""
+    """predict() without gradients solves each block once for all its queries
+    (_value_blocks); with gradients it runs the compiled per-pair predictor: same mean
+    and variance."""
     pts, nrm, prior = sphere_scene
     field = fit_local_gps(pts[:400], nrm[:400], prior, GPConfig(block_size=0.3))
     q = np.random.default_rng(4).uniform(-1.2, 1.2, size=(3000, 3))
@@ -266,3 +267,43 @@ def test_value_path_equals_the_pair_predictor(sphere_scene):
     assert np.count_nonzero(m1 != prior.predict(q)[0]) > 500   # many queries in blocks
     np.testing.assert_allclose(m1, m2, rtol=1e-10, atol=1e-13)
     np.testing.assert_allclose(v1, v2, rtol=1e-10, atol=1e-13)
+
+
+def test_gp_runs_blas_on_one_thread_and_restores_it():
+    """Small block solves on a multithreaded BLAS spin on a loaded machine: the GP
+    stage limits BLAS to one thread while it runs and restores the setting after."""
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    from gmmgp_app.stages._blas import one_blas_thread
+
+    def blas_threads():
+        return [i["num_threads"] for i in threadpoolctl.threadpool_info()
+                if i["user_api"] == "blas"]
+
+    before = blas_threads()
+    with one_blas_thread():
+        inside = blas_threads()
+    assert inside and all(n == 1 for n in inside)
+    assert blas_threads() == before
+
+
+def test_compiled_block_fitter_matches_numpy_and_lapack():
+    """fit_block (compiled kernel + Cholesky + solves) against the joint kernel of
+    kernels.py, scaled by the prior and the noise, factorised by LAPACK."""
+    from scipy.linalg import cho_solve
+
+    rng = np.random.default_rng(11)
+    for n in (1, 5, 30):
+        X = rng.uniform(-0.1, 0.1, size=(n, 3))
+        sp = rng.uniform(0.01, 0.05, size=n)
+        t = rng.normal(scale=0.01, size=(n, 4))
+        fit = fit_block(X, sp, t, 0.15, 4e-4, 5e-4, 1e-8)
+        s = np.repeat(sp, 4)
+        K = matern32_joint(X, X, 0.15) * s[:, None] * s[None, :]
+        K[np.diag_indices_from(K)] += np.tile([4e-4, 5e-4, 5e-4, 5e-4], n)
+        eps = 1e-8 * np.mean(np.diag(K))
+        L = np.linalg.cholesky(K + eps * np.eye(4 * n))
+        assert fit.jitter == pytest.approx(eps, rel=1e-12) and fit.jitter_raised == 0
+        np.testing.assert_allclose(fit.L, L, rtol=1e-10, atol=1e-15)
+        assert np.all(np.triu(fit.L, 1) == 0)
+        np.testing.assert_allclose(fit.alpha, cho_solve((L, True), t.reshape(-1)),
+                                   rtol=1e-8, atol=1e-12)

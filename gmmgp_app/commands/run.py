@@ -19,6 +19,7 @@ EXAMPLES = """examples:
   gmmgp run assets/demo_street.npz --out out/demo
   gmmgp run scan.laz --out out/scan --set hgmm.split_threshold=0.02 --set gp.d_m=0.03
   gmmgp run scan.ply --out out/scan --method hgmm          # GMR-only baseline
+  gmmgp run scan.ply --out out/scan --prior-mesh           # + mesh_hgmm.ply of the prior
   gmmgp run assets/demo_street.npz --out out/demo --stage hgmm   # print the HGMM levels
   gmmgp run scan.npz --out out/scan --config my.toml
   gmmgp run scan.laz --out out/scan --workers 2                 # GP blocks on a local Dask cluster
@@ -41,6 +42,9 @@ def add_parser(subparsers):
     p.add_argument("--serve", action="store_true",
                    help="also serve the recording to viewers (bound to 127.0.0.1)")
     p.add_argument("--no-mesh", action="store_true", help="skip surface extraction")
+    p.add_argument("--prior-mesh", action="store_true",
+                   help="also write mesh_hgmm.ply, the surface of the HGMM prior (GMR alone); "
+                        "off by default: it costs a second surface extraction")
     g = p.add_argument_group("large scans: map in tiles (DIR/map is then a tiled map)")
     g.add_argument("--tile-size", type=float, metavar="M",
                    help="map in square tiles of this edge (m) in x and y, each an independent "
@@ -127,7 +131,8 @@ def run(args) -> int:
         smap.save(out / "map")
         written = [out / "map"]
         if args.stage == "all" and not args.no_mesh:
-            written += _write_meshes(smap, out, observer, console)
+            written += _write_meshes(smap, out, observer, console,
+                                     prior_mesh=args.prior_mesh)
         if recorder is not None:
             recorder.close()  # writes the recording's footer now, not at interpreter exit
         atomic_write_text(out / "config.toml", cfg.to_toml())
@@ -287,15 +292,16 @@ def _run_tiled(args, cfg, spec, scan, out: Path, console, t0: float, read_s: flo
 
 
 
-def _write_meshes(smap, out: Path, observer, console) -> list:
-    """Marching-cubes surfaces of the map and of its HGMM prior (GMR alone)."""
+def _write_meshes(smap, out: Path, observer, console, prior_mesh: bool = False) -> list:
+    """Marching-cubes surface of the map, and with ``prior_mesh`` also of its HGMM prior
+    (GMR alone; always for ``--method hgmm``, whose map is the prior)."""
     from ..pipeline import StagePayload, std_colour_max, write_mesh_ply
 
     t0 = time.perf_counter()
     meshes = {}
     if smap.method != "hgmm" and smap.signed:  # loggpis: no zero level set to mesh
         meshes[smap.method] = smap.extract_surface(progress=console.progress)
-    if smap.hgmm is not None:
+    if smap.hgmm is not None and (prior_mesh or smap.method == "hgmm"):
         meshes["hgmm"] = smap.prior_surface(progress=console.progress)
     seconds = time.perf_counter() - t0
     smap.summary["seconds"]["surface"] = seconds

@@ -46,7 +46,7 @@ RESP_FLOOR = 1e-12
 EPS10 = 10.0 * np.finfo(np.float64).eps
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def cholesky_into(A, L):
     """Lower Cholesky factor of ``A`` (D, D) into ``L``; False if not positive definite."""
     D = A.shape[0]
@@ -68,7 +68,7 @@ def cholesky_into(A, L):
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def component_terms(weights, covs, pchol, logconst):
     """Fill ``pchol`` (K, D, D) with ``L_k^{-1}`` and ``logconst`` (K,).
 
@@ -155,7 +155,7 @@ def log_likelihood(X, means, pchol, logconst):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def assign(X, means, pchol, logconst):
     """Hard assignment: index of the component with the largest ``pi_k N(x|.)``, (N,) int64."""
     N = X.shape[0]
@@ -187,7 +187,7 @@ def _add_row_stats(X, n, means, k, r, sx, sxx, diff):
             sxx[k, i, j] += ri * diff[j]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _accumulate_range(X, start, end, means, pchol, logconst, nk, sx, sxx, lp):
     """E-step for rows [start, end) fused with the M-step sufficient statistics.
 
@@ -254,7 +254,7 @@ def _accumulate_parallel(X, means, pchol, logconst):
     return nk, sx, sxx, ll, worst, worst_i
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def accumulate(X, means, pchol, logconst, parallel=False):
     """Fused E-step and M-step statistics over all rows.
 
@@ -281,7 +281,7 @@ def accumulate(X, means, pchol, logconst, parallel=False):
     return _accumulate_parallel(X, means, pchol, logconst)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _mstep_from_stats(N, nk, sx, sxx, means_old, reg_covar, weights, means, covs):
     """M-step from shifted statistics (as scikit-learn: n_k + 10 eps, reg_covar on the diagonal)."""
     K, D = means_old.shape
@@ -303,7 +303,7 @@ def _mstep_from_stats(N, nk, sx, sxx, means_old, reg_covar, weights, means, covs
             covs[k, i, i] += reg_covar
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def mstep_from_resp(X, resp, reg_covar):
     """M-step from given responsibilities (N, K): (weights (K,), means (K, D), covs (K, D, D))."""
     N, D = X.shape
@@ -341,7 +341,7 @@ def mstep_from_resp(X, resp, reg_covar):
     return weights, means, covs
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def em_loop(X, weights, means, covs, max_iter, tol, reg_covar, min_nk, parallel=False):
     """Run EM in place until convergence, ``max_iter`` or a bad component.
 
@@ -387,7 +387,7 @@ def em_loop(X, weights, means, covs, max_iter, tol, reg_covar, min_nk, parallel=
     return max_iter, False, 0, -1, lb, worst_i
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def kmeanspp(X, K, u):
     """k-means++ seeding: indices of up to K rows, (k,) int64 with k <= K.
 
@@ -435,7 +435,7 @@ def kmeanspp(X, K, u):
     return idx
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def nearest_center(X, centers):
     """Index of the Euclidean-nearest centre for every row, (N,) int64."""
     N, D = X.shape
@@ -488,7 +488,7 @@ def _group_logprob(X, a, b, means, pchol, logconst, logw, lp, tmp):
             lp[k] += tmp[k]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def group_log_likelihood(X, gptr, means, pchol, logconst, logw):
     """Per-group log-likelihood ``log sum_k pi_k prod_n N(x_n | k)``, (G,)."""
     G = gptr.shape[0] - 1
@@ -502,7 +502,7 @@ def group_log_likelihood(X, gptr, means, pchol, logconst, logw):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def assign_groups(X, gptr, means, pchol, logconst, logw):
     """Hard assignment of every group to its most likely component, (G,) int64."""
     G = gptr.shape[0] - 1
@@ -520,7 +520,7 @@ def assign_groups(X, gptr, means, pchol, logconst, logw):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def accumulate_groups(X, gptr, means, pchol, logconst, logw):
     """Tied E-step fused with the M-step statistics (about the current means).
 
@@ -563,7 +563,7 @@ def accumulate_groups(X, gptr, means, pchol, logconst, logw):
     return nk, gk, sx, sxx, ll, worst, worst_i
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def em_loop_groups(X, gptr, weights, means, covs, max_iter, tol, reg_covar, min_nk):
     """Tied EM in place; same contract as :func:`em_loop`.
 

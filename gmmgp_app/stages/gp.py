@@ -14,13 +14,14 @@ outside every block the prior stands.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numba as nb
 import numpy as np
-from scipy.linalg import cho_solve, solve_triangular
+from scipy.linalg import solve_triangular
 
-from gmmgp_app.stages.kernels import matern32_cross, matern32_joint
+from gmmgp_app.stages._blas import single_threaded_blas
+from gmmgp_app.stages.kernels import _check_l, matern32_cross
 from gmmgp_app.stages.octree import BlockGrid
 
 __all__ = [
@@ -150,6 +151,9 @@ def fit_block(X, sigma_p, targets, length_scale: float, value_noise: float,
     (eq. kernel2) and ``eps = jitter * mean(diag K)``; when the Cholesky
     factorisation fails ``eps`` grows x10 up to ``MAX_RELATIVE_JITTER``.
 
+    The work is done by the compiled batch fitter :func:`_fit_blocks` (one block
+    here; :func:`fit_local_gps` hands it all blocks at once).
+
     Parameters
     ----------
     X : (n, 3)
@@ -162,33 +166,151 @@ def fit_block(X, sigma_p, targets, length_scale: float, value_noise: float,
     -------
     BlockFit
     """
-    X = np.ascontiguousarray(X, dtype=np.float64)
-    s = np.repeat(np.asarray(sigma_p, dtype=np.float64), 4)
-    K = matern32_joint(X, X, length_scale)
-    K *= s[:, None]
-    K *= s[None, :]
-    noise = np.tile([value_noise, gradient_noise, gradient_noise, gradient_noise], len(X))
-    K[np.diag_indices_from(K)] += noise
-    scale = float(np.mean(np.diag(K)))
-    rel = jitter
-    raised = 0
-    while True:
-        eps = rel * scale
-        try:
-            L = np.linalg.cholesky(K + eps * np.eye(len(K)))
-            break
-        except np.linalg.LinAlgError:
+    X = np.ascontiguousarray(X, dtype=np.float64).reshape(-1, 3)
+    blocks, _ = _fit_many(X, sigma_p, targets, np.array([len(X)]), length_scale,
+                          value_noise, gradient_noise, jitter)
+    return blocks[0]
+
+
+def _fit_many(X, sigma_p, targets, counts, length_scale, value_noise, gradient_noise,
+              jitter, progress=None):
+    """Fit consecutive blocks of ``counts`` points each from concatenated arrays.
+
+    Returns the BlockFits (views into shared flat arrays) and those flat arrays
+    (``ptr``, ``Loff``, ``X``, ``sp``, ``L``, ``alpha``: the layout the compiled
+    predictor reads, so prediction needs no copy of the factors).
+    """
+    X = np.ascontiguousarray(X, dtype=np.float64).reshape(-1, 3)
+    sp = np.ascontiguousarray(sigma_p, dtype=np.float64).reshape(-1)
+    T = np.ascontiguousarray(targets, dtype=np.float64).reshape(-1, 4)
+    counts = np.asarray(counts, dtype=np.int64)
+    a = math.sqrt(3.0) / _check_l(length_scale)
+    nb_ = len(counts)
+    ptr = np.zeros(nb_ + 1, dtype=np.int64)
+    np.cumsum(counts, out=ptr[1:])
+    loff = np.zeros(nb_ + 1, dtype=np.int64)
+    np.cumsum((4 * counts) ** 2, out=loff[1:])
+    L = np.empty(int(loff[-1]))
+    alpha = np.empty(4 * int(ptr[-1]))
+    eps = np.zeros(nb_)
+    raised = np.zeros(nb_, dtype=np.int64)
+    failed = np.zeros(nb_, dtype=np.bool_)
+    # chunks of about equal work, so a progress bar moves
+    cost = np.cumsum((4.0 * counts) ** 3 + 1e3)
+    n_chunks = 1 if progress is None else min(nb_, 50)
+    cuts = np.searchsorted(cost, cost[-1] * np.arange(1, n_chunks) / n_chunks) if nb_ else []
+    bounds = np.r_[0, np.asarray(cuts, dtype=np.int64), nb_]
+    for b0, b1 in zip(bounds[:-1], bounds[1:]):
+        if b1 > b0:
+            _fit_blocks(X, sp, T, ptr, loff, a, float(value_noise), float(gradient_noise),
+                        float(jitter), MAX_RELATIVE_JITTER, int(b0), int(b1), L, alpha, eps,
+                        raised, failed)
+        if progress is not None:
+            progress(int(b1), nb_)
+    if failed.any():
+        n = int(counts[np.flatnonzero(failed)[0]])
+        raise GPError(
+            f"Block covariance of {n} points is not positive definite even "
+            f"with relative jitter {MAX_RELATIVE_JITTER:g}; check for duplicate "
+            "points or raise GPConfig.value_noise.")
+    blocks = []
+    for b in range(nb_):
+        s, e, n4 = ptr[b], ptr[b + 1], 4 * int(counts[b])
+        blocks.append(BlockFit(X=X[s:e], sigma_p=sp[s:e],
+                               L=L[loff[b]:loff[b + 1]].reshape(n4, n4),
+                               alpha=alpha[4 * s:4 * e], jitter=float(eps[b]),
+                               jitter_raised=int(raised[b])))
+    return blocks, dict(ptr=ptr, Loff=loff, X=X, sp=sp, L=L, alpha=alpha)
+
+
+@nb.njit(parallel=True, cache=True)
+def _fit_blocks(X, sp, T, ptr, loff, a, value_noise, gradient_noise, jitter, max_rel,
+                b0, b1, L, alpha, eps_out, raised_out, failed):
+    """Blocks ``b0 .. b1-1``: joint kernel (eq. kernel_j) scaled by the prior (eq.
+    kernel2) plus noise, its Cholesky factor (jitter raised x10 on failure, as
+    :func:`fit_block` documents) into ``L`` (row-major, upper part zero) and
+    ``alpha = K^-1 targets`` into ``alpha``; ``failed[b]`` when even ``max_rel``
+    jitter does not make the block positive definite."""
+    for b in nb.prange(b0, b1):
+        s0 = ptr[b]
+        n = ptr[b + 1] - s0
+        m = 4 * n
+        K = np.empty((m, m))                        # lower triangle used
+        for i in range(n):
+            for j in range(i + 1):
+                d0 = X[s0 + i, 0] - X[s0 + j, 0]
+                d1 = X[s0 + i, 1] - X[s0 + j, 1]
+                d2 = X[s0 + i, 2] - X[s0 + j, 2]
+                r = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+                e = math.exp(-a * r)
+                a2e = a * a * e
+                ar = a * (1.0 / r) if r > 0 else 0.0
+                si, sj = sp[s0 + i], sp[s0 + j]
+                dd = (d0, d1, d2)
+                for p in range(4):
+                    for q in range(4):
+                        if i == j and q > p:
+                            continue
+                        if p == 0 and q == 0:
+                            k = (1.0 + a * r) * e
+                        elif p == 0:
+                            k = a2e * dd[q - 1]
+                        elif q == 0:
+                            k = -(a2e * dd[p - 1])
+                        else:
+                            k = a2e * ((1.0 if p == q else 0.0) - ar * (dd[p - 1] * dd[q - 1]))
+                        K[4 * i + p, 4 * j + q] = (k * si) * sj
+        diag = 0.0
+        for d in range(m):
+            K[d, d] += value_noise if d % 4 == 0 else gradient_noise
+            diag += K[d, d]
+        scale = diag / m
+        Lb = L[loff[b]:loff[b + 1]].reshape((m, m))
+        rel = jitter
+        raised = 0
+        while True:
+            ep = rel * scale
+            ok = True
+            for c in range(m):                      # Cholesky-Crout, row-major
+                for r_ in range(c, m):
+                    t = K[r_, c] + (ep if r_ == c else 0.0)
+                    for k2 in range(c):
+                        t -= Lb[r_, k2] * Lb[c, k2]
+                    if r_ == c:
+                        if not t > 0.0:
+                            ok = False
+                            break
+                        Lb[c, c] = math.sqrt(t)
+                    else:
+                        Lb[r_, c] = t / Lb[c, c]
+                if not ok:
+                    break
+            if ok:
+                break
             rel = max(rel * 10.0, 1e-12)
             raised += 1
-            if rel > MAX_RELATIVE_JITTER:
-                raise GPError(
-                    f"Block covariance of {len(X)} points is not positive definite even "
-                    f"with relative jitter {MAX_RELATIVE_JITTER:g}; check for duplicate "
-                    "points or raise GPConfig.value_noise.") from None
-    y = np.asarray(targets, dtype=np.float64).reshape(-1)
-    alpha = cho_solve((L, True), y)
-    return BlockFit(X=X, sigma_p=np.asarray(sigma_p, dtype=np.float64), L=L, alpha=alpha,
-                    jitter=float(eps), jitter_raised=raised)
+            if rel > max_rel:
+                failed[b] = True
+                break
+        eps_out[b] = ep
+        raised_out[b] = raised
+        if failed[b]:
+            continue
+        for r_ in range(m):
+            for c in range(r_ + 1, m):
+                Lb[r_, c] = 0.0
+        # alpha = L^-T L^-1 y, y interleaved per point (value, gradient)
+        z = np.empty(m)
+        for r_ in range(m):
+            t = T[s0 + r_ // 4, r_ % 4]
+            for c in range(r_):
+                t -= Lb[r_, c] * z[c]
+            z[r_] = t / Lb[r_, r_]
+        for r_ in range(m - 1, -1, -1):
+            t = z[r_]
+            for c in range(r_ + 1, m):
+                t -= Lb[c, r_] * alpha[4 * s0 + c]
+            alpha[4 * s0 + r_] = t / Lb[r_, r_]
 
 
 def predict_block(fit: BlockFit, xs, sigma_s, length_scale: float, with_grad: bool):
@@ -279,6 +401,7 @@ class LocalGPField:
             return np.zeros((0, 3))
         return np.unique(np.concatenate([b.X for b in self.blocks]), axis=0)
 
+    @single_threaded_blas
     def predict(self, xyz, return_grad: bool = False):
         """Posterior signed distance at query points.
 
@@ -331,24 +454,15 @@ class LocalGPField:
         return m, v
 
     def _value_pairs(self, x, sig, qi, bi, a):
-        """Value posterior for (query, block) pairs sorted by block, one BLAS solve per block.
-
-        The same numbers as :func:`_predict_pairs` without gradients (a test checks
-        it); all queries of a block share one triangular solve with many right-hand
-        sides (``trsm``), about 10x faster than one forward substitution per pair once
-        a block has tens of queries, which the surface lattice always gives.
-        """
+        """Value posterior for (query, block) pairs sorted by block, one compiled
+        triangular solve per block for all its queries (:func:`_value_blocks`; BLAS
+        ``trsm`` per block did the same with a call overhead per block)."""
+        flat = self._flat()
+        starts, ends = _runs(bi)
         dm = np.empty(len(qi))
         red = np.empty(len(qi))
-        for s, e in zip(*_runs(bi)):
-            blk = self.blocks[bi[s]]
-            kv = _value_cross(x, sig, qi[s:e], blk.X, blk.sigma_p, a)   # (q, 4n)
-            dm[s:e] = kv @ blk.alpha
-            # L v = k*  <=>  (L^T)^T v = k*: L^T of a C-ordered L is Fortran-ordered,
-            # and kv^T too, so LAPACK gets both without a copy.
-            v = solve_triangular(np.ascontiguousarray(blk.L).T, kv.T, trans="T", lower=False,
-                                 check_finite=False, overwrite_b=True)
-            red[s:e] = np.einsum("ij,ij->j", v, v)
+        _value_blocks(x, sig, qi, bi, starts, ends, flat["ptr"], flat["X"], flat["sp"],
+                      flat["L"], flat["Loff"], flat["alpha"], a, dm, red)
         return dm, red
 
     def _flat(self) -> dict:
@@ -370,6 +484,12 @@ class LocalGPField:
     # ------------------------------------------------------------ persistence
     def to_arrays(self) -> dict:
         """Plain arrays describing the fitted blocks (for ``np.savez``, no pickle)."""
+        if self.blocks:  # the flat arrays the blocks are views of: no copy of the factors
+            f = self._flat()
+            return dict(gp_block_keys=self.grid.keys.copy(), gp_point_ptr=f["ptr"],
+                        gp_X=f["X"], gp_sigma_p=f["sp"], gp_alpha=f["alpha"], gp_L=f["L"],
+                        gp_jitter=np.array([b.jitter for b in self.blocks], dtype=np.float64),
+                        gp_hyper=np.array([self.hyper[k] for k in _HYPER], dtype=np.float64))
         n = np.array([len(b.X) for b in self.blocks], dtype=np.int64)
         ptr = np.zeros(len(n) + 1, dtype=np.int64)
         np.cumsum(n, out=ptr[1:])
@@ -427,10 +547,16 @@ class LocalGPField:
                 n4, n4), alpha=al[4 * s:4 * e], jitter=float(jit[b])))
             lo += n4 * n4
         info = dict(n_blocks=len(blocks), loaded=True)
-        return cls(prior, grid, blocks, hyper, info)
+        field_ = cls(prior, grid, blocks, hyper, info)
+        loff = np.zeros(len(keys) + 1, dtype=np.int64)
+        np.cumsum((4 * np.diff(ptr)) ** 2, out=loff[1:])
+        field_._flat_cache = dict(ptr=ptr, Loff=loff, X=np.ascontiguousarray(X), sp=sp,
+                                  L=Lf, alpha=al)
+        return field_
 
 
 # ---------------------------------------------------------------- fitting
+@single_threaded_blas
 def fit_local_gps(points, normals, prior, cfg, *, rng=None, executor=None,
                   progress=None, min_task_seconds: float = 0.01) -> LocalGPField:
     """Fit the local GPs on residuals of ``prior`` (paper Sec. IV).
@@ -493,16 +619,17 @@ def fit_local_gps(points, normals, prior, cfg, *, rng=None, executor=None,
         sel.append(idx)
     n_cand = np.array(n_cand)
     n_used = np.array([len(idx) for idx in sel])
-    if executor is None:
-        blocks = []
-        for idx in sel:
-            blocks.append(fit_block(pts[idx], sigma_p[idx], targets[idx], cfg.length_scale,
-                                    cfg.value_noise, cfg.gradient_noise, cfg.jitter))
-            if progress is not None:
-                progress(len(blocks), len(sel))
+    from gmmgp_app.distributed import SerialExecutor
+
+    if executor is None or type(executor) is SerialExecutor:  # in this process: no copies
+        cat = np.concatenate(sel) if sel else np.zeros(0, dtype=np.int64)
+        blocks, flat = _fit_many(pts[cat], sigma_p[cat], targets[cat], n_used,
+                                 cfg.length_scale, cfg.value_noise, cfg.gradient_noise,
+                                 cfg.jitter, progress=progress)
     else:
         blocks = _fit_blocks_on(executor, pts, sigma_p, targets, sel, n_used, cfg, progress,
                                 min_task_seconds)
+        blocks, flat = _pack_blocks(blocks)
     jit = np.array([b.jitter for b in blocks])
     info = dict(
         n_points=len(pts), n_blocks=len(blocks),
@@ -515,7 +642,31 @@ def fit_local_gps(points, normals, prior, cfg, *, rng=None, executor=None,
         cholesky_bytes=int(np.sum((4 * n_used) ** 2) * 8),
     )
     hyper = {k: float(getattr(cfg, k)) for k in _HYPER}
-    return LocalGPField(prior, grid, blocks, hyper, info)
+    field_ = LocalGPField(prior, grid, blocks, hyper, info)
+    field_._flat_cache = flat
+    return field_
+
+
+def _pack_blocks(blocks):
+    """Blocks fitted elsewhere, re-pointed into one set of flat arrays (the compiled
+    predictor's layout; the per-block copies are freed)."""
+    n = np.array([len(b.X) for b in blocks], dtype=np.int64)
+    ptr = np.zeros(len(n) + 1, dtype=np.int64)
+    np.cumsum(n, out=ptr[1:])
+    loff = np.zeros(len(n) + 1, dtype=np.int64)
+    np.cumsum((4 * n) ** 2, out=loff[1:])
+    flat = dict(ptr=ptr, Loff=loff,
+                X=np.ascontiguousarray(np.concatenate([b.X for b in blocks]).reshape(-1, 3)),
+                sp=np.concatenate([b.sigma_p for b in blocks]),
+                L=np.concatenate([b.L.reshape(-1) for b in blocks]),
+                alpha=np.concatenate([b.alpha for b in blocks]))
+    out = []
+    for i, b in enumerate(blocks):
+        s, e, n4 = ptr[i], ptr[i + 1], 4 * int(n[i])
+        out.append(replace(b, X=flat["X"][s:e], sigma_p=flat["sp"][s:e],
+                           L=flat["L"][loff[i]:loff[i + 1]].reshape(n4, n4),
+                           alpha=flat["alpha"][4 * s:4 * e]))
+    return out, flat
 
 
 def _runs(keys):
@@ -640,7 +791,14 @@ def refit_touched_blocks(gp: LocalGPField, touched: BlockGrid, points, normals, 
 def _fit_block_batch(task) -> list:
     """One executor task: :func:`fit_block` on each ``(X, sigma_p, targets)``."""
     items, (ls, vn, gn, jit) = task
-    return [fit_block(X, sp, t, ls, vn, gn, jit) for X, sp, t in items]
+    if not items:
+        return []
+    counts = np.array([len(X) for X, _, _ in items], dtype=np.int64)
+    blocks, _ = _fit_many(np.concatenate([np.reshape(X, (-1, 3)) for X, _, _ in items]),
+                          np.concatenate([np.reshape(sp, -1) for _, sp, _ in items]),
+                          np.concatenate([np.reshape(t, (-1, 4)) for _, _, t in items]),
+                          counts, ls, vn, gn, jit)
+    return blocks
 
 
 @nb.njit(cache=True)
@@ -664,6 +822,58 @@ def _value_cross(x, sig, q, X, sp, a):
             out[p, 4 * i + 2] = a2e * d1
             out[p, 4 * i + 3] = a2e * d2
     return out
+
+
+@nb.njit(parallel=True, cache=True)
+def _value_blocks(x, sig, qi, bi, starts, ends, ptr, X, sp, L, Loff, alpha, a, dm, red):
+    """Value posterior of every (query, block) pair, pairs sorted by block; run
+    ``[starts[t], ends[t])`` holds the queries of one block (eqs. gpm2, gpv2).
+
+    Per block: the scaled cross-covariances ``k*`` of all its queries as the columns
+    of a (4n, q) matrix, ``k*^T alpha``, then ``L V = K*`` by forward substitution
+    row by row, each row update running over all q queries at once (what BLAS
+    ``trsm`` does), and ``|v|^2`` per query. Blocks run in parallel.
+    """
+    for t in nb.prange(len(starts)):
+        s, e = starts[t], ends[t]
+        b = bi[s]
+        p0, p1 = ptr[b], ptr[b + 1]
+        n4 = 4 * (p1 - p0)
+        nq = e - s
+        V = np.empty((n4, nq))
+        for j in range(nq):
+            q = qi[s + j]
+            for i in range(p1 - p0):
+                d0 = x[q, 0] - X[p0 + i, 0]
+                d1 = x[q, 1] - X[p0 + i, 1]
+                d2 = x[q, 2] - X[p0 + i, 2]
+                r = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+                ex = math.exp(-a * r)
+                sc = sig[q] * sp[p0 + i]
+                a2e = sc * a * a * ex
+                V[4 * i, j] = sc * (1.0 + a * r) * ex
+                V[4 * i + 1, j] = a2e * d0
+                V[4 * i + 2, j] = a2e * d1
+                V[4 * i + 3, j] = a2e * d2
+        for j in range(nq):
+            mu = 0.0
+            for k in range(n4):
+                mu += V[k, j] * alpha[4 * p0 + k]
+            dm[s + j] = mu
+        base = Loff[b]
+        acc = np.zeros(nq)
+        for r_ in range(n4):
+            row = base + r_ * n4
+            for c_ in range(r_):
+                l = L[row + c_]
+                for j in range(nq):
+                    V[r_, j] -= l * V[c_, j]
+            d = L[row + r_]
+            for j in range(nq):
+                V[r_, j] /= d
+                acc[j] += V[r_, j] * V[r_, j]
+        for j in range(nq):
+            red[s + j] = acc[j]
 
 
 @nb.njit(parallel=True, cache=True, fastmath=False)

@@ -463,10 +463,11 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
             return None
         return group_boundaries(gsorted if idx is None else gsorted[idx])
 
-    def fit(Xrows, gptr, k):
-        """EM with k components, then hard labels per row (per group when tied)."""
-        g = fit_gmm(Xrows, k, rng=rng, on_empty="drop", min_component_rows=float(D),
-                    group_ptr=gptr, **em_kw)
+    def fit(Xrows, gptr, k, u=None):
+        """EM with k components, then hard labels per row (per group when tied);
+        ``u``: the k-means++ uniforms drawn beforehand (fits run in threads)."""
+        g = fit_gmm(Xrows, k, rng=rng if u is None else _Drawn(u), on_empty="drop",
+                    min_component_rows=float(D), group_ptr=gptr, **em_kw)
         if gptr is None:
             return g + (predict_labels(g[0], Xrows),)
         return g + (predict_group_labels(g[0], g[1]["group_weights"], Xrows, gptr),)
@@ -498,6 +499,11 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
         split = np.zeros(len(weights), dtype=bool)
         nxt_w, nxt_m, nxt_c, nxt_p, nxt_rows, nxt_gw = [], [], [], [], [], []
         stats = dict(n_fits=0, em_iter=0, dropped=0, not_converged=0, failed_splits=0)
+        # The splits of one level are independent: each gets its k-means++ uniforms
+        # drawn here in node order (the stream a sequential loop would use), then the
+        # fits run in threads (the EM kernels release the GIL); results are taken in
+        # node order, so the hierarchy is the one the sequential loop builds.
+        tasks = []
         for j in np.flatnonzero(want):
             idx = node_rows[j]
             k = min(hcfg.n_children, len(idx) // min_child_rows)
@@ -514,7 +520,9 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
                 if k < 2:
                     stats["failed_splits"] += 1
                     continue
-            gmj, infoj, lab = fit(Xj, gptr, k)
+            tasks.append((j, idx, Xj, gptr, k, rng.random(k)))
+        for (j, idx, Xj, gptr, k, u), (gmj, infoj, lab) in zip(
+                tasks, _map_threads(lambda t: fit(t[2], t[3], t[4], t[5]), tasks)):
             stats["n_fits"] += 1
             stats["em_iter"] += infoj["n_iter"]
             stats["dropped"] += len(infoj["dropped"])
@@ -568,6 +576,32 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
     )
     return HierarchicalGMM(levels=tuple(levels), leaves=leaves,
                            leaf_level=np.concatenate(leaf_level), info=info)
+
+
+class _Drawn:
+    """Stands in for the Generator of one fit: hands out its pre-drawn k-means++
+    uniforms (fit_gmm with on_empty="drop" draws nothing else)."""
+
+    def __init__(self, u):
+        self.u = u
+
+    def random(self, n):
+        if n != len(self.u):
+            raise HGMMError(f"Expected {len(self.u)} uniforms to be drawn, found {n}.")
+        return self.u
+
+
+def _map_threads(fn, items):
+    """``map(fn, items)`` on up to ``os.cpu_count()`` threads (in order); serial for one."""
+    import os
+
+    workers = min(len(items), os.cpu_count() or 1)
+    if workers <= 1:
+        return [fn(t) for t in items]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(workers) as pool:
+        return list(pool.map(fn, items))
 
 
 def _group(labels: np.ndarray, K: int) -> list:

@@ -64,30 +64,44 @@ def _lookup(packed, cells):
 
 @njit(cache=True)
 def _cover_pairs(lo, hi, packed):
-    """(point, block) pairs for per-point cell ranges [lo, hi], in point order.
+    """(point, block) pairs for per-point cell ranges [lo, hi], sorted by block, then
+    by point.
 
-    Two passes (count, then fill) so the output is allocated once.
+    One lookup pass (the blocks found per point kept in a scratch table), then a
+    counting sort by block: no second search and no comparison sort.
     """
     n = lo.shape[0]
-    count = 0
+    nb = packed.shape[0]
+    width = 0
     for i in range(n):
-        for a in range(lo[i, 0], hi[i, 0] + 1):
-            for b in range(lo[i, 1], hi[i, 1] + 1):
-                for c in range(lo[i, 2], hi[i, 2] + 1):
-                    if _find(packed, a, b, c) >= 0:
-                        count += 1
-    pts = np.empty(count, dtype=np.int64)
-    blk = np.empty(count, dtype=np.int64)
-    m = 0
+        w = (hi[i, 0] - lo[i, 0] + 1) * (hi[i, 1] - lo[i, 1] + 1) * (hi[i, 2] - lo[i, 2] + 1)
+        width = max(width, w)
+    found = np.empty((n, max(width, 1)), dtype=np.int64)
+    nfound = np.zeros(n, dtype=np.int64)
+    per_block = np.zeros(nb + 1, dtype=np.int64)
     for i in range(n):
+        m = 0
         for a in range(lo[i, 0], hi[i, 0] + 1):
             for b in range(lo[i, 1], hi[i, 1] + 1):
                 for c in range(lo[i, 2], hi[i, 2] + 1):
                     j = _find(packed, a, b, c)
                     if j >= 0:
-                        pts[m] = i
-                        blk[m] = j
+                        found[i, m] = j
                         m += 1
+                        per_block[j + 1] += 1
+        nfound[i] = m
+    for j in range(nb):
+        per_block[j + 1] += per_block[j]
+    count = per_block[nb]
+    pts = np.empty(count, dtype=np.int64)
+    blk = np.empty(count, dtype=np.int64)
+    for i in range(n):                    # points ascending: stable within a block
+        for t in range(nfound[i]):
+            j = found[i, t]
+            k = per_block[j]
+            pts[k] = i
+            blk[k] = j
+            per_block[j] = k + 1
     return pts, blk
 
 
@@ -172,9 +186,7 @@ class BlockGrid:
         hi = np.ascontiguousarray(np.floor((xyz + half) / h - 0.5).astype(np.int64))
         if len(xyz) == 0 or len(self._packed) == 0:
             return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-        p, b = _cover_pairs(lo, hi, self._packed)
-        order = np.argsort(b, kind="stable")  # by block, then by point (p is ascending)
-        return p[order], b[order]
+        return _cover_pairs(lo, hi, self._packed)  # by block, then by point
 
 
 def new_space_fraction(old_points, new_points, voxel: float) -> float:

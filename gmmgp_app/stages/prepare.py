@@ -210,8 +210,10 @@ def inconsistent_virtual(virtual_xyz: np.ndarray, hit_tree: cKDTree, s: float,
     point it was made from, so the label ``+-s`` overstates its distance (and,
     through a thin wall, may have the wrong sign).
     """
-    dist, _ = hit_tree.query(virtual_xyz, k=1)
-    return dist < s * (1.0 - margin)
+    bound = s * (1.0 - margin)
+    # only "is there a hit point closer than bound": a bounded search stops early
+    dist, _ = hit_tree.query(virtual_xyz, k=1, distance_upper_bound=bound, workers=-1)
+    return dist < bound
 
 
 def prepare(scan: Scan, cfg: MappingConfig, *,

@@ -1,0 +1,138 @@
+"""Compile gmmgp_app's numba kernels once, into their on-disk cache.
+
+Every kernel is compiled with ``cache=True``: the machine code lands in the
+package's ``__pycache__`` folders and later processes load it instead of
+compiling (10-15 s otherwise on the first ``gmmgp run``). scripts/setup.sh calls
+this after installing; it maps a small synthetic box through every stage (prepare,
+tied and free HGMM, GMR, GP fit and predict with and without gradients, surface,
+save/load, the synthetic scenes' exact distance), which compiles the same
+signatures a real run uses.
+
+    .venv/bin/python scripts/warm_cache.py              # warm (seconds when already warm)
+    .venv/bin/python scripts/warm_cache.py --if-stale   # skip when the sources and numba
+                                                        # are those of the last warm-up
+    .venv/bin/python scripts/warm_cache.py --measure -- run assets/demo_street.npz --out out/demo
+        # run a gmmgp command and report the seconds it spent compiling numba kernels
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+class CompileClock:
+    """Seconds spent in numba compilation (not cache loads) while active."""
+
+    def __init__(self):
+        self.seconds, self.count = 0.0, 0
+
+    def __enter__(self):
+        from numba.core import event
+
+        clock = self
+
+        class _Listener(event.TimingListener):
+            def on_end(self, ev):
+                super().on_end(ev)
+                clock.count += 1
+
+        self._listener = _Listener()
+        self._cm = event.install_listener("numba:compile", self._listener)
+        self._cm.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        self._cm.__exit__(*exc)
+        # nested compiles (a kernel calling another) overlap: the listener's total
+        # counts each outermost interval once
+        self.seconds = self._listener.duration if self._listener.done else 0.0
+        return False
+
+
+def warm(log=print) -> dict:
+    import numpy as np
+
+    from gmmgp_app import MappingConfig
+    from gmmgp_app.pipeline import build_map, load_map
+    from gmmgp_app.synth import scan_scene
+
+    t0 = time.perf_counter()
+    with CompileClock() as clock:
+        scan, scene = scan_scene("box", density=0.05, seed=0)
+        scene.sdf(scan.points[:100])
+        cfg = MappingConfig()
+        for c in (cfg, cfg.replace("hgmm.tie_virtual", False)):
+            smap = build_map(scan, c)
+            q = scan.points[:500] + 0.01
+            smap.predict(q)
+            smap.predict(q, return_grad=True)
+            smap.prior.predict(q, return_grad=True)
+        smap.extract_surface(voxel_size=0.1)
+        with tempfile.TemporaryDirectory() as tmp:
+            load_map(smap.save(Path(tmp) / "map")).predict(q)
+        build_map(scan, cfg, method="hgmm").predict(q)
+    out = {"seconds": time.perf_counter() - t0, "compile_seconds": clock.seconds,
+           "compiles": clock.count}
+    log(f"numba cache warm: {out['seconds']:.1f} s ({out['compiles']} compilations, "
+        f"{out['compile_seconds']:.1f} s compiling)")
+    return out
+
+
+def _stamp() -> str:
+    """What numba's cache is keyed on: each source file's path, size and mtime (plus the
+    numba and Python versions)."""
+    import hashlib
+    import platform
+
+    import numba
+
+    h = hashlib.sha256(f"{numba.__version__} {platform.python_version()}".encode())
+    for f in sorted((ROOT / "gmmgp_app").rglob("*.py")):
+        st = f.stat()
+        h.update(f"{f.relative_to(ROOT)} {st.st_size} {st.st_mtime_ns}\n".encode())
+    return h.hexdigest()
+
+
+STAMP = ROOT / "gmmgp_app" / "__pycache__" / "numba-warm.stamp"
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["--measure"]:
+        cmd = argv[2:] if argv[1:2] == ["--"] else argv[1:]
+        from gmmgp_app.cli import main as cli_main
+
+        t0 = time.perf_counter()
+        with CompileClock() as clock:
+            code = cli_main(cmd)
+        print(f"gmmgp {' '.join(cmd)}: {time.perf_counter() - t0:.1f} s wall, "
+              f"{clock.seconds:.2f} s compiling numba kernels ({clock.count} compilations)",
+              file=sys.stderr)
+        return code
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--if-stale", action="store_true",
+                    help="do nothing when the cache was warmed for these very sources")
+    args = ap.parse_args(argv)
+    stamp = _stamp()
+    if args.if_stale and STAMP.is_file() and STAMP.read_text() == stamp:
+        print("numba cache warm: up to date")
+        return 0
+    warm()
+    try:
+        STAMP.parent.mkdir(parents=True, exist_ok=True)
+        STAMP.write_text(stamp)
+    except OSError:  # a read-only install still ran warm(); it just cannot skip next time
+        pass
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
