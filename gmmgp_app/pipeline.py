@@ -255,6 +255,7 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
         raise ValueError(f"Unknown method {method!r}; expected one of {', '.join(METHODS)}.")
     observer = observer or NullObserver()
     summary: dict = {"method": method, "n_scan_points": len(scan), "seconds": {}, "counts": {}}
+    cfg, summary["auto"] = resolve_config(cfg, scan)
     stage = _StageRunner(observer, summary)
     observer.on_stage("scan", StagePayload(scan, 0.0))
 
@@ -321,13 +322,28 @@ def _early_map(method, cfg, scan, data, hgmm, summary):
                       hgmm=hgmm, seed_points=surface_seeds(scan, cfg), summary=summary)
 
 
+def resolve_config(cfg: MappingConfig, scan: Scan) -> tuple:
+    """``cfg`` with every ``"auto"`` field computed from ``scan`` (stages/autoscale.py),
+    and the record of the chosen values and their reasons (empty when nothing was auto).
+    """
+    from .stages.autoscale import resolve_config as _resolve
+    from .stages.prepare import MIN_POINTS
+
+    pts = scan.points
+    if len(pts) < MIN_POINTS or not np.isfinite(pts).all():
+        return cfg, {}          # prepare raises the one-line error for such scans
+    return _resolve(cfg, pts, scan.origins)
+
+
 def surface_seeds(scan: Scan, cfg: MappingConfig) -> np.ndarray:
     """One scan point per cell of half the surface voxel: where the surface is sought.
 
     All hit points (not only the training subsample) so that marching cubes covers
     every observed surface; thinned so that dense scans do not bloat the map.
     """
-    cell = cfg.surface.voxel_size / 2
+    from .config import concrete
+
+    cell = concrete(cfg.surface).voxel_size / 2
     keys = np.floor(scan.points / cell).astype(np.int64)
     _, first = np.unique(keys, axis=0, return_index=True)
     return scan.points[np.sort(first)]

@@ -551,7 +551,11 @@ class GMRField:
 
     @classmethod
     def from_config(cls, mixture: GaussianMixture, cfg) -> "GMRField":
-        """Build from a :class:`gmmgp_app.config.GMRConfig`."""
+        """Build from a :class:`gmmgp_app.config.GMRConfig` (``"auto"`` fields take their
+        fixed urban value here; ``build_map`` resolves them from the scan first)."""
+        from gmmgp_app.config import concrete
+
+        cfg = concrete(cfg)
         return cls(mixture, n_active=cfg.n_active, mahalanobis_cut=cfg.mahalanobis_cut,
                    far_variance_growth=getattr(cfg, "far_variance_growth",
                                                DEFAULT_FAR_GROWTH),

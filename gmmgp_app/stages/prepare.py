@@ -19,13 +19,14 @@ the full scan and dropped when ``cfg.prepare.drop_inconsistent_virtual``.
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from typing import Optional
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gmmgp_app.config import MappingConfig, PrepareConfig
+from gmmgp_app.config import MappingConfig, PrepareConfig, is_auto
 from gmmgp_app.types import Scan, TrainingSet
 
 __all__ = [
@@ -243,8 +244,13 @@ def prepare(scan: Scan, cfg: MappingConfig, *,
         Fewer than 10 finite points, non-finite coordinates, or no point with a
         usable normal (all isolated, identical or collinear).
     """
-    p = cfg.prepare
     pts = scan.points
+    if any(is_auto(v) for v in dataclasses.asdict(cfg.prepare).values()) and len(pts) \
+            and np.isfinite(pts).all() and len(pts) >= MIN_POINTS:
+        from gmmgp_app.stages.autoscale import resolve_config
+
+        cfg, _ = resolve_config(cfg, pts, scan.origins)
+    p = cfg.prepare
     finite = np.isfinite(pts).all(axis=1)
     if not finite.all():
         raise PrepareError(
