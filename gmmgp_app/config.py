@@ -24,6 +24,7 @@ __all__ = [
     "HGMMConfig",
     "GMRConfig",
     "GPConfig",
+    "FarFieldConfig",
     "SurfaceConfig",
     "MappingConfig",
 ]
@@ -255,6 +256,38 @@ class GPConfig:
 
 
 @dataclass(frozen=True)
+class FarFieldConfig:
+    """The far field: IMLS distance of the located surface, mixed with the GP field
+    (stages/farfield.py, issue 15). Not in the paper."""
+
+    enabled: bool = _f(
+        True, "Mix the GP field with the IMLS distance of the training hit points by "
+        "inverse variance (gmmgp only; false: the paper's field alone).",
+        source="chosen: scripts/bench_field.py, docs/field.md")
+    neighbours: int = _f(16, "Hit points k per query of the IMLS distance.", 1, 256,
+                         source="chosen on the synthetic street (8 and 16 agree near, "
+                         "16 is better beyond 0.5 m)")
+    kernel_floor: float = _f(
+        AUTO, "Least IMLS kernel width rho_0 ('auto': the training spacing h_t).",
+        1e-5, 100.0, unit="m", symbol="rho_0", urban=0.086,
+        source="chosen on the synthetic street: 2 h_t blurs the near field")
+    kernel_growth: float = _f(
+        1.0, "The kernel width grows as c times the distance to the nearest hit point.",
+        0.0, 100.0, symbol="c", source="chosen on the synthetic street (0.5 / 1 / 2)")
+    spread_weight: float = _f(
+        1.0, "Weight a of the neighbours' plane disagreement in the far-field variance.",
+        0.0, 100.0, symbol="a", source="chosen on the synthetic street")
+    calibrated: bool = _f(
+        True, "Variance of the mixed field from the log-linear model of "
+        "stages/farfield.py (eq. calibrated_var); false: the mixture's own variance.",
+        source="chosen: street coverage 0.98 -> 0.60-0.73 within 1 sigma")
+    growth: float = _f(
+        0.1, "Standard deviation beta gained per metre from the data (unobserved "
+        "surfaces may be closer than the located ones).", 0.0, 100.0, symbol="beta",
+        source="chosen on the synthetic street")
+
+
+@dataclass(frozen=True)
 class SurfaceConfig:
     """Marching-cubes surface extraction (paper Sec. V-C)."""
 
@@ -273,6 +306,7 @@ class MappingConfig:
     hgmm: HGMMConfig = field(default_factory=HGMMConfig)
     gmr: GMRConfig = field(default_factory=GMRConfig)
     gp: GPConfig = field(default_factory=GPConfig)
+    far: FarFieldConfig = field(default_factory=FarFieldConfig)
     surface: SurfaceConfig = field(default_factory=SurfaceConfig)
     seed: int = _f(0, "Seed for everything random that has no seed of its own.", 0, 2**32 - 1)
 

@@ -96,8 +96,9 @@ class SurfaceMap:
     """
 
     def __init__(self, method, config, offset, prior, hgmm=None, gp=None,
-                 gp_points=None, gp_normals=None, seed_points=None, summary=None):
+                 gp_points=None, gp_normals=None, seed_points=None, summary=None, far=None):
         self.method = method
+        self.far = far
         self.config = config
         self.offset = np.asarray(offset, dtype=np.float64).reshape(3)
         self.prior = prior
@@ -129,8 +130,12 @@ class SurfaceMap:
         """
         xyz = _as_queries(xyz)
         field_ = self.gp if self.gp is not None else self.prior
-        out = field_.predict(xyz, return_grad=return_grad)
-        return out
+        if self.far is None:
+            return field_.predict(xyz, return_grad=return_grad)
+        from .stages.farfield import BlendedField
+
+        return BlendedField(field_, self.far, self.config.far.calibrated).predict(
+            xyz, return_grad=return_grad)
 
     def extract_surface(self, voxel_size: Optional[float] = None, max_std=None,
                         progress=None) -> SurfaceMesh:
@@ -161,12 +166,15 @@ class SurfaceMap:
                 arrays.update(_hgmm_to_arrays(self.hgmm))
             if self.gp is not None:
                 arrays.update({f"gp/{k}": v for k, v in self.gp.to_arrays().items()})
+            if self.far is not None:
+                arrays.update({"far/points": self.far.points, "far/normals": self.far.normals})
             np.savez_compressed(tmp / "arrays.npz", **arrays)
             meta = {
                 "format_version": MAP_FORMAT_VERSION,
                 "method": self.method,
                 "prior": type(self.prior).__name__,
                 "prior_params": getattr(self.prior, "params", lambda: {})(),
+                "far_params": None if self.far is None else self.far.params(),
                 "config_toml": self.config.to_toml(),
                 "summary": _jsonable(self.summary),
             }
@@ -210,9 +218,17 @@ def load_map(directory) -> SurfaceMap:
         prior = ConstantPrior(**meta["prior_params"])
     gp_arrays = {k[3:]: v for k, v in arrays.items() if k.startswith("gp/")}
     gp = LocalGPField.from_arrays(gp_arrays, prior, cfg.gp) if gp_arrays else None
+    far = None
+    if meta.get("far_params") is not None and "far/points" in arrays:
+        from .stages.farfield import FarField
+
+        fp = dict(meta["far_params"])
+        far = FarField(arrays["far/points"], arrays["far/normals"], fp.pop("rho0"),
+                       fp.pop("noise"), **fp)
     smap = SurfaceMap(meta["method"], cfg, arrays["offset"], prior, hgmm=hgmm, gp=gp,
                       gp_points=arrays["gp_points"], gp_normals=arrays["gp_normals"],
-                      seed_points=arrays["seed_points"], summary=meta.get("summary", {}))
+                      seed_points=arrays["seed_points"], summary=meta.get("summary", {}),
+                      far=far)
     return smap
 
 
@@ -290,8 +306,23 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
                    counts=lambda g: {k: v for k, v in g.info.items()
                                      if isinstance(v, (int, float))},
                    extra=lambda g: {"points": pts, "normals": nrm})
+    far = None
+    if method == "gmmgp" and cfg.far.enabled:
+        far = stage("far", lambda: far_field(data, cfg))
     return SurfaceMap(method, cfg, scan.offset, prior, hgmm=hgmm, gp=gp, gp_points=pts,
-                      gp_normals=nrm, seed_points=surface_seeds(scan, cfg), summary=summary)
+                      gp_normals=nrm, seed_points=surface_seeds(scan, cfg), summary=summary,
+                      far=far)
+
+
+def far_field(data, cfg: MappingConfig):
+    """The far field of the training hit points (stages/farfield.py)."""
+    from .config import concrete
+    from .stages.farfield import FarField
+
+    f, g = concrete(cfg.far), concrete(cfg.gp)
+    return FarField(data.points, data.normals, f.kernel_floor,
+                    max(g.value_noise, 1e-30) ** 0.5, k=f.neighbours, growth=f.kernel_growth,
+                    spread_weight=f.spread_weight, beta=f.growth)
 
 
 class _StageRunner:

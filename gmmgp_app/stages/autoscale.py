@@ -169,6 +169,7 @@ def auto_values(scale: ScanScale, budget: int = TRAIN_BUDGET) -> dict:
         "gp.value_noise": (sig ** 2, "sigma^2: the noise along the normals"),
         "gp.gradient_noise": (gn, "(2 sigma / r_n)^2 in [1e-4, 0.05]: PCA normal angle error"),
         "surface.voxel_size": (0.6 * ht, "0.6 h_t"),
+        "far.kernel_floor": (ht, "h_t: a few tangent planes near the data"),
     }
     return {k: {"value": float(v), "reason": r} for k, (v, r) in out.items()}
 

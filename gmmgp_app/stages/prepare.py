@@ -42,6 +42,8 @@ __all__ = [
 ]
 
 MIN_POINTS = 10
+#: Points without a normal at ``normal_radius`` are tried once more at this multiple.
+NORMAL_RETRY = 3.0
 # Above this many subsampled points the minimum-spanning-tree propagation of
 # Open3D becomes slow (seconds to minutes); we then orient away from the centroid.
 _MST_MAX_POINTS = 50_000
@@ -267,6 +269,15 @@ def prepare(scan: Scan, cfg: MappingConfig, *,
     tree = cKDTree(pts)
     normals, valid = estimate_normals(pts, p.normal_radius, p.normal_max_nn, query=keep,
                                       tree=tree)
+    if not valid.all():
+        # Sparse parts of a scan (far from the sensor) have fewer than 3 neighbours
+        # within the radius; a wider search (x NORMAL_RETRY) keeps them, since they
+        # are often the only points of a surface. Isolated outliers stay dropped.
+        again = np.flatnonzero(~valid)
+        n2, v2 = estimate_normals(pts, NORMAL_RETRY * p.normal_radius, p.normal_max_nn,
+                                  query=keep[again], tree=tree)
+        normals[again[v2]] = n2[v2]
+        valid[again[v2]] = True
     if not valid.any():
         raise PrepareError(
             f"No normal could be estimated for any of the {len(keep)} subsampled points "
