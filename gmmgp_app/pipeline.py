@@ -134,8 +134,8 @@ class SurfaceMap:
             return field_.predict(xyz, return_grad=return_grad)
         from .stages.farfield import BlendedField
 
-        return BlendedField(field_, self.far, self.config.far.calibrated).predict(
-            xyz, return_grad=return_grad)
+        return BlendedField(field_, self.far, self.config.far.calibrated,
+                            self.config.far.gp_growth).predict(xyz, return_grad=return_grad)
 
     def extract_surface(self, voxel_size: Optional[float] = None, max_std=None,
                         progress=None) -> SurfaceMesh:

@@ -24,7 +24,9 @@ distance to the data:
     v_far(x) = sigma^2 / n_eff + a s^2(x) + (beta r(x))^2
 
 The map's mean mixes the GP field (paper eqs. gpm2, gpv2) and the far field with
-weights proportional to their inverse variances (eq. blend). Its variance is a
+weights proportional to their inverse variances (eq. blend), the GP's variance
+raised by ``(g r(x))^2`` for the weights only (g = 2: beyond a length scale from its
+points the GP is the HGMM prior, whose variance does not grow with the distance). Its variance is a
 log-linear model of dimensionless features, so that it scales with the scan
 (eq. calibrated_var):
 
@@ -38,7 +40,7 @@ on ``log (y - mu)^2``, plus 1.27 = -E log chi^2_1 so that the median |z| is abou
 0.67), and are checked on ``street2``, ``courtyard`` and ``pipes``
 (scripts/bench_field.py, docs/field.md). The errors are heavy-tailed (a few queries
 near surfaces the scan never saw), so a Gaussian with this variance covers about
-68 % within 1 sigma but only 86-93 % within 2 sigma.
+65-74 % within 1 sigma but only 91-95 % within 2 sigma on the street.
 """
 
 from __future__ import annotations
@@ -52,8 +54,8 @@ __all__ = ["FarField", "FarFieldError", "blend_fields", "BlendedField", "VARIANC
            "calibrated_variance"]
 
 #: (t0, ..., t4) of eq. calibrated_var, fitted on the synthetic street (10 % of a
-#: density-0.3 drive; /tmp-free recipe in docs/field.md).
-VARIANCE_COEF = (1.9947, -1.0603, 0.9171, 0.3690, 0.6278)
+#: density-0.3 drive; the recipe is in docs/field.md).
+VARIANCE_COEF = (0.5358, -0.3834, 1.1189, 0.2069, 0.1491)
 
 
 class FarFieldError(ValueError):
@@ -188,13 +190,17 @@ class BlendedField:
     """The GP field and the far field mixed (eq. blend), variance from eq.
     calibrated_var (``calibrated=False``: the mixture's own variance)."""
 
-    def __init__(self, base, far: FarField, calibrated: bool = True):
+    def __init__(self, base, far: FarField, calibrated: bool = True, gp_growth: float = 2.0):
         self.base, self.far, self.calibrated = base, far, bool(calibrated)
+        self.gp_growth = float(gp_growth)
 
     def predict(self, xyz, return_grad: bool = False):
         out = self.base.predict(xyz, return_grad=return_grad)
         c = self.far.components(xyz, return_grad)
-        res = blend_fields(out[0], out[1], c["mean"], c["var"],
+        # the GP's weight fades with the distance to the data: beyond a length scale
+        # its mean is the HGMM prior, whose variance does not know how far it is
+        v_gp = out[1] + (self.gp_growth * c["r"]) ** 2
+        res = blend_fields(out[0], v_gp, c["mean"], c["var"],
                            *((out[2], c["grad"]) if return_grad else ()))
         if self.calibrated:
             var = calibrated_variance(self.far.rho0, self.far.noise, c["r"], c["spread2"],
