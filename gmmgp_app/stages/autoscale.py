@@ -24,7 +24,8 @@ normal radius                ``4 h_t`` (with ``normal_max_nn`` = 30: about the 1
                              nearest points; more blurs edges, fewer follows noise)
 virtual spacing ``s``        ``3 h_t`` (0.26 m on the 10 % street, the paper's 0.25 m)
 GP length scale ``l``        ``1.75 h_t`` (0.15 m on the 10 % street, the old sweep's best)
-block size                   ``4/3 l`` (the old 0.2 m at l = 0.15 m)
+block size                   ``4/3 l`` snapped to 1, 2, 5 x 10^k m (the old 0.2 m
+                             at l = 0.15 m; aligned with 1000 m local offsets)
 ``d_m``                      ``sigma``: the prior is corrected where it misses a hit
                              point by more than the sensor noise
 value noise                  ``sigma^2``
@@ -133,8 +134,23 @@ def measure_scan(points, origins=None, *, tree: Optional[cKDTree] = None,
         sensor = float(np.median(np.linalg.norm(np.asarray(origins)[idx] - pts[idx], axis=1)))
     # a noise-free scan still has round-off; keep sigma a small fraction of h at least
     sigma = max(sigma, 0.01 * h)
+    # three significant digits: the same values for a scan read in another frame
+    # (round-off of large coordinates), and exactly a x for a scan scaled by a = 10^k
+    h, sigma = _sig3(h), _sig3(sigma)
     return ScanScale(n_points=n, spacing=h, noise=sigma, extent=extent,
                      sensor_distance=sensor)
+
+
+def _nice(x: float) -> float:
+    """The nearest (in log) of 1, 2, 5 x 10^k."""
+    k = math.floor(math.log10(x))
+    cands = [m * 10.0 ** e for e in (k - 1, k, k + 1) for m in (1, 2, 5)]
+    best = min(cands, key=lambda c: abs(math.log(c / x)))
+    return float(f"{best:.1g}")
+
+
+def _sig3(x: float) -> float:
+    return float(f"{x:.3g}")
 
 
 def auto_values(scale: ScanScale, budget: int = TRAIN_BUDGET) -> dict:
@@ -164,7 +180,9 @@ def auto_values(scale: ScanScale, budget: int = TRAIN_BUDGET) -> dict:
         "hgmm.reg_covar": ((0.004 * s) ** 2, "(0.004 s)^2: 1e-6 m^2 at s = 0.25 m"),
         "gmr.far_growth_floor": (1.2 * s, "1.2 s: just beyond the virtual points"),
         "gp.length_scale": (ls, "1.75 h_t"),
-        "gp.block_size": (4.0 / 3.0 * ls, "4/3 l"),
+        "gp.block_size": (_nice(4.0 / 3.0 * ls), "4/3 l, snapped to 1, 2 or 5 x 10^k m so "
+                          "that blocks stay aligned when a scan is read in a local frame "
+                          "(offsets are multiples of 1000 m)"),
         "gp.d_m": (sig, "sigma: correct the prior where it misses a hit by more than the noise"),
         "gp.value_noise": (sig ** 2, "sigma^2: the noise along the normals"),
         "gp.gradient_noise": (gn, "(2 sigma / r_n)^2 in [1e-4, 0.05]: PCA normal angle error"),

@@ -23,8 +23,6 @@ plain rows without ``groups=`` get free EM.
 
 from __future__ import annotations
 
-import dataclasses
-
 import time
 from typing import Optional
 
@@ -443,12 +441,9 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
         (weights sum to 1); ``info`` fit statistics (timings, EM iterations,
         components re-seeded or dropped per level).
     """
-    from gmmgp_app.config import concrete, is_auto
+    from gmmgp_app.config import concrete
 
-    if is_auto(hcfg.reg_covar) and hasattr(rows, "spacing"):
-        # the training set knows s: the same rule as stages/autoscale.py
-        hcfg = dataclasses.replace(hcfg, reg_covar=(0.004 * float(rows.spacing)) ** 2)
-    hcfg = concrete(hcfg)
+    hcfg = concrete(hcfg)    # 'auto' fields: build_map resolves them from the scan first
     t0 = time.perf_counter()
     if isinstance(rows, TrainingSet):
         if groups is not None:
