@@ -357,13 +357,20 @@ def resolve_config(cfg: MappingConfig, scan: Scan) -> tuple:
     """``cfg`` with every ``"auto"`` field computed from ``scan`` (stages/autoscale.py),
     and the record of the chosen values and their reasons (empty when nothing was auto).
     """
+    from .config import concrete
+    from .stages.autoscale import AutoScaleError
     from .stages.autoscale import resolve_config as _resolve
     from .stages.prepare import MIN_POINTS
 
     pts = scan.points
     if len(pts) < MIN_POINTS or not np.isfinite(pts).all():
         return cfg, {}          # prepare raises the one-line error for such scans
-    return _resolve(cfg, pts, scan.origins)
+    try:
+        return _resolve(cfg, pts, scan.origins)
+    except AutoScaleError as exc:
+        # too few or coincident points to measure: the urban values, and prepare
+        # gives its own one-line error if the scan cannot be mapped at all
+        return concrete(cfg), {"fallback": f"urban values ({exc})"}
 
 
 def surface_seeds(scan: Scan, cfg: MappingConfig) -> np.ndarray:

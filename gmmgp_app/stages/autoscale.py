@@ -118,8 +118,9 @@ def measure_scan(points, origins=None, *, tree: Optional[cKDTree] = None,
     idx = np.sort(rng.choice(n, _SAMPLE, replace=False)) if n > _SAMPLE else np.arange(n)
     tree = cKDTree(pts) if tree is None else tree
     d, nb = tree.query(pts[idx], k=_K + 1)
-    nn = d[:, 1]
-    nn = nn[nn > 0]
+    # the nearest *distinct* neighbour: duplicated points are common in merged scans
+    nn = np.where(d[:, 1:] > 0, d[:, 1:], np.inf).min(axis=1)
+    nn = nn[np.isfinite(nn)]
     if len(nn) == 0:
         raise AutoScaleError(f"All {n} points coincide; the scan has no spacing to measure.")
     h = float(np.median(nn))
@@ -209,7 +210,7 @@ def resolve_config(cfg: MappingConfig, points, origins=None, *,
     record: dict = {"scan": scale.to_dict()}
     updates = {}
     for key in wanted:
-        updates[key] = vals[key]["value"]
+        updates[key] = _clip_to_field(key, vals[key]["value"])
     # the voxel subset is a voxel size, not a rate
     if "prepare.subsample_rate" in updates and scale.n_points > TRAIN_BUDGET \
             and cfg.prepare.voxel_size is None:
@@ -218,6 +219,20 @@ def resolve_config(cfg: MappingConfig, points, origins=None, *,
     for key, v in vals.items():
         record[key] = dict(v, auto=key in wanted or key == "train_spacing")
     return cfg.replace(updates), record
+
+
+def _clip_to_field(dotted: str, value: float) -> float:
+    """Keep an automatic value inside the field's documented range (a scan of a few
+    isolated points would otherwise ask for a 265 m normal radius)."""
+    sec, _, name = dotted.partition(".")
+    sub = getattr(MappingConfig(), sec)
+    md = {f.name: f.metadata for f in dataclasses.fields(sub)}[name]
+    lo, hi = md.get("lo"), md.get("hi")
+    if lo is not None:
+        value = max(value, lo)
+    if hi is not None:
+        value = min(value, hi)
+    return value
 
 
 def _is_auto_field(cfg, dotted: str) -> bool:
