@@ -17,7 +17,7 @@ the synthetic ``street`` (scripts/bench_field.py; ``street2``, ``courtyard`` and
 ``pipes`` are held out):
 
 ===========================  =======================================================
-training subset              all points up to ``budget`` (200k); beyond, one point
+training subset              all points up to ``budget`` (100k); beyond, one point
                              per voxel of ``h sqrt(N / budget)`` (spatially even)
 ``h_t``                      spacing of the training subset: ``h max(1, sqrt(N/budget))``
 normal radius                ``4 h_t`` (with ``normal_max_nn`` = 30: about the 16-30
@@ -55,7 +55,7 @@ __all__ = ["ScanScale", "AutoScaleError", "measure_scan", "auto_values", "resolv
 
 #: Hit points trained on before the voxel subset starts (about 2 s of prepare + HGMM
 #: per 100k points here).
-TRAIN_BUDGET = 200_000
+TRAIN_BUDGET = 100_000
 _SAMPLE = 20_000
 _K = 16
 
@@ -215,10 +215,31 @@ def resolve_config(cfg: MappingConfig, points, origins=None, *,
     if "prepare.subsample_rate" in updates and scale.n_points > TRAIN_BUDGET \
             and cfg.prepare.voxel_size is None:
         updates["prepare.subsample_rate"] = 1.0
-        updates["prepare.voxel_size"] = vals["train_spacing"]["value"]
+        updates["prepare.voxel_size"] = _voxel_for_budget(
+            np.asarray(points, dtype=np.float64), vals["train_spacing"]["value"],
+            TRAIN_BUDGET)
+        record["prepare.voxel_size"] = {
+            "value": updates["prepare.voxel_size"], "auto": True,
+            "reason": f"voxel keeping about {TRAIN_BUDGET} points (spatially even)"}
     for key, v in vals.items():
         record[key] = dict(v, auto=key in wanted or key == "train_spacing")
     return cfg.replace(updates), record
+
+
+def _voxel_for_budget(points, start: float, budget: int, rounds: int = 4) -> float:
+    """A voxel size whose grid keeps about ``budget`` points: start from ``start``
+    and rescale by ``sqrt(kept / budget)`` (surfaces: count ~ 1 / size^2); MMS scans
+    are anisotropic, so the median spacing alone under-estimates the size."""
+    lo = points.min(axis=0)
+    c = start
+    for _ in range(rounds):
+        k = np.floor((points - lo) / c).astype(np.int64)
+        span = k.max(axis=0) + 1
+        kept = len(np.unique((k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]))
+        if abs(kept / budget - 1.0) < 0.1:
+            break
+        c *= math.sqrt(kept / budget)
+    return _sig3(c)
 
 
 def _clip_to_field(dotted: str, value: float) -> float:
