@@ -101,7 +101,8 @@ def measure_scan(points, origins=None, *, tree: Optional[cKDTree] = None,
     origins : (N, 3) float64, optional
     tree : cKDTree of ``points``, optional
     seed : int
-        Seed of the sample of (at most 20 000) points the statistics use.
+        Unused (kept for callers); the sample of at most 20 000 points is taken in
+        lexicographic order, so it does not depend on the order of the points.
 
     Returns
     -------
@@ -114,8 +115,14 @@ def measure_scan(points, origins=None, *, tree: Optional[cKDTree] = None,
             f"Expected at least {_K + 1} points to measure the scan's spacing and noise, "
             f"found {n}; set the lengths by hand (--set prepare.normal_radius=... etc.) or "
             "map a larger scan.")
-    rng = np.random.default_rng(seed)
-    idx = np.sort(rng.choice(n, _SAMPLE, replace=False)) if n > _SAMPLE else np.arange(n)
+    # every (n / 20000)-th point in lexicographic (x, y, z) order: the same sample
+    # whatever order the points come in (tiles streamed from a file or cut in memory),
+    # and the same after scaling or shifting the scan
+    if n > _SAMPLE:
+        order = np.lexsort(pts.T[::-1])
+        idx = np.sort(order[np.linspace(0, n - 1, _SAMPLE).astype(np.int64)])
+    else:
+        idx = np.arange(n)
     tree = cKDTree(pts) if tree is None else tree
     d, nb = tree.query(pts[idx], k=_K + 1)
     # the nearest *distinct* neighbour: duplicated points are common in merged scans
