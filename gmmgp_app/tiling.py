@@ -729,8 +729,6 @@ def build_tiled_map(scan: Scan, cfg: Optional[MappingConfig] = None,
     TiledMap
     """
     cfg = MappingConfig() if cfg is None else cfg
-    from .pipeline import resolve_config    # 'auto' values from the whole scan, shared by tiles
-    cfg = resolve_config(cfg, scan)[0]
     spec = TileSpec() if spec is None else spec
     tiles = split_into_tiles(scan, spec)
     owners = tile_owners({k: len(t) for k, t in tiles.items()}, spec.min_points)
