@@ -24,6 +24,7 @@ __all__ = [
     "HGMMConfig",
     "GMRConfig",
     "GPConfig",
+    "FarFieldConfig",
     "SurfaceConfig",
     "MappingConfig",
 ]
@@ -38,14 +39,46 @@ class ConfigError(ValueError):
     """A configuration field is unknown or out of range."""
 
 
+#: The value of a field whose number is computed from the scan (stages/autoscale.py).
+AUTO = "auto"
+
+
 def _f(default, doc: str, lo=None, hi=None, *, unit: str = "", symbol: str = "",
-       source: str = "", choices=None, optional: bool = False):
-    """A config field with its documentation and range in the metadata."""
+       source: str = "", choices=None, optional: bool = False, urban=None):
+    """A config field with its documentation and range in the metadata.
+
+    ``urban`` marks a field that accepts ``"auto"`` (its default): the number is then
+    computed from the scan by :func:`gmmgp_app.stages.autoscale.resolve_config`, and
+    ``urban`` is the fixed urban value used only where no scan is at hand
+    (:func:`concrete`, e.g. a stage called directly on a bare sub-config).
+    """
     return field(
         default=default,
         metadata=dict(doc=doc, lo=lo, hi=hi, unit=unit, symbol=symbol, source=source,
-                      choices=choices, optional=optional),
+                      choices=choices, optional=optional, urban=urban),
     )
+
+
+def is_auto(value) -> bool:
+    return isinstance(value, str) and value == AUTO
+
+
+def concrete(section):
+    """``section`` with every ``"auto"`` field replaced by its fixed urban value.
+
+    For stages called on a bare sub-config without a scan; ``build_map`` resolves
+    ``"auto"`` from the scan instead (stages/autoscale.py).
+    """
+    if not dataclasses.is_dataclass(section):
+        return section
+    upd = {}
+    for f in dataclasses.fields(section):
+        v = getattr(section, f.name)
+        if dataclasses.is_dataclass(v):
+            upd[f.name] = concrete(v)
+        elif is_auto(v):
+            upd[f.name] = f.metadata["urban"]
+    return dataclasses.replace(section, **upd) if upd else section
 
 
 def _validate(obj, prefix: str) -> None:
@@ -54,6 +87,8 @@ def _validate(obj, prefix: str) -> None:
         md = f.metadata
         name = f"{prefix}{f.name}"
         if dataclasses.is_dataclass(v):
+            continue
+        if is_auto(v) and md.get("urban") is not None:
             continue
         if v is None:
             if not md.get("optional"):
@@ -86,21 +121,28 @@ class PrepareConfig:
     """Subsampling, normals and virtual points (paper Sec. III-B, V-B)."""
 
     subsample_rate: float = _f(
-        0.15, "Fraction of hit points kept for training.", 1e-4, 1.0,
-        source="paper Sec. V-B: about 15 %, robust from 5 % to 80 %")
+        AUTO, "Fraction of hit points kept for training; 'auto': all points of a scan up "
+        "to the training budget, beyond it a spatially even voxel subset of about that "
+        "many points.", 1e-4, 1.0,
+        source="paper Sec. V-B: about 15 %, robust from 5 % to 80 % (dense MMS); "
+        "issue 15: a 15 % random subset of an already sparse scan costs 4x accuracy",
+        urban=0.15)
     subsample_voxel: Optional[float] = _f(
         None, "If set, voxel-grid subsampling with this cell size replaces the rate "
         "(formerly prepare.voxel_size).",
         1e-4, 100.0, unit="m", optional=True)
     normal_radius: float = _f(
-        0.3, "Neighbourhood radius for PCA normals.", 1e-4, 100.0, unit="m",
-        source="chosen: a few point spacings of mobile-mapping scans")
+        AUTO, "Neighbourhood radius for PCA normals ('auto': from the point spacing).",
+        1e-4, 100.0, unit="m", source="chosen: a few point spacings (stages/autoscale.py)",
+        urban=0.3)
     normal_max_nn: int = _f(
         30, "Maximum neighbours for PCA normals.", 3, 1000,
         source="Open3D's usual hybrid search")
     virtual_spacing: float = _f(
-        0.25, "Distance s of the virtual points from the hit point along the normal.",
-        1e-4, 10.0, unit="m", symbol="s", source="paper Sec. V-B")
+        AUTO, "Distance s of the virtual points from the hit point along the normal "
+        "('auto': from the point spacing).",
+        1e-4, 10.0, unit="m", symbol="s", source="paper Sec. V-B: 0.25 m for urban MMS",
+        urban=0.25)
     drop_inconsistent_virtual: bool = _f(
         True, "Drop virtual points that land closer than s to another part of the surface "
         "(their label +-s would be wrong).")
@@ -132,8 +174,9 @@ class HGMMConfig:
     tol: float = _f(1e-4, "EM stops when the mean log-likelihood gains less than this.",
                     0.0, 1.0)
     reg_covar: float = _f(
-        1e-6, "Added to covariance diagonals (in the units of the rows, m^2).", 0.0, 1.0,
-        unit="m^2", source="as scikit-learn's GaussianMixture")
+        AUTO, "Added to covariance diagonals (in the units of the rows, m^2; 'auto': "
+        "(0.004 s)^2, i.e. 1e-6 m^2 at s = 0.25 m, so the fit scales with the scan).",
+        0.0, 1.0, unit="m^2", source="as scikit-learn's GaussianMixture", urban=1e-6)
     seed: int = _f(0, "Seed of the k-means++ style initialisation.", 0, 2**32 - 1)
     tie_virtual: bool = _f(
         True, "Tied EM: a hit point and its virtual points (+-s) share one component. Free "
@@ -178,9 +221,10 @@ class GMRConfig:
         symbol="D0", source="chosen with far_variance_growth: 2.5 loses the growth at "
         "data edges, 1.5 costs 0.6-1.2 nats near the data (synthetic street)")
     far_growth_floor: float = _f(
-        0.3, "Least half-side of a support box, so thin components (one layer of "
-        "virtual points) do not count the +-s band as outside.", 0.0, 100.0, unit="m",
-        source="chosen: just above the virtual point spacing s = 0.25 m")
+        AUTO, "Least half-side of a support box, so thin components (one layer of "
+        "virtual points) do not count the +-s band as outside ('auto': 1.2 s).",
+        0.0, 100.0, unit="m",
+        source="chosen: just above the virtual point spacing s = 0.25 m", urban=0.3)
 
 
 @dataclass(frozen=True)
@@ -188,29 +232,29 @@ class GPConfig:
     """Local GPs with derivative observations and HGMM priors (paper Sec. IV)."""
 
     d_m: float = _f(
-        0.02, "Hit points with |m(x)| > d_m are GP training points.", 0.0, 10.0,
+        AUTO, "Hit points with |m(x)| > d_m are GP training points.", 0.0, 10.0,
         unit="m", symbol="d_m", source="chosen by a sweep on the synthetic street "
         "(scripts/bench_accuracy.py --set gp.d_m=...): 0.005 / 0.01 / 0.02 / 0.05 m give "
         "near-surface RMSE 11.5 / 11.6 / 12.2 / 17.1 mm with 8.5k / 6.3k / 4.5k / 2.0k GP "
-        "points and the best log-likelihood at 0.02 m")
+        "points and the best log-likelihood at 0.02 m", urban=0.02)
     length_scale: float = _f(
-        0.15, "Matern 3/2 length scale.", 1e-4, 100.0, unit="m", symbol="l",
+        AUTO, "Matern 3/2 length scale.", 1e-4, 100.0, unit="m", symbol="l",
         source="chosen by a sweep with tied HGMM components (scripts/bench_accuracy.py --set "
         "gp.length_scale=...): 0.08 (the authors' public GP code) / 0.15 / 0.3 m give street "
         "RMSE 12.4 / 9.1 / 9.5 mm at 0-5 cm and 41 / 34 / 30 mm at 10-20 cm; street2 "
         "log-likelihood at 20-30 cm -0.58 / +1.23 / +1.26; 1 m sphere mesh RMSE "
-        "(scripts/bench_sphere.py --density 0.25) 6.3 / 5.6 / 5.6 mm")
+        "(scripts/bench_sphere.py --density 0.25) 6.3 / 5.6 / 5.6 mm", urban=0.15)
     value_noise: float = _f(
-        4e-4, "Noise variance of the distance observations.", 0.0, 10.0, unit="m^2",
-        symbol="sigma_eta^2", source="authors' public GP code")
+        AUTO, "Noise variance of the distance observations.", 0.0, 10.0, unit="m^2",
+        symbol="sigma_eta^2", source="authors' public GP code", urban=4e-4)
     gradient_noise: float = _f(
-        5e-4, "Noise variance of the gradient (normal) observations.", 0.0, 10.0,
+        AUTO, "Noise variance of the gradient (normal) observations.", 0.0, 10.0,
         unit="1 (dimensionless: a gradient of a distance is m/m)",
-        source="authors' public GP code")
+        source="authors' public GP code", urban=5e-4)
     block_size: float = _f(
-        0.2, "Edge of an octree leaf block.", 1e-3, 1000.0, unit="m",
+        AUTO, "Edge of an octree leaf block.", 1e-3, 1000.0, unit="m",
         source="chosen: 2.5 length scales; the authors' code used 0.1 m. 0.2 to 0.5 m give "
-               "the same accuracy on the synthetic street, smaller blocks factorise faster")
+               "the same accuracy on the synthetic street, smaller blocks factorise faster", urban=0.2)
     block_overlap: float = _f(
         1.0, "Training points are taken within (1 + overlap) * half the block edge.",
         0.0, 4.0, source="authors' code: twice the half-length (overlap 1.0)")
@@ -221,10 +265,48 @@ class GPConfig:
 
 
 @dataclass(frozen=True)
+class FarFieldConfig:
+    """The far field: IMLS distance of the located surface, mixed with the GP field
+    (stages/farfield.py, issue 15). Not in the paper."""
+
+    enabled: bool = _f(
+        True, "Mix the GP field with the IMLS distance of the training hit points by "
+        "inverse variance (gmmgp only; false: the paper's field alone).",
+        source="chosen: scripts/bench_field.py, docs/field.md")
+    neighbours: int = _f(16, "Hit points k per query of the IMLS distance.", 1, 256,
+                         source="chosen on the synthetic street (8 and 16 agree near, "
+                         "16 is better beyond 0.5 m)")
+    kernel_floor: float = _f(
+        AUTO, "Least IMLS kernel width rho_0 ('auto': the training spacing h_t).",
+        1e-5, 100.0, unit="m", symbol="rho_0", urban=0.086,
+        source="chosen on the synthetic street: 2 h_t blurs the near field")
+    kernel_growth: float = _f(
+        1.0, "The kernel width grows as c times the distance to the nearest hit point.",
+        0.0, 100.0, symbol="c", source="chosen on the synthetic street (0.5 / 1 / 2)")
+    spread_weight: float = _f(
+        1.0, "Weight a of the neighbours' plane disagreement in the far-field variance.",
+        0.0, 100.0, symbol="a", source="chosen on the synthetic street")
+    calibrated: bool = _f(
+        True, "Variance of the mixed field from the log-linear model of "
+        "stages/farfield.py (eq. calibrated_var); false: the mixture's own variance.",
+        source="chosen: street coverage 0.98 -> 0.60-0.73 within 1 sigma")
+    gp_growth: float = _f(
+        2.0, "For the mixing weights only, the GP variance gains (g r)^2, r the distance "
+        "to the nearest hit point.", 0.0, 100.0, symbol="g",
+        source="chosen on the street and sphere (0 / 0.5 / 2): the sphere's 0.1-0.2 m "
+        "RMSE 13.1 / 9.5 / 7.1 mm, the street's 19.0 / 19.5 / 20.5 mm")
+    growth: float = _f(
+        0.1, "Standard deviation beta gained per metre from the data (unobserved "
+        "surfaces may be closer than the located ones).", 0.0, 100.0, symbol="beta",
+        source="chosen on the synthetic street")
+
+
+@dataclass(frozen=True)
 class SurfaceConfig:
     """Marching-cubes surface extraction (paper Sec. V-C)."""
 
-    voxel_size: float = _f(0.05, "Grid cell size.", 1e-4, 100.0, unit="m")
+    voxel_size: float = _f(AUTO, "Grid cell size ('auto': from the point spacing).", 1e-4,
+                           100.0, unit="m", urban=0.05)
     max_std: Optional[float] = _f(
         None, "Cut away surface where the predicted standard deviation exceeds this.",
         0.0, 1000.0, unit="m", optional=True)
@@ -238,6 +320,7 @@ class MappingConfig:
     hgmm: HGMMConfig = field(default_factory=HGMMConfig)
     gmr: GMRConfig = field(default_factory=GMRConfig)
     gp: GPConfig = field(default_factory=GPConfig)
+    far: FarFieldConfig = field(default_factory=FarFieldConfig)
     surface: SurfaceConfig = field(default_factory=SurfaceConfig)
     seed: int = _f(0, "Seed for everything random that has no seed of its own.", 0, 2**32 - 1)
 
@@ -365,6 +448,10 @@ def parse_value(raw: str):
 def _coerce(f, value, name: str):
     """Coerce TOML/CLI values to the field's type (int given for a float is fine)."""
     default = f.default
+    if f.metadata.get("urban") is not None:
+        if is_auto(value):
+            return value
+        default = f.metadata["urban"]
     if value is None:
         return None
     if isinstance(default, bool):

@@ -27,6 +27,7 @@ __all__ = [
     "EvaluationError", "DEFAULT_BINS", "Reference", "sample_queries", "gaussian_loglik",
     "folded_normal_loglik", "binned_metrics", "evaluate_field", "closest_point_on_triangles",
     "TriangleDistance", "sample_mesh_surface", "surface_distances", "MESH_SUFFIXES",
+    "coverage", "reliability", "plot_reliability", "RELIABILITY_LEVELS",
 ]
 
 #: Distance-to-training-points bins (m) of the paper's figures.
@@ -449,7 +450,74 @@ def sample_queries(points: np.ndarray, normals: np.ndarray, n: int, *,
 
 
 # --------------------------------------------------------------------------- metrics
-_KEYS = ("n", "rmse_sdf", "rmse_edf", "ll_sdf", "ll_edf")
+_KEYS = ("n", "rmse_sdf", "rmse_edf", "ll_sdf", "ll_edf", "cov1_sdf", "cov2_sdf")
+#: Central probability levels of the reliability diagram (0.1, 0.2, ..., 0.95, 0.99 would
+#: also do; ten equal steps keep the diagram readable).
+RELIABILITY_LEVELS = tuple(round(0.1 * k, 1) for k in range(1, 10)) + (0.95,)
+
+
+def coverage(y, mean, var, k: float = 1.0) -> np.ndarray:
+    """Per query: True when ``|y - mean| <= k sigma`` (calibration, issue 15).
+
+    A calibrated Gaussian predictive distribution covers 68.3 % of the queries at
+    ``k = 1`` and 95.4 % at ``k = 2``.
+
+    Parameters
+    ----------
+    y, mean, var : (K,) array_like
+    k : float
+        Width in standard deviations.
+
+    Returns
+    -------
+    (K,) bool
+    """
+    y, mean, var = (np.asarray(a, dtype=np.float64) for a in (y, mean, var))
+    return np.abs(y - mean) <= k * np.sqrt(np.maximum(var, 0.0))
+
+
+def reliability(y, mean, var, levels: Sequence[float] = RELIABILITY_LEVELS) -> dict:
+    """Expected against observed coverage of central Gaussian intervals.
+
+    For each level ``p`` the interval ``mean +- z_p sigma`` with
+    ``z_p = Phi^-1((1 + p) / 2)`` should hold a fraction ``p`` of the truths.
+
+    Returns
+    -------
+    dict with ``expected`` (levels) and ``observed`` (fractions), both lists.
+    """
+    from scipy.stats import norm
+
+    y, mean, var = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (y, mean, var))
+    z = np.abs(y - mean) / np.sqrt(np.maximum(var, 1e-300))
+    obs = [float(np.mean(z <= norm.ppf(0.5 + 0.5 * p))) if len(z) else float("nan")
+           for p in levels]
+    return {"expected": [float(p) for p in levels], "observed": obs}
+
+
+def plot_reliability(curves: dict, path, title: str = "") -> Path:
+    """Reliability diagram (PNG): one line per name in ``curves`` ({name: reliability()})."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(4.2, 4.2))
+    ax.plot([0, 1], [0, 1], color="0.6", lw=1, ls="--", label="calibrated")
+    for name, c in curves.items():
+        ax.plot(c["expected"], c["observed"], marker="o", ms=3, label=name)
+    ax.set_xlabel("expected coverage")
+    ax.set_ylabel("observed coverage")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1)
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def binned_metrics(mean, var, truth, dist, bins: Sequence[float] = DEFAULT_BINS, *,
@@ -474,8 +542,9 @@ def binned_metrics(mean, var, truth, dist, bins: Sequence[float] = DEFAULT_BINS,
     Returns
     -------
     dict with ``bins`` (list of [lo, hi]) and per-bin lists ``n``, ``rmse_sdf``,
-    ``rmse_edf``, ``ll_sdf``, ``ll_edf`` (NaN where a bin is empty), plus the
-    same over all queries inside the bins under ``all``.
+    ``rmse_edf``, ``ll_sdf``, ``ll_edf``, ``cov1_sdf`` and ``cov2_sdf`` (fraction of
+    queries with ``|y - mean| <= 1`` and ``2`` sigma; NaN where a bin is empty), plus
+    the same over all queries inside the bins under ``all``.
     """
     mean, var, truth, dist = (np.asarray(a, dtype=np.float64).reshape(-1)
                               for a in (mean, var, truth, dist))
@@ -496,9 +565,11 @@ def binned_metrics(mean, var, truth, dist, bins: Sequence[float] = DEFAULT_BINS,
         ll_edf = gaussian_loglik(np.abs(truth), mean, var)
     if signed_prediction and signed_truth:
         err_sdf, ll_sdf = (mean - truth) ** 2, gaussian_loglik(truth, mean, var)
+        c1 = coverage(truth, mean, var, 1.0).astype(np.float64)
+        c2 = coverage(truth, mean, var, 2.0).astype(np.float64)
     else:
-        err_sdf, ll_sdf = nan, nan
-    per = (err_sdf, err_edf, ll_sdf, ll_edf)
+        err_sdf, ll_sdf, c1, c2 = nan, nan, nan, nan
+    per = (err_sdf, err_edf, ll_sdf, ll_edf, c1, c2)
     out = {"bins": [[float(a), float(b)] for a, b in zip(bins[:-1], bins[1:])]}
     out.update({key: [] for key in _KEYS})
     for lo, hi in out["bins"]:
@@ -509,7 +580,7 @@ def binned_metrics(mean, var, truth, dist, bins: Sequence[float] = DEFAULT_BINS,
     return out
 
 
-def _append(out, sel, err_sdf, err_edf, ll_sdf, ll_edf):
+def _append(out, sel, err_sdf, err_edf, ll_sdf, ll_edf, c1, c2):
     n = int(sel.sum())
     out["n"].append(n)
     nan = float("nan")
@@ -517,6 +588,8 @@ def _append(out, sel, err_sdf, err_edf, ll_sdf, ll_edf):
     out["rmse_edf"].append(float(np.sqrt(np.mean(err_edf[sel]))) if n else nan)
     out["ll_sdf"].append(float(np.mean(ll_sdf[sel])) if n else nan)
     out["ll_edf"].append(float(np.mean(ll_edf[sel])) if n else nan)
+    out["cov1_sdf"].append(float(np.mean(c1[sel])) if n else nan)
+    out["cov2_sdf"].append(float(np.mean(c2[sel])) if n else nan)
 
 
 def evaluate_field(predict: Callable, reference: Reference, queries: np.ndarray,

@@ -32,6 +32,7 @@ from ._atomic import atomic_dir
 from ._json import jsonable
 from .config import METHODS, MappingConfig
 from .stages import gmr as _gmr
+from .stages import farfield as _farfield
 from .stages import gp as _gp
 from .stages import hgmm as _hgmm
 from .stages import loggpis as _loggpis
@@ -123,8 +124,9 @@ class SurfaceMap:
     """
 
     def __init__(self, method, config, offset, prior, hgmm=None, gp=None,
-                 gp_points=None, gp_normals=None, seed_points=None, summary=None):
+                 gp_points=None, gp_normals=None, seed_points=None, summary=None, far=None):
         self.method = method
+        self.far = far
         self.config = config
         self.offset = np.asarray(offset, dtype=np.float64).reshape(3)
         self.prior = prior
@@ -156,8 +158,10 @@ class SurfaceMap:
         """
         xyz = as_queries(xyz)
         field_ = self.gp if self.gp is not None else self.prior
-        out = field_.predict(xyz, return_grad=return_grad)
-        return out
+        if self.far is None:
+            return field_.predict(xyz, return_grad=return_grad)
+        return _farfield.BlendedField(field_, self.far, self.config.far.calibrated,
+                            self.config.far.gp_growth).predict(xyz, return_grad=return_grad)
 
     @property
     def signed(self) -> bool:
@@ -191,6 +195,8 @@ class SurfaceMap:
             arrays.update(_hgmm_to_arrays(self.hgmm))
         if self.gp is not None:
             arrays.update({f"gp/{k}": v for k, v in self.gp.to_arrays().items()})
+        if self.far is not None:
+            arrays.update({"far/points": self.far.points, "far/normals": self.far.normals})
         return arrays
 
     def save(self, directory) -> Path:
@@ -209,6 +215,7 @@ class SurfaceMap:
                 "method": self.method,
                 "prior": type(self.prior).__name__,
                 "prior_params": getattr(self.prior, "params", lambda: {})(),
+                "far_params": None if self.far is None else self.far.params(),
                 "config_toml": self.config.to_toml(),
                 "summary": jsonable(self.summary),
             }
@@ -252,9 +259,15 @@ def load_map(directory) -> SurfaceMap:
         else:
             prior = _gp.ConstantPrior(**meta["prior_params"])
         gp = _gp.LocalGPField.from_arrays(gp_arrays, prior, cfg.gp) if gp_arrays else None
+    far = None
+    if meta.get("far_params") is not None and "far/points" in arrays:
+        fp = dict(meta["far_params"])
+        far = _farfield.FarField(arrays["far/points"], arrays["far/normals"], fp.pop("rho0"),
+                                 fp.pop("noise"), **fp)
     smap = SurfaceMap(meta["method"], cfg, arrays["offset"], prior, hgmm=hgmm, gp=gp,
                       gp_points=arrays["gp_points"], gp_normals=arrays["gp_normals"],
-                      seed_points=arrays["seed_points"], summary=meta.get("summary", {}))
+                      seed_points=arrays["seed_points"], summary=meta.get("summary", {}),
+                      far=far)
     return smap
 
 
@@ -308,8 +321,9 @@ class Stage:
         What the observer receives (default: the first output, no extra).
     counts : callable(outputs, ctx) -> dict, optional
         Counts for ``summary["counts"][name]``.
-    when : callable(inputs) -> bool, optional
-        Run only if true; otherwise the outputs are None (e.g. no GP points).
+    when : callable(inputs, ctx) -> bool, optional
+        Run only if true; otherwise the outputs are None (e.g. no GP points, the far
+        field switched off).
     """
 
     name: str
@@ -360,13 +374,29 @@ def _loggpis_stage(ctx, data):
     return {"gp": field_, "gp_points": data.points}
 
 
+def _far_stage(ctx, data):
+    return {"far": far_field(data, ctx.cfg)}
+
+
+def far_field(data, cfg: MappingConfig):
+    """The far field of the training hit points (stages/farfield.py)."""
+    from .config import concrete
+
+    f, g = concrete(cfg.far), concrete(cfg.gp)
+    return _farfield.FarField(data.points, data.normals, f.kernel_floor,
+                              max(g.value_noise, 1e-30) ** 0.5, k=f.neighbours,
+                              growth=f.kernel_growth, spread_weight=f.spread_weight,
+                              beta=f.growth)
+
+
 def _map_stage(ctx, scan, summary=None, prior=None, hgmm=None, gp=None, gp_points=None,
-               gp_normals=None):
+               gp_normals=None, far=None):
     if prior is None and ctx.method != "loggpis":  # stopped before the prior
         prior = _gp.ConstantPrior(**GPIS_PRIOR)
     return {"smap": SurfaceMap(ctx.method, ctx.cfg, scan.offset, prior, hgmm=hgmm, gp=gp,
                                gp_points=gp_points, gp_normals=gp_normals,
-                               seed_points=surface_seeds(scan, ctx.cfg), summary=summary)}
+                               seed_points=surface_seeds(scan, ctx.cfg), summary=summary,
+                               far=far)}
 
 
 def _surface_stage(ctx, smap):
@@ -392,7 +422,7 @@ def _refit_stage(ctx, smap, touched, gp_points, gp_normals, all_points):
     out = SurfaceMap(smap.method, smap.config, smap.offset, smap.prior, hgmm=smap.hgmm,
                      gp=field_, gp_points=gpp,
                      seed_points=surface_seeds(Scan(points=all_points), ctx.cfg),
-                     summary=smap.summary)
+                     summary=smap.summary, far=smap.far)
     return {"smap": out, "n_refit": n_refit}
 
 
@@ -424,10 +454,11 @@ STAGES = {s.name: s for s in (
           ("prior", "gp_points", "gp_normals"), reported=False),
     Stage("gp", _gp_stage, ("gp_points", "gp_normals", "prior"), ("gp",),
           payload=lambda o, i: (o["gp"], {"points": i["gp_points"], "normals": i["gp_normals"]}),
-          counts=_info_counts, when=lambda i: len(i["gp_points"]) > 0),
+          counts=_info_counts, when=lambda i, c: len(i["gp_points"]) > 0),
     Stage("loggpis", _loggpis_stage, ("data",), ("gp", "gp_points"), counts=_info_counts),
+    Stage("far", _far_stage, ("data",), ("far",), when=lambda i, c: c.cfg.far.enabled),
     Stage("map", _map_stage, ("scan",), ("smap",), reported=False,
-          optional=("summary", "prior", "hgmm", "gp", "gp_points", "gp_normals")),
+          optional=("summary", "prior", "hgmm", "gp", "gp_points", "gp_normals", "far")),
     Stage("surface", _surface_stage, ("smap",), ("mesh",)),
     Stage("touch", _touch_stage, ("smap", "all_points", "all_origins", "new_points"),
           ("touched", "scan", "prior"), reported=False),
@@ -437,7 +468,7 @@ STAGES = {s.name: s for s in (
 
 #: Stages of each method, in order (``map`` assembles the SurfaceMap).
 RECIPES = {
-    "gmmgp": ("prepare", "hgmm", "gmr", "select", "gp"),
+    "gmmgp": ("prepare", "hgmm", "gmr", "select", "gp", "far"),
     "hgmm": ("prepare", "hgmm", "gmr"),
     "gpis": ("prepare", "constant_prior", "gp"),
     "loggpis": ("prepare", "loggpis"),
@@ -478,7 +509,7 @@ def run_stages(names, state: dict, ctx: RunContext, *, observer=None,
                                 "the stages that give them first.")
         kw = {k: state[k] for k in st.inputs}
         kw.update({k: state[k] for k in st.optional if k in state})
-        if st.when is not None and not st.when(kw):
+        if st.when is not None and not st.when(kw, ctx):
             state.update({k: None for k in st.outputs})
             if on_stage is not None:
                 on_stage(name, state)
@@ -547,6 +578,7 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
         recipe = recipe[:recipe.index(stop_after) + 1]
     observer = observer or NullObserver()
     summary: dict = {"method": method, "n_scan_points": len(scan), "seconds": {}, "counts": {}}
+    cfg, summary["auto"] = resolve_config(cfg, scan)
     observer.on_stage("scan", StagePayload(scan, 0.0))
     ctx = RunContext(cfg, method, executor=executor, progress=progress,
                      loggpis_lambda=loggpis_lambda)
@@ -575,6 +607,33 @@ def update_map(smap: SurfaceMap, all_points, all_origins, new_points,
                                        "all_origins": all_origins, "new_points": new_points},
                        RunContext(cfg, smap.method, executor=executor))
     return state["smap"], state["n_refit"]
+
+
+def resolve_config(cfg: MappingConfig, scan: Scan) -> tuple:
+    """``cfg`` with every ``"auto"`` field computed from ``scan`` (stages/autoscale.py),
+    and the record of the chosen values and their reasons (empty when nothing was auto).
+    """
+    from .config import concrete
+    from .stages.autoscale import AutoScaleError
+    from .stages.autoscale import resolve_config as _resolve
+    from .stages.prepare import MIN_POINTS
+
+    pts = scan.points
+    if len(pts) < MIN_POINTS or not np.isfinite(pts).all():
+        return cfg, {}          # prepare raises the one-line error for such scans
+    try:
+        return _resolve(cfg, pts, scan.origins)
+    except AutoScaleError as exc:
+        # too few or coincident points to measure: the urban values, and prepare
+        # gives its own one-line error if the scan cannot be mapped at all
+        return concrete(cfg), {"fallback": f"urban values ({exc})"}
+
+
+def check_surface_grid(scan: Scan, cfg: MappingConfig) -> int:
+    """Refuse, before any fitting, a surface grid too large to extract: the surface voxel
+    is the one ``build_map`` will use (``"auto"`` resolved from ``scan``)."""
+    cfg, _ = resolve_config(cfg, scan)
+    return _surface.check_surface_grid(scan.points, cfg.surface)
 
 
 def surface_seeds(scan: Scan, cfg: MappingConfig) -> np.ndarray:
@@ -635,7 +694,6 @@ fit_hgmm = _hgmm.fit_hgmm
 new_space_fraction = _octree.new_space_fraction
 extract_surface = _surface.extract_surface
 mesh_field = _surface.mesh_field
-check_surface_grid = _surface.check_surface_grid
 std_colour_max = _surface.std_colour_max
 variance_colors = _surface.variance_colors
 write_mesh_ply = _surface.write_mesh_ply

@@ -94,7 +94,9 @@ def test_loggpis_lambda_defaults_to_the_gp_length_scale():
     from gmmgp_app import MappingConfig
 
     p = LogGPISParams.from_config(MappingConfig())
-    ell = MappingConfig().gp.length_scale
+    from gmmgp_app.config import concrete
+
+    ell = concrete(MappingConfig()).gp.length_scale   # 'auto' without a scan: urban
     assert p.lam == pytest.approx(math.sqrt(3) / ell)
     assert p.length_scale == pytest.approx(ell)
     assert p.margin == pytest.approx(4 / p.lam)

@@ -7,15 +7,19 @@ import pytest
 from gmmgp_app.config import ConfigError, MappingConfig
 
 
-def test_defaults_are_the_papers():
+def test_defaults_are_auto_with_the_papers_urban_values_behind_them():
+    from gmmgp_app.config import concrete
+
     cfg = MappingConfig()
-    assert cfg.prepare.virtual_spacing == 0.25
-    assert cfg.prepare.subsample_rate == 0.15
+    assert cfg.prepare.virtual_spacing == "auto" and cfg.gp.length_scale == "auto"
+    urban = concrete(cfg)          # what a stage uses when it has no scan to measure
+    assert urban.prepare.virtual_spacing == 0.25
+    assert urban.prepare.subsample_rate == 0.15
     assert cfg.hgmm.n_children == 8
     assert cfg.hgmm.split_threshold == 0.01
-    assert cfg.gp.length_scale == 0.15  # ours (sweep in config.py); the authors used 0.08
-    assert cfg.gp.value_noise == 4e-4
-    assert cfg.gp.gradient_noise == 5e-4
+    assert urban.gp.length_scale == 0.15  # ours (sweep in config.py); the authors used 0.08
+    assert urban.gp.value_noise == 4e-4
+    assert urban.gp.gradient_noise == 5e-4
 
 
 def test_every_field_is_documented():

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from sklearn.mixture import GaussianMixture as SkGMM
 
-from gmmgp_app.config import GPConfig
+from gmmgp_app.config import GPConfig, concrete
 from gmmgp_app.stages.gmr import GMRField
 from gmmgp_app.stages.gp import (ConstantPrior, GPError, LocalGPField, fit_block,
                                  fit_local_gps, select_gp_points)
@@ -61,7 +61,7 @@ def test_one_block_equals_dense_exact_gp(prior, sphere_scene):
     if prior == "gmr":
         prior = sphere_scene[2]
     pts, nrm, xs = small_scene()
-    cfg = GPConfig(block_size=10.0, jitter=0.0, length_scale=0.1)
+    cfg = concrete(GPConfig(block_size=10.0, jitter=0.0, length_scale=0.1))
     field = fit_local_gps(pts, nrm, prior, cfg)
     assert field.info["n_blocks"] == 1
     m, v, g = field.predict(xs, return_grad=True)
@@ -73,7 +73,7 @@ def test_one_block_equals_dense_exact_gp(prior, sphere_scene):
 
 def test_gradient_is_derivative_of_mean_for_constant_prior():
     pts, nrm, xs = small_scene(3)
-    field = fit_local_gps(pts, nrm, ConstantPrior(0.0, 0.01), GPConfig(block_size=10.0))
+    field = fit_local_gps(pts, nrm, ConstantPrior(0.0, 0.01), concrete(GPConfig(block_size=10.0)))
     _, _, g = field.predict(xs, return_grad=True)
     eps = 1e-6
     fd = np.stack([(field.predict(xs + eps * e)[0] - field.predict(xs - eps * e)[0])
@@ -83,7 +83,7 @@ def test_gradient_is_derivative_of_mean_for_constant_prior():
 
 def test_posterior_variance_bounded_by_prior_plus_noise(sphere_scene):
     pts, nrm, prior = sphere_scene
-    cfg = GPConfig(block_size=0.3)
+    cfg = concrete(GPConfig(block_size=0.3))
     field = fit_local_gps(pts[:400], nrm[:400], prior, cfg)
     assert field.info["n_blocks"] > 10
     rng = np.random.default_rng(2)
@@ -96,7 +96,7 @@ def test_posterior_variance_bounded_by_prior_plus_noise(sphere_scene):
 
 def test_prior_alone_outside_every_block(sphere_scene):
     pts, nrm, prior = sphere_scene
-    field = fit_local_gps(pts[:50], nrm[:50], prior, GPConfig())
+    field = fit_local_gps(pts[:50], nrm[:50], prior, concrete(GPConfig()))
     q = np.array([[5.0, 5.0, 5.0], [-4.0, 3.0, 0.0]])
     m, v, g = field.predict(q, return_grad=True)
     mp, vp, gp = prior.predict(q, return_grad=True)
@@ -107,9 +107,9 @@ def test_prior_alone_outside_every_block(sphere_scene):
 
 def test_gp_beats_gmr_on_a_sphere_near_the_surface(sphere_scene):
     pts, nrm, prior = sphere_scene
-    mask = select_gp_points(prior.predict(pts)[0], GPConfig().d_m)
+    mask = select_gp_points(prior.predict(pts)[0], concrete(GPConfig()).d_m)
     assert 0 < mask.sum() < len(pts)
-    field = fit_local_gps(pts[mask], nrm[mask], prior, GPConfig())
+    field = fit_local_gps(pts[mask], nrm[mask], prior, concrete(GPConfig()))
     rng = np.random.default_rng(5)
     u = rng.normal(size=(3000, 3))
     u /= np.linalg.norm(u, axis=1, keepdims=True)
@@ -125,7 +125,7 @@ def test_gp_beats_gmr_on_a_sphere_near_the_surface(sphere_scene):
 
 def test_save_load_round_trip(tmp_path, sphere_scene):
     pts, nrm, prior = sphere_scene
-    cfg = GPConfig(block_size=0.4)
+    cfg = concrete(GPConfig(block_size=0.4))
     field = fit_local_gps(pts[:300], nrm[:300], prior, cfg)
     np.savez(tmp_path / "gp.npz", **field.to_arrays())
     with np.load(tmp_path / "gp.npz", allow_pickle=False) as z:
@@ -134,8 +134,8 @@ def test_save_load_round_trip(tmp_path, sphere_scene):
     for a, b in zip(field.predict(q, return_grad=True), loaded.predict(q, return_grad=True)):
         np.testing.assert_array_equal(a, b)
     with pytest.raises(GPError, match="fitted with length_scale=0.15, the config has 0.1"):
-        LocalGPField.from_arrays(field.to_arrays(), prior, GPConfig(block_size=0.4,
-                                                                    length_scale=0.1))
+        LocalGPField.from_arrays(field.to_arrays(), prior, concrete(GPConfig(block_size=0.4,
+                                                                    length_scale=0.1)))
     arrays = field.to_arrays()
     del arrays["gp_L"]
     with pytest.raises(GPError, match=r"missing \['gp_L'\]"):
@@ -148,7 +148,7 @@ def test_save_load_round_trip(tmp_path, sphere_scene):
 
 def test_block_cap_is_seeded_and_reported():
     pts, nrm = sphere(300, r=0.2)
-    cfg = GPConfig(max_block_points=25, block_size=0.2)
+    cfg = concrete(GPConfig(max_block_points=25, block_size=0.2))
     prior = ConstantPrior(0.0, 0.01)
     a = fit_local_gps(pts, nrm, prior, cfg, rng=np.random.default_rng(7))
     b = fit_local_gps(pts, nrm, prior, cfg, rng=np.random.default_rng(7))
@@ -197,7 +197,7 @@ def test_octree_cover_matches_brute_force():
 
 def test_bad_inputs(sphere_scene):
     pts, nrm, prior = sphere_scene
-    cfg = GPConfig()
+    cfg = concrete(GPConfig())
     with pytest.raises(GPError, match=r"one normal per GP point \(\(10, 3\)\), found \(9, 3\)"):
         fit_local_gps(pts[:10], nrm[:9], prior, cfg)
     with pytest.raises(GPError, match="at least one GP training point, found 0"):
@@ -260,7 +260,7 @@ def test_value_path_equals_the_pair_predictor(sphere_scene):
     (_value_blocks); with gradients it runs the compiled per-pair predictor: same mean
     and variance."""
     pts, nrm, prior = sphere_scene
-    field = fit_local_gps(pts[:400], nrm[:400], prior, GPConfig(block_size=0.3))
+    field = fit_local_gps(pts[:400], nrm[:400], prior, concrete(GPConfig(block_size=0.3)))
     q = np.random.default_rng(4).uniform(-1.2, 1.2, size=(3000, 3))
     m1, v1 = field.predict(q)
     m2, v2, _ = field.predict(q, return_grad=True)

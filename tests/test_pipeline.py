@@ -76,7 +76,7 @@ def test_observer_sees_every_stage_in_order(sphere):
             seen.append((name, payload.seconds >= 0))
 
     gm.build_map(scan, gm.MappingConfig(), observer=Recorder())
-    assert [s for s, _ in seen] == ["scan", "prepare", "hgmm", "gmr", "gp"]
+    assert [s for s, _ in seen] == ["scan", "prepare", "hgmm", "gmr", "gp", "far"]
     assert all(ok for _, ok in seen)
 
 

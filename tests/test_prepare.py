@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from gmmgp_app.config import MappingConfig
+from gmmgp_app.config import MappingConfig, concrete
 from gmmgp_app.stages.prepare import (
     OrientationWarning,
     PrepareError,
@@ -19,7 +19,7 @@ from gmmgp_app.types import Scan
 
 
 def cfg_with(**kw):
-    return MappingConfig().replace({f"prepare.{k}": v for k, v in kw.items()})
+    return concrete(MappingConfig()).replace({f"prepare.{k}": v for k, v in kw.items()})
 
 
 def plane_scan(n=4000, origin_z=2.0, seed=0, noise=0.0):
@@ -102,17 +102,17 @@ def test_sphere_without_origins_warns_and_points_outwards():
 
 def test_subsample_rate_voxel_and_seed():
     pts = np.random.default_rng(0).uniform(0, 10, (10000, 3))
-    c = MappingConfig().prepare
+    c = concrete(MappingConfig()).prepare
     a = subsample(pts, c, np.random.default_rng(1))
     b = subsample(pts, c, np.random.default_rng(1))
     assert len(a) == 1500 and np.array_equal(a, b) and np.all(np.diff(a) > 0)
-    vc = MappingConfig().replace("prepare.subsample_voxel", 2.0).prepare
+    vc = concrete(MappingConfig()).replace("prepare.subsample_voxel", 2.0).prepare
     idx = subsample(pts, vc, np.random.default_rng(1))
     keys = np.floor((pts[idx] - pts.min(0)) / 2.0).astype(int)
     # One point per occupied voxel: 5^3 voxels, all occupied at this density.
     assert len(idx) == len(np.unique(keys, axis=0)) == 125
-    data1 = prepare(plane_scan(), MappingConfig())
-    data2 = prepare(plane_scan(), MappingConfig())
+    data1 = prepare(plane_scan(), concrete(MappingConfig()))
+    data2 = prepare(plane_scan(), concrete(MappingConfig()))
     assert np.array_equal(data1.rows, data2.rows)
 
 
@@ -163,14 +163,14 @@ def test_inconsistent_virtual_rule():
 # ------------------------------------------------------------------- errors
 def test_too_few_points_raises():
     with pytest.raises(PrepareError, match="at least 10 points.*found 5"):
-        prepare(Scan(points=np.random.default_rng(0).normal(size=(5, 3))), MappingConfig())
+        prepare(Scan(points=np.random.default_rng(0).normal(size=(5, 3))), concrete(MappingConfig()))
 
 
 def test_non_finite_points_raise():
     p = plane_scan().points.copy()
     p[3, 1] = np.nan
     with pytest.raises(PrepareError, match="1 of 4000 points with NaN"):
-        prepare(Scan(points=p), MappingConfig())
+        prepare(Scan(points=p), concrete(MappingConfig()))
 
 
 @pytest.mark.parametrize("pts", [

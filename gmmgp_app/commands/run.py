@@ -108,7 +108,7 @@ def run(args) -> int:
     if stop is None and not args.no_mesh and args.method != "loggpis":
         from ..pipeline import check_surface_grid
 
-        check_surface_grid(scan.points, cfg.surface)  # refuse an impossible grid before fitting
+        check_surface_grid(scan, cfg)  # refuse an impossible grid before fitting
     if spec is not None:
         return _run_tiled(args, cfg, spec, scan, out, console, t0, read_s, fallback=fallback)
     from ..distributed import open_executor

@@ -56,7 +56,7 @@ distance (m) from ``x`` to the box of half-sides ``D0`` standard deviations (at
 least ``f`` metres, ``GMRConfig.far_growth_floor``) along the component's
 principal axes, and ``e`` a soft minimum over the mixed components of
 ``e_j + tau log(w_max / w_j)``: about the distance to the nearest support box of a
-component that is responsible for ``x`` (``tau = 0.1`` m per nat; zero when the
+component that is responsible for ``x`` (``tau = f / 3`` m per nat, 0.1 m at f = 0.3 m; zero when the
 most responsible component's box holds ``x``). Every axis is
 measured with its own extent, so a query beside a long flat patch does not count as
 far merely because it is several thin-axis sigmas off the patch, and a query beyond
@@ -110,6 +110,9 @@ _LOG_2PI = math.log(2.0 * math.pi)
 #: as tau log(w_max / w) farther, so a query inside the box of a responsible component is
 #: not "far" because a neighbour's box ends short of it
 _SOFTMIN_TAU = 0.1
+#: tau as a fraction of ``far_growth_floor`` (0.1 m at the urban 0.3 m), so that the
+#: field scales with the scan (issue 15: a scan scaled by a gets a field scaled by a)
+_SOFTMIN_TAU_PER_FLOOR = _SOFTMIN_TAU / DEFAULT_FAR_FLOOR
 # queries per parallel work item: amortises the per-item scratch allocation
 _CHUNK = 512
 # cell lookups: not built yet / outside the candidate box (no candidate anywhere)
@@ -450,6 +453,12 @@ def _gmr_kernel(xyz, qslot, ptr, idx, mux, prec, logc, a, b, s2, axes, half,
 
 
 # --------------------------------------------------------------------- the field
+def _tau(far_growth_floor: float) -> float:
+    """tau of eq. gmr_far_growth for a floor ``f``: ``f / 3`` (0.1 m at f = 0.3 m);
+    a floor of 0 keeps the fixed 0.1 m."""
+    return _SOFTMIN_TAU_PER_FLOOR * far_growth_floor if far_growth_floor > 0 else _SOFTMIN_TAU
+
+
 class GMRField:
     """The GMR signed distance field of a 4D mixture (eqs. gmm_mean, gmm_sigma).
 
@@ -518,6 +527,7 @@ class GMRField:
         self.cache_entries = int(cache_entries)
         self._c = condition_on_xyz(mixture)
         self.far_growth_floor = float(far_growth_floor)
+        self._tau = _tau(self.far_growth_floor)
         self._half = np.ascontiguousarray(
             np.maximum(self.far_growth_start * self._c["sd"], self.far_growth_floor))
         k = mixture.n_components
@@ -551,7 +561,11 @@ class GMRField:
 
     @classmethod
     def from_config(cls, mixture: GaussianMixture, cfg) -> "GMRField":
-        """Build from a :class:`gmmgp_app.config.GMRConfig`."""
+        """Build from a :class:`gmmgp_app.config.GMRConfig` (``"auto"`` fields take their
+        fixed urban value here; ``build_map`` resolves them from the scan first)."""
+        from gmmgp_app.config import concrete
+
+        cfg = concrete(cfg)
         return cls(mixture, n_active=cfg.n_active, mahalanobis_cut=cfg.mahalanobis_cut,
                    far_variance_growth=getattr(cfg, "far_variance_growth",
                                                DEFAULT_FAR_GROWTH),
@@ -666,7 +680,7 @@ class GMRField:
         mean, var, grad, n_fb = _gmr_kernel(
             x, qslot, ptr, idx, c["mux"], c["prec"], c["logc"], c["a"], c["b"], c["s2"],
             c["axes"], self._half, self.n_active, self.mahalanobis_cut,
-            self.far_variance_growth, _SOFTMIN_TAU, bool(return_grad))
+            self.far_variance_growth, self._tau, bool(return_grad))
         counts = np.diff(ptr)
         self.info = dict(n_queries=len(x), n_fallback=int(n_fb), cells_built=n_built,
                          cells_cached=self.cells_cached,
@@ -748,8 +762,9 @@ def gmr_bruteforce(mixture: GaussianMixture, xyz, return_grad: bool = False, *,
             # shifted by the smallest e_j so that exp does not underflow far away
             rel = w / w.max(axis=1, keepdims=True)
             emin = np.min(np.where(w > 0, e, np.inf), axis=1, keepdims=True)
-            acc = np.sum(rel * np.exp(-(e - emin) / _SOFTMIN_TAU), axis=1)
-            soft = emin[:, 0] - _SOFTMIN_TAU * np.log(acc)
+            tau = _tau(far_growth_floor)
+            acc = np.sum(rel * np.exp(-(e - emin) / tau), axis=1)
+            soft = emin[:, 0] - tau * np.log(acc)
             v = v + (far_variance_growth * np.maximum(soft, 0.0)) ** 2
         out_m.append(m)
         out_v.append(v)

@@ -512,6 +512,9 @@ class LocalGPField:
 
         ``cfg`` (GPConfig) must carry the hyper-parameters the field was fitted with.
         """
+        from gmmgp_app.config import concrete
+
+        cfg = concrete(cfg)
         need = ("gp_block_keys", "gp_point_ptr", "gp_X", "gp_sigma_p", "gp_alpha", "gp_L",
                 "gp_jitter", "gp_hyper")
         missing = [k for k in need if k not in arrays]
@@ -592,6 +595,9 @@ def fit_local_gps(points, normals, prior, cfg, *, rng=None, executor=None,
     -------
     LocalGPField
     """
+    from gmmgp_app.config import concrete
+
+    cfg = concrete(cfg)
     pts = _xyz(points, "GP points")
     nrm = _xyz(normals, "GP normals")
     if len(pts) == 0:

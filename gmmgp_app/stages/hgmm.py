@@ -441,6 +441,9 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
         (weights sum to 1); ``info`` fit statistics (timings, EM iterations,
         components re-seeded or dropped per level).
     """
+    from gmmgp_app.config import concrete
+
+    hcfg = concrete(hcfg)    # 'auto' fields: build_map resolves them from the scan first
     t0 = time.perf_counter()
     if isinstance(rows, TrainingSet):
         if groups is not None:

@@ -95,7 +95,9 @@ class LogGPISParams:
     def from_config(cls, cfg, lam: float | None = None, **overrides) -> "LogGPISParams":
         """Blocks and point cap from ``cfg.gp``; lambda from the GP length scale
         (``sqrt(3) / l``) unless given."""
-        gp = cfg.gp
+        from gmmgp_app.config import concrete
+
+        gp = concrete(cfg.gp)
         lam = math.sqrt(3.0) / gp.length_scale if lam is None else float(lam)
         kw = dict(lam=lam, block_size=gp.block_size, block_overlap=gp.block_overlap,
                   max_block_points=gp.max_block_points, jitter=gp.jitter)

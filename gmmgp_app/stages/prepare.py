@@ -19,13 +19,14 @@ the full scan and dropped when ``cfg.prepare.drop_inconsistent_virtual``.
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from typing import Optional
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gmmgp_app.config import MappingConfig, PrepareConfig
+from gmmgp_app.config import MappingConfig, PrepareConfig, is_auto
 from gmmgp_app.types import Scan, TrainingSet
 
 __all__ = [
@@ -41,6 +42,8 @@ __all__ = [
 ]
 
 MIN_POINTS = 10
+#: Points without a normal at ``normal_radius`` are tried once more at this multiple.
+NORMAL_RETRY = 3.0
 # Above this many subsampled points the minimum-spanning-tree propagation of
 # Open3D becomes slow (seconds to minutes); we then orient away from the centroid.
 _MST_MAX_POINTS = 50_000
@@ -245,8 +248,13 @@ def prepare(scan: Scan, cfg: MappingConfig, *,
         Fewer than 10 finite points, non-finite coordinates, or no point with a
         usable normal (all isolated, identical or collinear).
     """
-    p = cfg.prepare
     pts = scan.points
+    if any(is_auto(v) for v in dataclasses.asdict(cfg.prepare).values()) and len(pts) \
+            and np.isfinite(pts).all() and len(pts) >= MIN_POINTS:
+        from gmmgp_app.stages.autoscale import resolve_config
+
+        cfg, _ = resolve_config(cfg, pts, scan.origins)
+    p = cfg.prepare
     finite = np.isfinite(pts).all(axis=1)
     if not finite.all():
         raise PrepareError(
@@ -263,6 +271,15 @@ def prepare(scan: Scan, cfg: MappingConfig, *,
     tree = cKDTree(pts)
     normals, valid = estimate_normals(pts, p.normal_radius, p.normal_max_nn, query=keep,
                                       tree=tree)
+    if not valid.all():
+        # Sparse parts of a scan (far from the sensor) have fewer than 3 neighbours
+        # within the radius; a wider search (x NORMAL_RETRY) keeps them, since they
+        # are often the only points of a surface. Isolated outliers stay dropped.
+        again = np.flatnonzero(~valid)
+        n2, v2 = estimate_normals(pts, NORMAL_RETRY * p.normal_radius, p.normal_max_nn,
+                                  query=keep[again], tree=tree)
+        normals[again[v2]] = n2[v2]
+        valid[again[v2]] = True
     if not valid.any():
         raise PrepareError(
             f"No normal could be estimated for any of the {len(keep)} subsampled points "

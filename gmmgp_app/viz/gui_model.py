@@ -37,7 +37,7 @@ STAGE_LABELS = {"scan": "Scan", "prepare": "Prepared rows", "hgmm": "HGMM",
                 "gmr": "GMR error", "gp": "GP points", "surface": "Surface"}
 #: The pipeline stages behind each shown stage (gmmgp recipe, then the map and its mesh).
 _PIPELINE_STAGES = {"prepare": ("prepare",), "hgmm": ("hgmm",), "gmr": ("gmr",),
-                    "gp": ("select", "gp", "map"), "surface": ("surface",)}
+                    "gp": ("select", "gp", "far", "map"), "surface": ("surface",)}
 
 
 class ViewerError(ValueError):
@@ -218,7 +218,7 @@ class ViewerModel:
         -------
         StageResults
         """
-        from ..pipeline import RunContext, run_stages
+        from ..pipeline import RunContext, resolve_config, run_stages
 
         r = self.results if base is None else base
         if start not in STAGES[1:]:
@@ -263,7 +263,9 @@ class ViewerModel:
                 raise Cancelled(name)
 
         bar = _ProgressBar(progress) if progress is not None else None
-        ctx = RunContext(cfg, "gmmgp", voxel_size=voxel_size, surface_progress=bar)
+        # "auto" fields resolved from the scan exactly as build_map does
+        run_cfg = cfg if r.scan is None else resolve_config(cfg, r.scan)[0]
+        ctx = RunContext(run_cfg, "gmmgp", voxel_size=voxel_size, surface_progress=bar)
         names = [p for s in order for p in _PIPELINE_STAGES[s]]
         if cancelled():
             raise Cancelled(start)

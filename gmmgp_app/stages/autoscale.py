@@ -1,0 +1,269 @@
+"""Scale-aware defaults: every length and noise of the mapper from the scan itself.
+
+A field left at ``"auto"`` (the default, see :mod:`gmmgp_app.config`) gets its number
+from four measurements of the scan (:func:`measure_scan`):
+
+* ``h``, the point spacing: median distance from a point to its nearest neighbour;
+* ``sigma``, the noise along the normals: median of ``sqrt(lambda_min)`` of the 16
+  nearest neighbours' covariance, times ``sqrt(16 / 13)`` (three degrees of
+  freedom go to the plane);
+* the extent (diagonal of the 0.5-99.5 % box) and the median sensor distance
+  (reported; they bound nothing today).
+
+Every rule below is a length proportional to ``h`` (or a noise from ``sigma``), so a
+scan scaled by ``a`` gets every length scaled by ``a`` and the field at scaled queries
+equals ``a`` times the field (tests/test_autoscale.py). The factors were chosen on
+the synthetic ``street`` (scripts/bench_field.py; ``street2``, ``courtyard`` and
+``pipes`` are held out):
+
+===========================  =======================================================
+training subset              all points up to ``budget`` (100k); beyond, one point
+                             per voxel of ``h sqrt(N / budget)`` (spatially even)
+``h_t``                      spacing of the training subset: ``h max(1, sqrt(N/budget))``
+normal radius                ``4 h_t`` (with ``normal_max_nn`` = 30: about the 16-30
+                             nearest points; more blurs edges, fewer follows noise)
+virtual spacing ``s``        ``3 h_t`` (0.26 m on the 10 % street, the paper's 0.25 m)
+GP length scale ``l``        ``1.75 h_t`` (0.15 m on the 10 % street, the old sweep's best)
+block size                   ``4/3 l`` snapped to 1, 2, 5 x 10^k m (the old 0.2 m
+                             at l = 0.15 m; aligned with 1000 m local offsets)
+``d_m``                      ``sigma``: the prior is corrected where it misses a hit
+                             point by more than the sensor noise
+value noise                  ``sigma^2``
+gradient noise               ``(2 sigma / r_n)^2`` clipped to [1e-4, 0.05]: the angle
+                             error of a PCA normal from noise sigma over radius r_n
+surface voxel                ``0.6 h_t``
+HGMM ``reg_covar``           ``(0.004 s)^2`` (1e-6 m^2 at s = 0.25 m)
+GMR ``far_growth_floor``     ``1.2 s``
+far field kernel floor       ``h_t`` (see :mod:`.farfield`)
+===========================  =======================================================
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from gmmgp_app.config import MappingConfig, is_auto
+
+__all__ = ["ScanScale", "AutoScaleError", "measure_scan", "auto_values", "resolve_config",
+           "TRAIN_BUDGET"]
+
+#: Hit points trained on before the voxel subset starts (about 2 s of prepare + HGMM
+#: per 100k points here).
+TRAIN_BUDGET = 100_000
+_SAMPLE = 20_000
+_K = 16
+
+
+class AutoScaleError(ValueError):
+    """The scan is too small or degenerate to measure its scale."""
+
+
+@dataclass(frozen=True)
+class ScanScale:
+    """What the automatic values are computed from.
+
+    Attributes
+    ----------
+    n_points : int
+    spacing : float
+        ``h`` (m), median nearest-neighbour distance.
+    noise : float
+        ``sigma`` (m), noise along the normals.
+    extent : float
+        Diagonal of the 0.5-99.5 % bounding box (m).
+    sensor_distance : float or None
+        Median distance from a point to its sensor origin (m).
+    """
+
+    n_points: int
+    spacing: float
+    noise: float
+    extent: float
+    sensor_distance: Optional[float]
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def measure_scan(points, origins=None, *, tree: Optional[cKDTree] = None,
+                 seed: int = 0) -> ScanScale:
+    """Spacing, noise along the normals, extent and sensor distance of a scan.
+
+    Parameters
+    ----------
+    points : (N, 3) float64, N >= 17
+    origins : (N, 3) float64, optional
+    tree : cKDTree of ``points``, optional
+    seed : int
+        Unused (kept for callers); the sample of at most 20 000 points is taken in
+        lexicographic order, so it does not depend on the order of the points.
+
+    Returns
+    -------
+    ScanScale
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    n = len(pts)
+    if n < _K + 1:
+        raise AutoScaleError(
+            f"Expected at least {_K + 1} points to measure the scan's spacing and noise, "
+            f"found {n}; set the lengths by hand (--set prepare.normal_radius=... etc.) or "
+            "map a larger scan.")
+    # every (n / 20000)-th point in lexicographic (x, y, z) order: the same sample
+    # whatever order the points come in (tiles streamed from a file or cut in memory),
+    # and the same after scaling or shifting the scan
+    if n > _SAMPLE:
+        order = np.lexsort(pts.T[::-1])
+        idx = np.sort(order[np.linspace(0, n - 1, _SAMPLE).astype(np.int64)])
+    else:
+        idx = np.arange(n)
+    tree = cKDTree(pts) if tree is None else tree
+    d, nb = tree.query(pts[idx], k=_K + 1)
+    # the nearest *distinct* neighbour: duplicated points are common in merged scans
+    nn = np.where(d[:, 1:] > 0, d[:, 1:], np.inf).min(axis=1)
+    nn = nn[np.isfinite(nn)]
+    if len(nn) == 0:
+        raise AutoScaleError(f"All {n} points coincide; the scan has no spacing to measure.")
+    h = float(np.median(nn))
+    P = pts[nb[:, 1:]]
+    P = P - P.mean(axis=1, keepdims=True)
+    lam = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", P, P) / _K)
+    sigma = float(np.median(np.sqrt(np.maximum(lam[:, 0], 0.0))) * math.sqrt(_K / (_K - 3)))
+    lo, hi = np.quantile(pts[idx], [0.005, 0.995], axis=0)
+    extent = float(np.linalg.norm(hi - lo))
+    sensor = None
+    if origins is not None:
+        sensor = float(np.median(np.linalg.norm(np.asarray(origins)[idx] - pts[idx], axis=1)))
+    # a noise-free scan still has round-off; keep sigma a small fraction of h at least
+    sigma = max(sigma, 0.01 * h)
+    # three significant digits: the same values for a scan read in another frame
+    # (round-off of large coordinates), and exactly a x for a scan scaled by a = 10^k
+    h, sigma = _sig3(h), _sig3(sigma)
+    return ScanScale(n_points=n, spacing=h, noise=sigma, extent=extent,
+                     sensor_distance=sensor)
+
+
+def _nice(x: float) -> float:
+    """The nearest (in log) of 1, 2, 5 x 10^k."""
+    k = math.floor(math.log10(x))
+    cands = [m * 10.0 ** e for e in (k - 1, k, k + 1) for m in (1, 2, 5)]
+    best = min(cands, key=lambda c: abs(math.log(c / x)))
+    return float(f"{best:.1g}")
+
+
+def _sig3(x: float) -> float:
+    return float(f"{x:.3g}")
+
+
+def auto_values(scale: ScanScale, budget: int = TRAIN_BUDGET) -> dict:
+    """The automatic value of every ``"auto"`` field, with the reason for it.
+
+    Returns
+    -------
+    dict: dotted field name -> ``{"value": float, "reason": str}`` (plus
+    ``"training_points"`` and ``"train_spacing"``, which are not config fields).
+    """
+    h, sig, n = scale.spacing, scale.noise, scale.n_points
+    thin = max(1.0, math.sqrt(n / budget))
+    ht = h * thin
+    rn = 4.0 * ht
+    s = 3.0 * ht
+    ls = 1.75 * ht
+    gn = min(max((2.0 * sig / rn) ** 2, 1e-4), 0.05)
+    out = {
+        "train_spacing": (ht, f"spacing of the training subset: h = {h:.4g} m x "
+                              f"max(1, sqrt(N / budget)) = {thin:.3g}"),
+        "prepare.subsample_rate": (1.0 if n <= budget else min(1.0, budget / n),
+                                   f"all {n} points (<= budget {budget})" if n <= budget else
+                                   f"{n} points > budget {budget}: one per voxel of "
+                                   f"{ht:.4g} m (spatially even)"),
+        "prepare.normal_radius": (rn, "4 h_t: about the 16-30 nearest points"),
+        "prepare.virtual_spacing": (s, "3 h_t (0.25 m on a 10 % urban MMS scan, the paper's)"),
+        "hgmm.reg_covar": ((0.004 * s) ** 2, "(0.004 s)^2: 1e-6 m^2 at s = 0.25 m"),
+        "gmr.far_growth_floor": (1.2 * s, "1.2 s: just beyond the virtual points"),
+        "gp.length_scale": (ls, "1.75 h_t"),
+        "gp.block_size": (_nice(4.0 / 3.0 * ls), "4/3 l, snapped to 1, 2 or 5 x 10^k m so "
+                          "that blocks stay aligned when a scan is read in a local frame "
+                          "(offsets are multiples of 1000 m)"),
+        "gp.d_m": (sig, "sigma: correct the prior where it misses a hit by more than the noise"),
+        "gp.value_noise": (sig ** 2, "sigma^2: the noise along the normals"),
+        "gp.gradient_noise": (gn, "(2 sigma / r_n)^2 in [1e-4, 0.05]: PCA normal angle error"),
+        "surface.voxel_size": (0.6 * ht, "0.6 h_t"),
+        "far.kernel_floor": (ht, "h_t: a few tangent planes near the data"),
+    }
+    return {k: {"value": float(v), "reason": r} for k, (v, r) in out.items()}
+
+
+def resolve_config(cfg: MappingConfig, points, origins=None, *,
+                   tree: Optional[cKDTree] = None) -> tuple[MappingConfig, dict]:
+    """Replace every ``"auto"`` field of ``cfg`` by its value for this scan.
+
+    Fields set to a number (``--set``) are kept. Returns the resolved configuration
+    and the record ``{"scan": ScanScale dict, field: {"value", "reason", "auto"}}``
+    that ``build_map`` stores in the map's summary. A configuration without any
+    ``"auto"`` field is returned unchanged (and the scan is not measured).
+    """
+    wanted = [k for k, _, _ in MappingConfig.describe() if _is_auto_field(cfg, k)]
+    if not wanted:
+        return cfg, {}
+    scale = measure_scan(points, origins, tree=tree)
+    vals = auto_values(scale)
+    record: dict = {"scan": scale.to_dict()}
+    updates = {}
+    for key in wanted:
+        updates[key] = _clip_to_field(key, vals[key]["value"])
+    # the voxel subset is a voxel size, not a rate
+    if "prepare.subsample_rate" in updates and scale.n_points > TRAIN_BUDGET \
+            and cfg.prepare.subsample_voxel is None:
+        updates["prepare.subsample_rate"] = 1.0
+        updates["prepare.subsample_voxel"] = _voxel_for_budget(
+            np.asarray(points, dtype=np.float64), vals["train_spacing"]["value"],
+            TRAIN_BUDGET)
+        record["prepare.subsample_voxel"] = {
+            "value": updates["prepare.subsample_voxel"], "auto": True,
+            "reason": f"voxel keeping about {TRAIN_BUDGET} points (spatially even)"}
+    for key, v in vals.items():
+        record[key] = dict(v, auto=key in wanted or key == "train_spacing")
+    return cfg.replace(updates), record
+
+
+def _voxel_for_budget(points, start: float, budget: int, rounds: int = 4) -> float:
+    """A voxel size whose grid keeps about ``budget`` points: start from ``start``
+    and rescale by ``sqrt(kept / budget)`` (surfaces: count ~ 1 / size^2); MMS scans
+    are anisotropic, so the median spacing alone under-estimates the size."""
+    lo = points.min(axis=0)
+    c = start
+    for _ in range(rounds):
+        k = np.floor((points - lo) / c).astype(np.int64)
+        span = k.max(axis=0) + 1
+        kept = len(np.unique((k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]))
+        if abs(kept / budget - 1.0) < 0.1:
+            break
+        c *= math.sqrt(kept / budget)
+    return _sig3(c)
+
+
+def _clip_to_field(dotted: str, value: float) -> float:
+    """Keep an automatic value inside the field's documented range (a scan of a few
+    isolated points would otherwise ask for a 265 m normal radius)."""
+    sec, _, name = dotted.partition(".")
+    sub = getattr(MappingConfig(), sec)
+    md = {f.name: f.metadata for f in dataclasses.fields(sub)}[name]
+    lo, hi = md.get("lo"), md.get("hi")
+    if lo is not None:
+        value = max(value, lo)
+    if hi is not None:
+        value = min(value, hi)
+    return value
+
+
+def _is_auto_field(cfg, dotted: str) -> bool:
+    sec, _, name = dotted.partition(".")
+    obj = getattr(cfg, sec)
+    return bool(name) and is_auto(getattr(obj, name))

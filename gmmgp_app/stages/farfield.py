@@ -1,0 +1,209 @@
+"""The far field: signed distance to the located surface, blended with the GP field.
+
+Beyond a few length scales from the GP points the paper's field is the HGMM prior,
+whose mean was fitted to rows within ``+-s`` of the surface; 0.1-2 m away it is
+1.5-3x worse than the signed distance to the tangent plane of the nearest point
+(issue 15, scripts/bench_field.py). Away from the data the signed distance is the
+distance to the nearest surface, and the located surface (the training hit points
+with their oriented normals) says where that is. This module reads it with an
+implicit moving least squares (IMLS) distance (Kolluri 2008; Oeztireli et al. 2009):
+
+    f(x) = sum_i w_i n_i . (x - p_i) / sum_i w_i,
+    w_i = exp(-|x - p_i|^2 / rho(x)^2),  rho(x) = max(rho_0, c r(x))        (eq. imls)
+
+over the ``k`` nearest hit points, ``r(x)`` the distance to the nearest one. Near
+the data ``rho = rho_0`` (about the point spacing) averages a few tangent planes
+(less noise than one); far away the kernel widens with ``r`` so that the planes of
+a whole neighbourhood vote.
+
+Its own variance (eq. far_var) adds the sensor noise averaged over the effective
+number of neighbours, the weighted spread of the neighbours' plane distances
+(planes that disagree: edges, corners, two surfaces) and a term growing with the
+distance to the data:
+
+    v_far(x) = sigma^2 / n_eff + a s^2(x) + (beta r(x))^2
+
+The map's mean mixes the GP field (paper eqs. gpm2, gpv2) and the far field with
+weights proportional to their inverse variances (eq. blend), the GP's variance
+raised by ``(g r(x))^2`` for the weights only (g = 2: beyond a length scale from its
+points the GP is the HGMM prior, whose variance does not grow with the distance). Its variance is a
+log-linear model of dimensionless features, so that it scales with the scan
+(eq. calibrated_var):
+
+    v(x) = h^2 exp(t0 + t1 log((r^2 + h^2)/h^2) + t2 log((s^2 + sigma^2)/h^2)
+                   + t3 log(((m_gp - m_far)^2 + sigma^2)/h^2) + t4 log(v_gp/h^2))
+
+with ``h`` the kernel floor (training spacing), ``v_gp`` the GP posterior variance
+and ``m_gp - m_far`` the disagreement of the two fields. The coefficients
+:data:`VARIANCE_COEF` were fitted on the synthetic ``street`` only (least squares
+on ``log (y - mu)^2``, plus 1.27 = -E log chi^2_1 so that the median |z| is about
+0.67), and are checked on ``street2``, ``courtyard`` and ``pipes``
+(scripts/bench_field.py, docs/field.md). The errors are heavy-tailed (a few queries
+near surfaces the scan never saw), so a Gaussian with this variance covers about
+65-74 % within 1 sigma but only 91-95 % within 2 sigma on the street.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+__all__ = ["FarField", "FarFieldError", "blend_fields", "BlendedField", "VARIANCE_COEF",
+           "calibrated_variance"]
+
+#: (t0, ..., t4) of eq. calibrated_var, fitted on the synthetic street (10 % of a
+#: density-0.3 drive; the recipe is in docs/field.md).
+VARIANCE_COEF = (0.5358, -0.3834, 1.1189, 0.2069, 0.1491)
+
+
+class FarFieldError(ValueError):
+    """Bad input to the far field."""
+
+
+class FarField:
+    """IMLS signed distance of the located surface with a variance (eqs. imls, far_var).
+
+    Parameters
+    ----------
+    points, normals : (P, 3)
+        Hit points and unit normals pointing into free space.
+    rho0 : float
+        Least kernel width (m), about the point spacing.
+    noise : float
+        Noise along the normals sigma (m).
+    k : int
+        Neighbours per query.
+    growth : float
+        ``c``: the kernel width grows as ``c r(x)``.
+    spread_weight : float
+        ``a``: weight of the neighbours' disagreement in the variance.
+    beta : float
+        Standard deviation gained per metre from the data (dimensionless).
+    """
+
+    def __init__(self, points, normals, rho0: float, noise: float, *, k: int = 16,
+                 growth: float = 1.0, spread_weight: float = 1.0, beta: float = 0.3):
+        p = np.ascontiguousarray(np.asarray(points, dtype=np.float64))
+        n = np.ascontiguousarray(np.asarray(normals, dtype=np.float64))
+        if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0 or n.shape != p.shape:
+            raise FarFieldError(f"Expected hit points and normals of one shape (P, 3), P >= 1, "
+                                f"found {p.shape} and {n.shape}.")
+        for name, v in (("rho0", rho0), ("noise", noise)):
+            if not (v > 0 and math.isfinite(v)):
+                raise FarFieldError(f"Expected a positive finite {name}, found {v!r}.")
+        self.points, self.normals = p, n
+        self.rho0, self.noise = float(rho0), float(noise)
+        self.k = int(min(max(k, 1), len(p)))
+        self.growth, self.spread_weight, self.beta = float(growth), float(spread_weight), \
+            float(beta)
+        self.tree = cKDTree(p)
+
+    def params(self) -> dict:
+        return dict(rho0=self.rho0, noise=self.noise, k=self.k, growth=self.growth,
+                    spread_weight=self.spread_weight, beta=self.beta)
+
+    def predict(self, xyz, return_grad: bool = False):
+        """IMLS mean (K,), variance (K,)[, gradient (K, 3): the weighted normal]."""
+        out = self.components(xyz, return_grad)
+        return (out["mean"], out["var"], out["grad"]) if return_grad else \
+            (out["mean"], out["var"])
+
+    def components(self, xyz, return_grad: bool = False) -> dict:
+        """Mean (eq. imls), variance (eq. far_var) and their ingredients: ``r`` the
+        distance to the nearest hit point, ``spread2`` the neighbours' weighted
+        variance of plane distances, ``n_eff``; ``grad`` when asked."""
+        x = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        K = len(x)
+        if K == 0:
+            z = np.zeros(0)
+            return dict(mean=z, var=z, r=z, spread2=z, n_eff=z, grad=np.zeros((0, 3)))
+        d, i = self.tree.query(x, k=self.k, workers=-1)
+        d, i = d.reshape(K, self.k), i.reshape(K, self.k)
+        r = d[:, 0]
+        rho = np.maximum(self.rho0, self.growth * r)
+        # relative weights: shift by the nearest so that far queries do not underflow
+        w = np.exp(-(d ** 2 - r[:, None] ** 2) / rho[:, None] ** 2)
+        wsum = w.sum(axis=1)
+        nrm = self.normals[i]                                        # (K, k, 3)
+        a = np.einsum("qki,qki->qk", x[:, None, :] - self.points[i], nrm)
+        mean = (w * a).sum(axis=1) / wsum
+        spread2 = (w * (a - mean[:, None]) ** 2).sum(axis=1) / wsum
+        n_eff = wsum ** 2 / (w ** 2).sum(axis=1)
+        var = self.noise ** 2 / n_eff + self.spread_weight * spread2 + (self.beta * r) ** 2
+        g = (w[..., None] * nrm).sum(axis=1) / wsum[:, None] if return_grad else None
+        return dict(mean=mean, var=var, r=r, spread2=spread2, n_eff=n_eff, grad=g)
+
+    def distance_to_data(self, xyz) -> np.ndarray:
+        """(K,) distance of each query to the nearest hit point."""
+        return self.tree.query(np.asarray(xyz, dtype=np.float64).reshape(-1, 3),
+                               workers=-1)[0]
+
+
+def blend_fields(m1, v1, m2, v2, g1=None, g2=None):
+    """Inverse-variance mixture of two predictions (eq. blend).
+
+    ``w = (1/v1) / (1/v1 + 1/v2)``; ``mean = w m1 + (1 - w) m2``;
+    ``var = w v1 + (1 - w) v2 + w (1 - w) (m1 - m2)^2`` (law of total variance of the
+    two-component mixture, so the two disagreeing widens the variance).
+
+    Returns
+    -------
+    mean (K,), var (K,)[, grad (K, 3) with the same weights when g1, g2 are given]
+    """
+    v1 = np.maximum(np.asarray(v1, dtype=np.float64), 1e-300)
+    v2 = np.maximum(np.asarray(v2, dtype=np.float64), 1e-300)
+    w = v2 / (v1 + v2)
+    mean = w * m1 + (1 - w) * m2
+    var = w * v1 + (1 - w) * v2 + w * (1 - w) * (m1 - m2) ** 2
+    if g1 is not None and g2 is not None:
+        return mean, var, w[:, None] * g1 + (1 - w)[:, None] * g2
+    return mean, var
+
+
+def calibrated_variance(h, noise, r, spread2, disagreement2, v_gp, coef=VARIANCE_COEF):
+    """Predictive variance of the blended field (eq. calibrated_var).
+
+    Parameters
+    ----------
+    h, noise : float
+        Kernel floor (training spacing) and noise along the normals (m).
+    r, spread2, disagreement2, v_gp : (K,)
+        Distance to the nearest hit point, neighbours' plane-distance variance,
+        squared GP - far-field difference, GP posterior variance.
+    coef : 5 floats
+
+    Returns
+    -------
+    (K,) float64, m^2
+    """
+    h2, s2 = h * h, noise * noise
+    t = np.asarray(coef, dtype=np.float64)
+    z = (t[0] + t[1] * np.log((r ** 2 + h2) / h2) + t[2] * np.log((spread2 + s2) / h2)
+         + t[3] * np.log((disagreement2 + s2) / h2)
+         + t[4] * np.log(np.maximum(v_gp, 1e-300) / h2))
+    return h2 * np.exp(z)
+
+
+class BlendedField:
+    """The GP field and the far field mixed (eq. blend), variance from eq.
+    calibrated_var (``calibrated=False``: the mixture's own variance)."""
+
+    def __init__(self, base, far: FarField, calibrated: bool = True, gp_growth: float = 2.0):
+        self.base, self.far, self.calibrated = base, far, bool(calibrated)
+        self.gp_growth = float(gp_growth)
+
+    def predict(self, xyz, return_grad: bool = False):
+        out = self.base.predict(xyz, return_grad=return_grad)
+        c = self.far.components(xyz, return_grad)
+        # the GP's weight fades with the distance to the data: beyond a length scale
+        # its mean is the HGMM prior, whose variance does not know how far it is
+        v_gp = out[1] + (self.gp_growth * c["r"]) ** 2
+        res = blend_fields(out[0], v_gp, c["mean"], c["var"],
+                           *((out[2], c["grad"]) if return_grad else ()))
+        if self.calibrated:
+            var = calibrated_variance(self.far.rho0, self.far.noise, c["r"], c["spread2"],
+                                      (out[0] - c["mean"]) ** 2, out[1])
+            res = (res[0], var) + tuple(res[2:])
+        return res
