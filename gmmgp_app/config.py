@@ -290,6 +290,13 @@ class FarFieldConfig:
         True, "Variance of the mixed field from the log-linear model of "
         "stages/farfield.py (eq. calibrated_var); false: the mixture's own variance.",
         source="chosen: street coverage 0.98 -> 0.60-0.73 within 1 sigma")
+    disagreement_weight: float = _f(
+        1.0, "Weight kappa of the squared difference of the GP and far-field means added "
+        "to the calibrated variance (eq. calibrated_var).", 0.0, 100.0, symbol="kappa",
+        source="chosen on the street at density 0.05 (tests/test_pipeline.py): within "
+        "0.1 m, kappa 0 / 0.25 / 1 give coverage 0.64 / 0.70 / 0.77 within 1 sigma, "
+        "0.86 / 0.91 / 0.95 within 2 sigma, log-likelihood 1.47 / 3.04 / 3.34; "
+        "checked on the courtyard (docs/field.md)")
     gp_growth: float = _f(
         2.0, "For the mixing weights only, the GP variance gains (g r)^2, r the distance "
         "to the nearest hit point.", 0.0, 100.0, symbol="g",

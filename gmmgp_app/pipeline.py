@@ -161,7 +161,9 @@ class SurfaceMap:
         if self.far is None:
             return field_.predict(xyz, return_grad=return_grad)
         return _farfield.BlendedField(field_, self.far, self.config.far.calibrated,
-                            self.config.far.gp_growth).predict(xyz, return_grad=return_grad)
+                            self.config.far.gp_growth,
+                            self.config.far.disagreement_weight).predict(
+                                xyz, return_grad=return_grad)
 
     @property
     def signed(self) -> bool:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import json
 import os
 import re
 import shutil
@@ -374,18 +375,39 @@ DEGENERATE = [
     ("collinear-points", lambda t: _save_npy(
         t, "line.npy", np.outer(np.linspace(0, 5, 400), [1.0, 2.0, 0.5])),
      r"No normal could be estimated .*identical/collinear.*normal_radius"),
+    # a normal radius set by hand below the spacing (with 'auto' the radius follows the
+    # spacing: test_isolated_points_get_a_normal_radius_from_their_spacing)
     ("isolated-points", lambda t: _save_npy(t, "sparse.npy", _cloud(50) * 100),
-     r"No normal could be estimated .*fewer than 3 neighbours"),
+     r"No normal could be estimated .*fewer than 3 neighbours within normal_radius=0.3 m"),
 ]
+#: options a case needs besides ``run FILE --out OUT --stage prepare -q``
+DEGENERATE_ARGS = {"isolated-points": ["--set", "prepare.normal_radius=0.3"]}
 
 
 @pytest.mark.parametrize("case,make,pattern", DEGENERATE, ids=[c[0] for c in DEGENERATE])
 def test_degenerate_geometry_is_one_line_error(case, make, pattern, tmp_path, capsys):
     path = make(tmp_path)
     out = tmp_path / "out"
-    rc, _, err = _cli(capsys, "run", path, "--out", out, "--stage", "prepare", "-q")
+    rc, _, err = _cli(capsys, "run", path, "--out", out, "--stage", "prepare", "-q",
+                      *DEGENERATE_ARGS.get(case, []))
     assert_one_line_error(rc, err, "run", pattern)
     assert_no_partial_outputs(out)
+
+
+def test_isolated_points_get_a_normal_radius_from_their_spacing(tmp_path, capsys):
+    """50 points about 66 m apart with the default ('auto') normal radius: the radius is
+    4 spacings clipped to the field's upper bound (100 m), so normals are estimated and the
+    prepare stage succeeds; the summary reports the clipped value that was used and why."""
+    path = _save_npy(tmp_path, "sparse.npy", _cloud(50) * 100)
+    out = tmp_path / "out"
+    with pytest.warns(UserWarning, match="no sensor origins"):
+        rc, _, err = _cli(capsys, "run", path, "--out", out, "--stage", "prepare", "-q")
+    assert rc == 0, err
+    auto = json.loads((out / "summary.json").read_text())["auto"]
+    h = auto["scan"]["spacing"]
+    assert 30 < h < 150
+    rec = auto["prepare.normal_radius"]
+    assert rec["auto"] and rec["value"] == 100.0 and "clipped" in rec["reason"]
 
 
 def test_coplanar_points_map_the_plane_with_a_warning(tmp_path, capsys):

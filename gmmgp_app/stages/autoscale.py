@@ -230,6 +230,11 @@ def resolve_config(cfg: MappingConfig, points, origins=None, *,
             "reason": f"voxel keeping about {TRAIN_BUDGET} points (spatially even)"}
     for key, v in vals.items():
         record[key] = dict(v, auto=key in wanted or key == "train_spacing")
+        if key in updates and updates[key] != v["value"]:
+            # the value used, not the rule's: say that the field's range clipped it
+            record[key] = dict(value=float(updates[key]), auto=True,
+                               reason=f"{v['reason']}; {v['value']:.4g} clipped to the "
+                                      "field's range")
     return cfg.replace(updates), record
 
 

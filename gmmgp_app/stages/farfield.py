@@ -32,6 +32,7 @@ log-linear model of dimensionless features, so that it scales with the scan
 
     v(x) = h^2 exp(t0 + t1 log((r^2 + h^2)/h^2) + t2 log((s^2 + sigma^2)/h^2)
                    + t3 log(((m_gp - m_far)^2 + sigma^2)/h^2) + t4 log(v_gp/h^2))
+           + kappa (m_gp - m_far)^2
 
 with ``h`` the kernel floor (training spacing), ``v_gp`` the GP posterior variance
 and ``m_gp - m_far`` the disagreement of the two fields. The coefficients
@@ -162,8 +163,16 @@ def blend_fields(m1, v1, m2, v2, g1=None, g2=None):
     return mean, var
 
 
-def calibrated_variance(h, noise, r, spread2, disagreement2, v_gp, coef=VARIANCE_COEF):
+def calibrated_variance(h, noise, r, spread2, disagreement2, v_gp, coef=VARIANCE_COEF,
+                        disagreement_weight: float = 1.0):
     """Predictive variance of the blended field (eq. calibrated_var).
+
+    The log-linear model (fitted on ``log (y - mu)^2``, i.e. on the typical query)
+    raises the variance only as ``disagreement2 ** t3`` (t3 = 0.21), so where the GP
+    and far-field means disagree by centimetres near the data (edges, surfaces seen
+    from one side) it stays at a few millimetres and those queries fall 3-10 sigma
+    out. Two independent estimates of the same distance that differ by ``d`` say the
+    error is of order ``d``: ``kappa d^2`` is added (eq. calibrated_var, last term).
 
     Parameters
     ----------
@@ -183,16 +192,18 @@ def calibrated_variance(h, noise, r, spread2, disagreement2, v_gp, coef=VARIANCE
     z = (t[0] + t[1] * np.log((r ** 2 + h2) / h2) + t[2] * np.log((spread2 + s2) / h2)
          + t[3] * np.log((disagreement2 + s2) / h2)
          + t[4] * np.log(np.maximum(v_gp, 1e-300) / h2))
-    return h2 * np.exp(z)
+    return h2 * np.exp(z) + disagreement_weight * np.asarray(disagreement2, dtype=np.float64)
 
 
 class BlendedField:
     """The GP field and the far field mixed (eq. blend), variance from eq.
     calibrated_var (``calibrated=False``: the mixture's own variance)."""
 
-    def __init__(self, base, far: FarField, calibrated: bool = True, gp_growth: float = 2.0):
+    def __init__(self, base, far: FarField, calibrated: bool = True, gp_growth: float = 2.0,
+                 disagreement_weight: float = 1.0):
         self.base, self.far, self.calibrated = base, far, bool(calibrated)
         self.gp_growth = float(gp_growth)
+        self.disagreement_weight = float(disagreement_weight)
 
     def predict(self, xyz, return_grad: bool = False):
         out = self.base.predict(xyz, return_grad=return_grad)
@@ -203,7 +214,8 @@ class BlendedField:
         res = blend_fields(out[0], v_gp, c["mean"], c["var"],
                            *((out[2], c["grad"]) if return_grad else ()))
         if self.calibrated:
+            d2 = (out[0] - c["mean"]) ** 2
             var = calibrated_variance(self.far.rho0, self.far.noise, c["r"], c["spread2"],
-                                      (out[0] - c["mean"]) ** 2, out[1])
+                                      d2, out[1], disagreement_weight=self.disagreement_weight)
             res = (res[0], var) + tuple(res[2:])
         return res
