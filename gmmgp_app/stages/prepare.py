@@ -42,6 +42,12 @@ __all__ = [
 ]
 
 MIN_POINTS = 10
+#: Neighbours tied with the max_nn-th one (within this relative distance: above the
+#: 1e-10 m round-off of a georeferenced file read in a local frame, below the 2e-5
+#: relative step between distinct distances on a 1 mm grid at 0.15 m) are kept,
+#: up to _TIE_EXTRA more (estimate_normals).
+_TIE_TOL = 1e-6
+_TIE_EXTRA = 8
 #: Points without a normal at ``normal_radius`` are tried once more at this multiple.
 NORMAL_RETRY = 3.0
 # Above this many subsampled points the minimum-spanning-tree propagation of
@@ -111,14 +117,21 @@ def estimate_normals(points: np.ndarray, radius: float, max_nn: int,
     """
     query = np.arange(len(points)) if query is None else np.asarray(query)
     tree = cKDTree(points) if tree is None else tree
-    k = int(min(max_nn, len(points)))
+    m = int(min(max_nn, len(points)))
+    # Neighbours at the same distance as the max_nn-th (common on scans quantised to
+    # mm) are all kept, and so are points at exactly ``radius``: otherwise round-off
+    # picks among them, and the same scan read in another frame (a georeferenced
+    # file's offset) gets different normals (relative tolerance _TIE_TOL).
+    k = int(min(max_nn + _TIE_EXTRA, len(points)))
+    bound = radius * (1.0 + _TIE_TOL)
     normals = np.zeros((len(query), 3))
     valid = np.zeros(len(query), dtype=bool)
     for s in range(0, len(query), chunk):
         q = query[s:s + chunk]
-        dist, idx = tree.query(points[q], k=k, distance_upper_bound=radius, workers=-1)
+        dist, idx = tree.query(points[q], k=k, distance_upper_bound=bound, workers=-1)
         dist, idx = dist.reshape(len(q), k), idx.reshape(len(q), k)
-        found = np.isfinite(dist)                                # (c, k)
+        kth = dist[:, m - 1:m] * (1.0 + _TIE_TOL)                # inf when fewer found
+        found = np.isfinite(dist) & (dist <= kth)                # (c, k)
         count = found.sum(axis=1)
         nb = points[np.where(found, idx, q[:, None])]             # missing -> the point itself
         w = found[..., None].astype(np.float64)
