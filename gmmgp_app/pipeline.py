@@ -30,7 +30,7 @@ import numpy as np
 
 from ._atomic import atomic_dir
 from ._json import jsonable
-from .config import METHODS, MappingConfig
+from .config import METHODS, MappingConfig, is_auto
 from .stages import gmr as _gmr
 from .stages import farfield as _farfield
 from .stages import gp as _gp
@@ -162,7 +162,9 @@ class SurfaceMap:
             return field_.predict(xyz, return_grad=return_grad)
         return _farfield.BlendedField(field_, self.far, self.config.far.calibrated,
                             self.config.far.gp_growth,
-                            self.config.far.disagreement_weight).predict(
+                            self.config.far.disagreement_weight,
+                            None if is_auto(self.config.gp.length_scale)
+                            else self.config.gp.length_scale).predict(
                                 xyz, return_grad=return_grad)
 
     @property

@@ -32,7 +32,7 @@ log-linear model of dimensionless features, so that it scales with the scan
 
     v(x) = h^2 exp(t0 + t1 log((r^2 + h^2)/h^2) + t2 log((s^2 + sigma^2)/h^2)
                    + t3 log(((m_gp - m_far)^2 + sigma^2)/h^2) + t4 log(v_gp/h^2))
-           + kappa (m_gp - m_far)^2
+           + kappa exp(-r^2 / l^2) (m_gp - m_far)^2
 
 with ``h`` the kernel floor (training spacing), ``v_gp`` the GP posterior variance
 and ``m_gp - m_far`` the disagreement of the two fields. The coefficients
@@ -172,7 +172,9 @@ def calibrated_variance(h, noise, r, spread2, disagreement2, v_gp, coef=VARIANCE
     and far-field means disagree by centimetres near the data (edges, surfaces seen
     from one side) it stays at a few millimetres and those queries fall 3-10 sigma
     out. Two independent estimates of the same distance that differ by ``d`` say the
-    error is of order ``d``: ``kappa d^2`` is added (eq. calibrated_var, last term).
+    error is of order ``d``: ``kappa d^2`` is added (eq. calibrated_var, last term;
+    ``disagreement_weight`` may be an array: :class:`BlendedField` passes
+    ``kappa exp(-r^2 / l^2)``, l the GP length scale).
 
     Parameters
     ----------
@@ -192,7 +194,8 @@ def calibrated_variance(h, noise, r, spread2, disagreement2, v_gp, coef=VARIANCE
     z = (t[0] + t[1] * np.log((r ** 2 + h2) / h2) + t[2] * np.log((spread2 + s2) / h2)
          + t[3] * np.log((disagreement2 + s2) / h2)
          + t[4] * np.log(np.maximum(v_gp, 1e-300) / h2))
-    return h2 * np.exp(z) + disagreement_weight * np.asarray(disagreement2, dtype=np.float64)
+    return h2 * np.exp(z) + np.asarray(disagreement_weight) * np.asarray(disagreement2,
+                                                                         dtype=np.float64)
 
 
 class BlendedField:
@@ -200,10 +203,12 @@ class BlendedField:
     calibrated_var (``calibrated=False``: the mixture's own variance)."""
 
     def __init__(self, base, far: FarField, calibrated: bool = True, gp_growth: float = 2.0,
-                 disagreement_weight: float = 1.0):
+                 disagreement_weight: float = 1.0, length_scale: float | None = None):
         self.base, self.far, self.calibrated = base, far, bool(calibrated)
         self.gp_growth = float(gp_growth)
         self.disagreement_weight = float(disagreement_weight)
+        # the GP's length scale l (auto rule 1.75 h_t when not given)
+        self.length_scale = float(length_scale) if length_scale else 1.75 * far.rho0
 
     def predict(self, xyz, return_grad: bool = False):
         out = self.base.predict(xyz, return_grad=return_grad)
@@ -215,7 +220,11 @@ class BlendedField:
                            *((out[2], c["grad"]) if return_grad else ()))
         if self.calibrated:
             d2 = (out[0] - c["mean"]) ** 2
+            # within a length scale of the data the GP mean is the data's (beyond, it is
+            # the HGMM prior): there its disagreement with the far field measures the
+            # error of the mixed mean; the weight fades as exp(-r^2 / l^2)
+            kappa = self.disagreement_weight * np.exp(-(c["r"] / self.length_scale) ** 2)
             var = calibrated_variance(self.far.rho0, self.far.noise, c["r"], c["spread2"],
-                                      d2, out[1], disagreement_weight=self.disagreement_weight)
+                                      d2, out[1], disagreement_weight=kappa)
             res = (res[0], var) + tuple(res[2:])
         return res
