@@ -292,11 +292,12 @@ class FarFieldConfig:
         source="chosen: street coverage 0.98 -> 0.60-0.73 within 1 sigma")
     disagreement_weight: float = _f(
         1.0, "Weight kappa of the squared difference of the GP and far-field means added "
-        "to the calibrated variance (eq. calibrated_var).", 0.0, 100.0, symbol="kappa",
+        "to the calibrated variance, faded as exp(-r^2 / l^2) with the distance r to the "
+        "data (eq. calibrated_var).", 0.0, 100.0, symbol="kappa",
         source="chosen on the street at density 0.05 (tests/test_pipeline.py): within "
-        "0.1 m, kappa 0 / 0.25 / 1 give coverage 0.64 / 0.70 / 0.77 within 1 sigma, "
-        "0.86 / 0.91 / 0.95 within 2 sigma, log-likelihood 1.47 / 3.04 / 3.34; "
-        "checked on the courtyard (docs/field.md)")
+        "0.1 m, kappa 0 / 1 give coverage 0.64 / 0.74 within 1 sigma, 0.86 / 0.94 "
+        "within 2 sigma, log-likelihood 1.47 / 3.27; checked on the sphere and the "
+        "courtyard (docs/field.md)")
     gp_growth: float = _f(
         2.0, "For the mixing weights only, the GP variance gains (g r)^2, r the distance "
         "to the nearest hit point.", 0.0, 100.0, symbol="g",
