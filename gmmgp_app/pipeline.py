@@ -74,6 +74,12 @@ class FanoutObserver:
         for o in self.observers:
             o.on_stage(name, payload)
 
+    def on_config(self, cfg, auto: dict) -> None:
+        for o in self.observers:
+            hook = getattr(o, "on_config", None)
+            if hook is not None:
+                hook(cfg, auto)
+
 
 class NullObserver:
     """Observer that ignores every stage (the default; costs nothing)."""
@@ -583,6 +589,9 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
     observer = observer or NullObserver()
     summary: dict = {"method": method, "n_scan_points": len(scan), "seconds": {}, "counts": {}}
     cfg, summary["auto"] = resolve_config(cfg, scan)
+    on_config = getattr(observer, "on_config", None)
+    if on_config is not None:   # observers that show the configuration get the resolved one
+        on_config(cfg, summary["auto"])
     observer.on_stage("scan", StagePayload(scan, 0.0))
     ctx = RunContext(cfg, method, executor=executor, progress=progress,
                      loggpis_lambda=loggpis_lambda)

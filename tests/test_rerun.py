@@ -196,6 +196,22 @@ def test_counts_read_back_match_the_pipeline(recorded):
     np.testing.assert_allclose(np.ravel(var[0][1]), mesh.vertex_variance, rtol=1e-6)
 
 
+def test_config_panel_shows_the_resolved_values_and_their_reasons(recorded):
+    """The panel shows the configuration the map used ('auto' replaced by the values
+    chosen from the scan), each chosen value with its reason (issue 15)."""
+    smap = recorded["smap"]
+    docs = _column(recorded["chunks"], "/config", "TextDocument:text")
+    text = docs[-1][1]
+    text = text[0] if isinstance(text, list) else text
+    auto = {k: v for k, v in smap.summary["auto"].items()
+            if isinstance(v, dict) and "value" in v}
+    assert auto, "the tiny config leaves some fields 'auto'"
+    assert '"auto"' not in text.split("```toml", 1)[1]
+    for key, v in auto.items():
+        assert f"| {key}" in text and v["reason"] in text
+    assert f"d_m = {smap.config.gp.d_m!r}" in text or str(smap.config.gp.d_m) in text
+
+
 def recorded_scan_points(smap, ch):
     return _column(ch, "/world/scan", "Points3D:positions")[0][1]
 

@@ -220,6 +220,10 @@ def start_local_server(port: int | None = None, *, viewer: bool = False,
 
 
 # --------------------------------------------------------------------------- observer
+def _fmt(v) -> str:
+    return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+
 class RerunObserver:
     """Pipeline observer that logs each stage to rerun.
 
@@ -308,9 +312,29 @@ class RerunObserver:
         self.flush()
         self.rec.disconnect()
 
-    def log_config(self, config) -> None:
-        md = "# Resolved configuration\n\n```toml\n" + config.to_toml() + "```\n"
+    def log_config(self, config, auto: dict | None = None) -> None:
+        """The configuration as Markdown; ``auto`` (the map summary's ``"auto"`` record)
+        adds a table of the values chosen from the scan and the reason for each."""
+        md = "# Resolved configuration\n\n"
+        rows = {k: v for k, v in (auto or {}).items() if isinstance(v, dict) and "value" in v}
+        if rows:
+            md += "## Chosen from the scan\n\n| field | value | reason |\n|---|---:|---|\n"
+            md += "".join(f"| {k}{'' if v.get('auto', True) else ' (set)'} | "
+                          f"{_fmt(v['value'])} | {v.get('reason', '')} |\n"
+                          for k, v in rows.items())
+            md += "\n"
+        if isinstance((auto or {}).get("fallback"), str):
+            md += f"Automatic values: {auto['fallback']}\n\n"
+        md += "```toml\n" + config.to_toml() + "```\n"
         self.log("config", self.rr.TextDocument(md, media_type="text/markdown"), static=True)
+
+    def on_config(self, config, auto: dict) -> None:
+        """The configuration the run resolved (every ``"auto"`` replaced by its value):
+        it replaces the one given at construction in the config panel and in the
+        colour scales."""
+        self.config = config
+        self.log_config(config, auto)
+        self.flush()
 
     def scalar(self, path: str, value) -> None:
         """One value on a time series; points, since most series have a few values."""
@@ -423,7 +447,9 @@ class RerunObserver:
         return cfg is None or cfg.hgmm.complexity_metric == "correlation"
 
     def _d_m(self) -> float:
-        return float(self.config.gp.d_m) if self.config is not None else 0.02
+        d_m = self.config.gp.d_m if self.config is not None else None
+        # an unresolved "auto" (no on_config yet): the paper's value for the colour scale
+        return float(d_m) if isinstance(d_m, (int, float)) else 0.02
 
     def _log_gmr(self, m_hits, extra) -> None:
         rr = self.rr
