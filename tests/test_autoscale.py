@@ -56,6 +56,23 @@ def test_auto_values_follow_the_spacing_and_the_budget():
     assert dense["train_spacing"]["value"] == pytest.approx(0.02)
 
 
+def test_a_training_subset_set_by_hand_scales_the_lengths():
+    """--set prepare.subsample_rate=0.25 keeps a quarter of a surface's points: their
+    spacing, and so every automatic length, doubles; a voxel subset sets the floor."""
+    from gmmgp_app import MappingConfig
+    from gmmgp_app.stages.autoscale import resolve_config
+
+    pts = _plane_scan(0.02, 0.002).points
+    full, _ = resolve_config(MappingConfig(), pts)
+    quarter, rec = resolve_config(MappingConfig().replace("prepare.subsample_rate", 0.25), pts)
+    assert quarter.prepare.subsample_rate == 0.25
+    assert quarter.gp.length_scale == pytest.approx(2 * full.gp.length_scale)
+    assert quarter.prepare.normal_radius == pytest.approx(2 * full.prepare.normal_radius)
+    assert "subsample_rate" in rec["train_spacing"]["reason"]
+    vox, _ = resolve_config(MappingConfig().replace("prepare.subsample_voxel", 0.1), pts)
+    assert vox.gp.length_scale == pytest.approx(1.75 * 0.1)
+
+
 def test_too_small_scan_for_auto_is_a_one_line_error():
     with pytest.raises(AutoScaleError, match="at least 17 points"):
         measure_scan(np.random.default_rng(0).random((12, 3)))

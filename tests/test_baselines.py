@@ -126,11 +126,17 @@ def test_gpis_is_the_papers_stationary_setup():
     rng = np.random.default_rng(1)
     pts = np.column_stack([rng.uniform(-0.5, 0.5, (3000, 2)), rng.normal(0, 0.002, 3000)])
     scan = Scan(pts, origins=np.tile([0.0, 0.0, 2.0], (3000, 1)))
-    cfg = MappingConfig().replace("prepare.subsample_rate", 0.3)
+    # the checks below are for a plane dense against the length scale: pin the urban
+    # l = 0.15 m and 0.2 m blocks ('auto' takes l = 1.75 x the median nearest-neighbour
+    # distance of the 30 % subset, 0.03 m, about the mean gap of random samples, so the
+    # constant prior shows between the points: 7 mm at the surface)
+    cfg = MappingConfig().replace({"prepare.subsample_rate": 0.3, "gp.length_scale": 0.15,
+                                   "gp.block_size": 0.2})
     smap = build_map(scan, cfg, method="gpis")
     assert isinstance(smap.prior, ConstantPrior)
     assert smap.prior.distance == 0.2 and smap.prior.variance == pytest.approx(0.04)
     assert smap.hgmm is None
+    cfg = smap.config                # the 'auto' fields resolved from the scan by build_map
     data = prepare(scan, cfg)
     assert len(smap.gp_points) == len(data.points)      # all points, no d_m selection
     assert smap.gp.grid.block_size == cfg.gp.block_size

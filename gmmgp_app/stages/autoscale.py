@@ -161,8 +161,13 @@ def _sig3(x: float) -> float:
     return float(f"{x:.3g}")
 
 
-def auto_values(scale: ScanScale, budget: int = TRAIN_BUDGET) -> dict:
+def auto_values(scale: ScanScale, budget: int = TRAIN_BUDGET, *,
+                rate: Optional[float] = None, voxel: Optional[float] = None) -> dict:
     """The automatic value of every ``"auto"`` field, with the reason for it.
+
+    ``rate`` / ``voxel``: a training subset set by hand (``prepare.subsample_rate`` < 1,
+    ``prepare.subsample_voxel``); the lengths then follow the spacing of that subset
+    (``h / sqrt(rate)``, at least ``voxel``), not the spacing of the whole scan.
 
     Returns
     -------
@@ -171,6 +176,11 @@ def auto_values(scale: ScanScale, budget: int = TRAIN_BUDGET) -> dict:
     """
     h, sig, n = scale.spacing, scale.noise, scale.n_points
     thin = max(1.0, math.sqrt(n / budget))
+    how = "max(1, sqrt(N / budget))"
+    if rate is not None and rate < 1.0:      # a random subset of a surface: h / sqrt(rate)
+        thin, how = 1.0 / math.sqrt(rate), f"1 / sqrt(subsample_rate {rate:.3g})"
+    if voxel is not None and voxel > h * thin:
+        thin, how = voxel / h, f"subsample_voxel {voxel:.4g} m / h"
     ht = h * thin
     rn = 4.0 * ht
     s = 3.0 * ht
@@ -178,7 +188,7 @@ def auto_values(scale: ScanScale, budget: int = TRAIN_BUDGET) -> dict:
     gn = min(max((2.0 * sig / rn) ** 2, 1e-4), 0.05)
     out = {
         "train_spacing": (ht, f"spacing of the training subset: h = {h:.4g} m x "
-                              f"max(1, sqrt(N / budget)) = {thin:.3g}"),
+                              f"{how} = {thin:.3g}"),
         "prepare.subsample_rate": (1.0 if n <= budget else min(1.0, budget / n),
                                    f"all {n} points (<= budget {budget})" if n <= budget else
                                    f"{n} points > budget {budget}: one per voxel of "
@@ -213,7 +223,11 @@ def resolve_config(cfg: MappingConfig, points, origins=None, *,
     if not wanted:
         return cfg, {}
     scale = measure_scan(points, origins, tree=tree)
-    vals = auto_values(scale)
+    # a training subset set by hand thins the points every length is scaled to
+    p = cfg.prepare
+    rate = None if is_auto(p.subsample_rate) else float(p.subsample_rate)
+    voxel = None if p.subsample_voxel is None else float(p.subsample_voxel)
+    vals = auto_values(scale, rate=rate, voxel=voxel)
     record: dict = {"scan": scale.to_dict()}
     updates = {}
     for key in wanted:

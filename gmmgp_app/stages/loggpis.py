@@ -165,7 +165,19 @@ class LogGPISField:
         var = np.full(len(x), s2 + noise)
         if len(x) == 0 or not self.blocks:
             return mu, var
-        qi, bi = self._reach.cover(x)
+        # blocks whose training region holds the query answer it; the wider reach
+        # only where none does (with blocks small against 4 / lambda, dozens of
+        # distant blocks, each near the prior 0, would otherwise outvote the block
+        # that sees the surface and pull v at the surface to ~0.5)
+        qi, bi = self.grid.cover(x)
+        out = np.ones(len(x), dtype=bool)
+        out[qi] = False
+        if out.any():
+            qo, bo = self._reach.cover(x[out])
+            qi = np.concatenate([qi, np.flatnonzero(out)[qo]])
+            bi = np.concatenate([bi, bo])
+            order = np.lexsort((qi, bi))
+            qi, bi = qi[order], bi[order]
         if len(qi) == 0:
             return mu, var
         dm = np.empty(len(qi))

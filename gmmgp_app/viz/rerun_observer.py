@@ -316,11 +316,11 @@ class RerunObserver:
         """The configuration as Markdown; ``auto`` (the map summary's ``"auto"`` record)
         adds a table of the values chosen from the scan and the reason for each."""
         md = "# Resolved configuration\n\n"
-        rows = {k: v for k, v in (auto or {}).items() if isinstance(v, dict) and "value" in v}
+        rows = {k: v for k, v in (auto or {}).items()
+                if isinstance(v, dict) and "value" in v and v.get("auto", True)}
         if rows:
             md += "## Chosen from the scan\n\n| field | value | reason |\n|---|---:|---|\n"
-            md += "".join(f"| {k}{'' if v.get('auto', True) else ' (set)'} | "
-                          f"{_fmt(v['value'])} | {v.get('reason', '')} |\n"
+            md += "".join(f"| {k} | {_fmt(v['value'])} | {v.get('reason', '')} |\n"
                           for k, v in rows.items())
             md += "\n"
         if isinstance((auto or {}).get("fallback"), str):
