@@ -615,11 +615,25 @@ def update_map(smap: SurfaceMap, all_points, all_origins, new_points,
     (SurfaceMap, int)
         The updated map and the number of refitted blocks.
     """
-    cfg = smap.config if cfg is None else cfg
+    cfg = smap.config if cfg is None else with_map_values(cfg, smap.config)
     state = run_stages(UPDATE_RECIPE, {"smap": smap, "all_points": all_points,
                                        "all_origins": all_origins, "new_points": new_points},
                        RunContext(cfg, smap.method, executor=executor))
     return state["smap"], state["n_refit"]
+
+
+def with_map_values(cfg: MappingConfig, map_cfg: MappingConfig) -> MappingConfig:
+    """``cfg`` with every ``"auto"`` field taken from ``map_cfg`` (the configuration a
+    map was built with, resolved from its scan): an update refits blocks with the
+    lengths and noises the map was made of, not values measured on the new points."""
+    from .config import is_auto
+
+    updates = {}
+    for key, *_ in MappingConfig.describe():
+        sec, _, name = key.partition(".")
+        if name and is_auto(getattr(getattr(cfg, sec), name)):
+            updates[key] = getattr(getattr(map_cfg, sec), name)
+    return cfg.replace(updates) if updates else cfg
 
 
 def resolve_config(cfg: MappingConfig, scan: Scan) -> tuple:
