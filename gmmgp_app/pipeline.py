@@ -144,7 +144,7 @@ class SurfaceMap:
         self.summary = dict(summary or {})
 
     # ------------------------------------------------------------------ predict
-    def predict(self, xyz, return_grad: bool = False):
+    def predict(self, xyz, return_grad: bool = False, far: bool = True):
         """Signed distance mean and variance at query points.
 
         Parameters
@@ -153,6 +153,10 @@ class SurfaceMap:
             Query points in the local frame.
         return_grad : bool
             Also return the gradient of the mean.
+        far : bool
+            Blend in the far field (the default). ``False``: the GP field (or the prior)
+            alone, whose gradient is the exact derivative of its mean and which has no
+            far-field texture along the surface; what the scan check registers against.
 
         Returns
         -------
@@ -164,7 +168,7 @@ class SurfaceMap:
         """
         xyz = as_queries(xyz)
         field_ = self.gp if self.gp is not None else self.prior
-        if self.far is None:
+        if self.far is None or not far:
             return field_.predict(xyz, return_grad=return_grad)
         return _farfield.BlendedField(field_, self.far, self.config.far.calibrated,
                             self.config.far.gp_growth,

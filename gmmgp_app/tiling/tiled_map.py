@@ -67,8 +67,9 @@ class TiledMap:
     def keys(self) -> list:
         return sorted(self.tiles)
 
-    def predict(self, xyz, return_grad: bool = False):
+    def predict(self, xyz, return_grad: bool = False, far: bool = True):
         """Stitched signed distance: mean (K,), variance (K,)[, gradient (K, 3)].
+        ``far=False``: each tile's GP field without its far field (SurfaceMap.predict).
 
         Mixture of the tiles weighted by :meth:`TileSpec.weights` (renormalised
         over the mapped tiles): ``mean = sum w_t m_t``, ``var = sum w_t (v_t +
@@ -107,7 +108,7 @@ class TiledMap:
                 w = np.bincount(inv, np.concatenate([q for _, q, _ in pieces]), len(rows))
                 dwc = np.concatenate([d for _, _, d in pieces])
                 dw = np.column_stack([np.bincount(inv, dwc[:, a], len(rows)) for a in (0, 1)])
-            out = self.tiles[owner].predict(x[rows], return_grad=return_grad)
+            out = self.tiles[owner].predict(x[rows], return_grad=return_grad, far=far)
             m, v = out[0], out[1]
             W[rows] += w
             Wm[rows] += w * m
@@ -128,10 +129,10 @@ class TiledMap:
             grad[ok] = gWm[ok] / W[ok, None]
             grad[ok, :2] -= mean[ok, None] * gW[ok] / W[ok, None]
         if (~ok).any() and self.tiles:
-            self._nearest_tile(x, ~ok, mean, var, grad, return_grad)
+            self._nearest_tile(x, ~ok, mean, var, grad, return_grad, far)
         return (mean, var, grad) if return_grad else (mean, var)
 
-    def _nearest_tile(self, x, miss, mean, var, grad, return_grad):
+    def _nearest_tile(self, x, miss, mean, var, grad, return_grad, far=True):
         keys = np.array(self.keys, dtype=np.float64)
         centres = (keys + 0.5) * self.spec.size
         rows = np.flatnonzero(miss)
@@ -139,7 +140,8 @@ class TiledMap:
         pick = np.argmin(d, axis=1)
         for t in np.unique(pick):
             r = rows[pick == t]
-            out = self.tiles[tuple(int(k) for k in keys[t])].predict(x[r], return_grad)
+            out = self.tiles[tuple(int(k) for k in keys[t])].predict(x[r], return_grad,
+                                                                     far=far)
             mean[r], var[r] = out[0], out[1]
             if return_grad:
                 grad[r] = out[2]
