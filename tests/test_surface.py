@@ -94,7 +94,11 @@ def test_scanned_sphere_mesh_is_accurate_and_tied_em_is_what_makes_it_so():
     """A 1 m sphere scanned by four stations with 8 mm range noise (52k points, a quarter
     of scripts/bench_sphere.py's density): the gmmgp mesh at 2.5 cm voxels lies within
     8 mm RMSE of the exact sphere (the benchmark's full-density figure is the issue's
-    5 mm criterion); with free (untied) EM the same map is several times worse."""
+    5 mm criterion). Tied EM is what makes the paper's field (fixed urban values, no far
+    field) accurate: free EM is several times worse there (5.6 against 19.7 mm). Since
+    issue 15 the far field blended near the data corrects the prior's errors either way
+    (defaults: 2.6 mm tied and free; urban values with the far field: 2.9 / 2.9 mm), so
+    the comparison is made on the paper's field."""
     import gmmgp_app as gm
     from gmmgp_app.synth import scan_scene
 
@@ -105,8 +109,12 @@ def test_scanned_sphere_mesh_is_accurate_and_tied_em_is_what_makes_it_so():
         v = smap.extract_surface(0.025).vertices + smap.offset
         return float(np.sqrt(np.mean((np.linalg.norm(v, axis=1) - 1.0) ** 2)))
 
-    tied = mesh_rmse(gm.MappingConfig())
-    free = mesh_rmse(gm.MappingConfig().replace("hgmm.tie_virtual", False))
+    from gmmgp_app.config import concrete
+
+    assert mesh_rmse(gm.MappingConfig()) < 0.008
+    paper = concrete(gm.MappingConfig()).replace("far.enabled", False)
+    tied = mesh_rmse(paper)
+    free = mesh_rmse(paper.replace("hgmm.tie_virtual", False))
     assert tied < 0.008
     assert free > 2 * tied
 
