@@ -103,10 +103,14 @@ def open_executor(workers: Optional[int] = None, scheduler: Optional[str] = None
         yield SerialExecutor()
         return
     if kind == "processes":
+        import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        with ProcessPoolExecutor(max_workers=int(workers),
-                                 initializer=_single_thread_blas) as ex:
+        # not fork: once a parallel numba kernel has run, the parent uses GNU OpenMP
+        # (NUMBA_THREADING_LAYER=omp) and libgomp kills a forked child ("fork() called
+        # from a process already using GNU OpenMP, this is unsafe")
+        with ProcessPoolExecutor(max_workers=int(workers), initializer=_single_thread_blas,
+                                 mp_context=multiprocessing.get_context("forkserver")) as ex:
             yield ex
         return
     from distributed import Client, LocalCluster
