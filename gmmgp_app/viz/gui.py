@@ -45,16 +45,13 @@ import numpy as np
 
 from .gui_model import (STAGE_LABELS, STAGES, Cancelled, StageResults, ViewerError,
                         ViewerModel, first_affected_stage)
+from .gui_screenshot import STAGE_LAYERS, materials
 
 __all__ = ["add_view_arguments", "cmd_view", "ViewerApp", "ViewerError", "run_app"]
 
 LAYERS = ("points", "ellipsoids", "gp_points", "blocks", "mesh")
 LAYER_LABELS = {"points": "Points", "ellipsoids": "Ellipsoids (HGMM level)",
                 "gp_points": "GP points", "blocks": "Octree blocks", "mesh": "Surface mesh"}
-#: Layers switched on when a stage is selected (the user may change them after).
-STAGE_LAYERS = {"scan": {"points"}, "prepare": {"points"}, "hgmm": {"points", "ellipsoids"},
-                "gmr": {"points"}, "gp": {"points", "gp_points", "blocks"},
-                "surface": {"mesh"}}
 #: Most points drawn at once (a fixed-seed subsample beyond); the CPU renderer slows.
 MAX_DRAWN_POINTS = 300_000
 THRESHOLD_RANGE = (1e-3, 0.25)
@@ -75,6 +72,11 @@ def add_view_arguments(parser) -> None:
                         help="window size in pixels (default 1600x1000)")
     parser.add_argument("--stage", default=None, choices=STAGES,
                         help="stage shown first (default: the last one computed)")
+    parser.add_argument("--screenshot", metavar="PNG",
+                        help="render the stage once to this PNG and exit, no window (default "
+                             "stage: the last; a scan is mapped first)")
+    parser.add_argument("--level", type=int, default=0,
+                        help="HGMM level of the ellipsoids shown (with --stage hgmm)")
     parser.add_argument("--script", metavar="JSON",
                         help="run these steps after the first computation (automation and "
                              "screenshots; see the module docstring of gmmgp_app.viz.gui)")
@@ -99,6 +101,13 @@ def cmd_view(args) -> int:
     if args.script:
         steps = _load_script(args.script)
     model = ViewerModel.open(args.target, cfg, voxel_size=args.voxel)
+    if getattr(args, "screenshot", None):
+        from .gui_screenshot import screenshot_target
+
+        screenshot_target(model, args.screenshot, size=size, stage=args.stage,
+                          level=getattr(args, "level", 0),
+                          log=lambda m: print(f"[gmmgp view] {m}", file=sys.stderr))
+        return 0
     return run_app(model, size=size, first_stage=args.stage, script=steps)
 
 
@@ -216,22 +225,7 @@ class ViewerApp:
 
     # ------------------------------------------------------------------ building
     def _materials(self, rendering):
-        def mat(shader, **kw):
-            m = rendering.MaterialRecord()
-            m.shader = shader
-            for k, v in kw.items():
-                setattr(m, k, v)
-            return m
-
-        self.mat = {
-            "points": mat("defaultUnlit", point_size=2.0 * self.window.scaling),
-            "gp_points": mat("defaultUnlit", point_size=5.0 * self.window.scaling),
-            "ellipsoids_leaf": mat("defaultLit"),
-            "ellipsoids_split": mat("unlitLine", line_width=1.5 * self.window.scaling),
-            "blocks": mat("unlitLine", line_width=1.0 * self.window.scaling),
-            "mesh": mat("defaultLit"),
-            "probe": mat("defaultLit", base_color=[1.0, 0.1, 0.1, 1.0]),
-        }
+        self.mat = materials(rendering, self.window.scaling)
 
     def _build_panel(self, gui, em):
         panel = gui.ScrollableVert(0.4 * em, gui.Margins(0.6 * em, 0.6 * em, 0.6 * em, 0.6 * em))
