@@ -63,6 +63,8 @@ LEGEND_CELLS = 24
 # --------------------------------------------------------------------------- CLI
 def add_view_arguments(parser) -> None:
     """Options of ``gmmgp view`` (added to the sub-parser by cli.py)."""
+    import argparse
+
     parser.add_argument("target", help="scan file, saved map folder (map/) or a "
                         "'gmmgp run' output folder")
     parser.add_argument("--voxel", type=float, default=0.1,
@@ -80,6 +82,7 @@ def add_view_arguments(parser) -> None:
     parser.add_argument("--script", metavar="JSON",
                         help="run these steps after the first computation (automation and "
                              "screenshots; see the module docstring of gmmgp_app.viz.gui)")
+    parser.add_argument("--no-3d", action="store_true", help=argparse.SUPPRESS)  # tests
     g = parser.add_argument_group("configuration")
     g.add_argument("--config", help="TOML file with [prepare], [hgmm], [gmr], [gp], [surface]")
     g.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
@@ -108,7 +111,8 @@ def cmd_view(args) -> int:
                           level=getattr(args, "level", 0),
                           log=lambda m: print(f"[gmmgp view] {m}", file=sys.stderr))
         return 0
-    return run_app(model, size=size, first_stage=args.stage, script=steps)
+    return run_app(model, size=size, first_stage=args.stage, script=steps,
+                   draw_scene=not getattr(args, "no_3d", False))
 
 
 def check_display() -> None:
@@ -144,7 +148,7 @@ def _load_script(path) -> list:
 
 
 def run_app(model: ViewerModel, size=(1600, 1000), first_stage=None, script=None,
-            hard_exit: bool = True) -> int:
+            hard_exit: bool = True, draw_scene: bool = True) -> int:
     """Create the window, start the first computation and run the event loop.
 
     With ``hard_exit`` (the CLI), closing the window ends the process at once (see
@@ -154,7 +158,8 @@ def run_app(model: ViewerModel, size=(1600, 1000), first_stage=None, script=None
 
     app = gui.Application.instance
     app.initialize()
-    viewer = ViewerApp(model, size=size, first_stage=first_stage, hard_exit=hard_exit)
+    viewer = ViewerApp(model, size=size, first_stage=first_stage, hard_exit=hard_exit,
+                       draw_scene=draw_scene)
     viewer.start_initial_run()
     if script is not None:
         viewer.run_script(script)
@@ -171,7 +176,7 @@ class ViewerApp:
     """
 
     def __init__(self, model: ViewerModel, size=(1600, 1000), first_stage=None,
-                 hard_exit: bool = False):
+                 hard_exit: bool = False, draw_scene: bool = True):
         import open3d.visualization.gui as gui
         import open3d.visualization.rendering as rendering
 
@@ -180,6 +185,9 @@ class ViewerApp:
         self.app = gui.Application.instance
         self.exit_code = 0
         self.hard_exit = hard_exit
+        # False: build no 3D geometry (the panel and controller only; what the 3D view
+        # draws is checked offscreen, see gui_screenshot)
+        self.draw_scene = draw_scene
         self._savers: list[threading.Thread] = []
         self.errors: list[str] = []
         self.generation = 0          # bumped by every run; older results are dropped
@@ -268,10 +276,11 @@ class ViewerApp:
         # textures through ImageWidget stalled the CPU renderer for minutes here.
         # Buttons, because a Label never paints its background colour.
         bar = gui.Horiz(0)
+        self._legend_bar = bar
         self.legend_cells = []
         for _ in range(LEGEND_CELLS):
             cell = gui.Button(" ")
-            cell.horizontal_padding_em = 0.35
+            cell.horizontal_padding_em = 0.0  # 24 cells of about 0.7 em: fits 22 em
             cell.vertical_padding_em = 0.1
             cell.enabled = False
             bar.add_child(cell)
@@ -741,7 +750,9 @@ class ViewerApp:
                         sc.remove_geometry(g)
                 self._geom_keys.pop(name, None)
                 continue
-            if self._geom_keys.get(name) != key:
+            if self._geom_keys.get(name) != key and not self.draw_scene:
+                self._geom_keys[name] = key  # what would be drawn (tests without frames)
+            elif self._geom_keys.get(name) != key:
                 for g in self._names_of(name):
                     if sc.has_geometry(g):
                         sc.remove_geometry(g)
@@ -931,6 +942,9 @@ class ViewerApp:
                 "threshold": self.model.results.config.hgmm.split_threshold,
                 "d_m": self.model.results.config.gp.d_m,
                 "generation": self.generation, "dropped_results": self.dropped_results,
+                "drawn": {k: list(map(str, v)) for k, v in self._geom_keys.items()},
+                "legend_bar_right": self.legend_cells[-1].frame.get_right(),
+                "panel_right": self.panel.frame.get_right(),
                 "seconds": self.model.results.seconds, "errors": list(self.errors)}
 
     def run_script(self, steps, settle: float = 0.8, timeout: float = 600.0):

@@ -183,9 +183,10 @@ def screenshot_target(model: ViewerModel, path, size=(1600, 1000), stage: Option
     render ``stage`` (default: the last one) to ``path``."""
     r = model.results
     t0 = time.perf_counter()
-    if stage not in (None, "scan") or not r.has("scan"):
-        needed = stage or "surface"
-        if not r.has(needed):
+    stage = stage or "surface"
+    if not r.has(stage):
+        needed = stage
+        if needed != "scan":
             start = "prepare" if model.can_refit else "surface"
             if STAGES.index(needed) < STAGES.index(start):
                 raise ViewerError(f"'{model.source}' is a saved map: stage {needed!r} needs the "
