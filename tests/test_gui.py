@@ -390,6 +390,7 @@ def test_app_steps_through_stages_and_reruns_under_xvfb(tmp_path, box_scan):
     assert "SDF" in s1["probe"] and "+-" in s1["probe"]
     assert s1["legend"] == "predicted std (m)"
     assert s2["threshold"] == 0.1 and s2["counts"]["leaves"] != s0["counts"]["leaves"]
+    assert s2["threshold_shown"] == pytest.approx(0.1)  # the value itself, not its log10
     assert f"leaves {s2['counts']['leaves']}" in s2["counts_label"]
     # the newer run's results are shown (whether the superseded run had a stage result
     # left to drop depends on timing: not asserted)

@@ -34,7 +34,6 @@ whole window through the X server instead of the 3D view alone), save, state, ca
 from __future__ import annotations
 
 import json
-import math
 import os
 import sys
 import threading
@@ -55,6 +54,7 @@ LAYER_LABELS = {"points": "Points", "ellipsoids": "Ellipsoids (HGMM level)",
 #: Most points drawn at once (a fixed-seed subsample beyond); the CPU renderer slows.
 MAX_DRAWN_POINTS = 300_000
 THRESHOLD_RANGE = (1e-3, 0.25)
+THRESHOLD_STEP = 10 ** 0.125  # 8 steps per decade
 DM_RANGE = (0.0, 0.2)
 VOXEL_RANGE = (0.02, 1.0)
 LEGEND_CELLS = 24
@@ -295,14 +295,25 @@ class ViewerApp:
         cfg = self.model.results.config
         self.threshold_label = gui.Label("")
         sec.add_child(self.threshold_label)
-        self.threshold_slider = gui.Slider(gui.Slider.DOUBLE)
-        self.threshold_slider.set_limits(math.log10(THRESHOLD_RANGE[0]),
-                                         math.log10(THRESHOLD_RANGE[1]))
-        self.threshold_slider.double_value = math.log10(
-            min(max(cfg.hgmm.split_threshold, THRESHOLD_RANGE[0]), THRESHOLD_RANGE[1]))
-        self.threshold_slider.set_on_value_changed(
-            lambda v: self.set_threshold(10.0 ** v, from_slider=True))
-        sec.add_child(self.threshold_slider)
+        # The threshold itself, stepped on a log scale (Open3D's slider can only show
+        # the value it moves linearly: a log10 slider showed "-2.000").
+        row = gui.Horiz(0.3 * em)
+        down = gui.Button("/")
+        down.tooltip = f"divide by {THRESHOLD_STEP:.3g} (log-scale step)"
+        down.set_on_clicked(lambda: self.step_threshold(-1))
+        self.threshold_edit = gui.NumberEdit(gui.NumberEdit.DOUBLE)
+        self.threshold_edit.set_limits(*THRESHOLD_RANGE)
+        self.threshold_edit.decimal_precision = 4
+        self.threshold_edit.double_value = min(max(cfg.hgmm.split_threshold,
+                                                   THRESHOLD_RANGE[0]), THRESHOLD_RANGE[1])
+        self.threshold_edit.set_on_value_changed(lambda v: self.set_threshold(v, from_slider=True))
+        up = gui.Button("x")
+        up.tooltip = f"multiply by {THRESHOLD_STEP:.3g} (log-scale step)"
+        up.set_on_clicked(lambda: self.step_threshold(+1))
+        for w_ in (down, self.threshold_edit, up):
+            row.add_child(w_)
+        self.threshold_buttons = (down, up)
+        sec.add_child(row)
         self.dm_label = gui.Label("")
         sec.add_child(self.dm_label)
         self.dm_slider = gui.Slider(gui.Slider.DOUBLE)
@@ -409,8 +420,12 @@ class ViewerApp:
             return
         self.pending_cfg = self.pending_cfg.replace("hgmm.split_threshold", value)
         if not from_slider:
-            self.threshold_slider.double_value = math.log10(value)
+            self.threshold_edit.double_value = value
         self._refresh_panel()
+
+    def step_threshold(self, steps: int):
+        """Multiply the pending threshold by THRESHOLD_STEP ** steps (log-scale steps)."""
+        self.set_threshold(self.pending_cfg.hgmm.split_threshold * THRESHOLD_STEP ** steps)
 
     def set_d_m(self, value: float, from_slider=False):
         value = round(float(min(max(value, DM_RANGE[0]), DM_RANGE[1])), 4)  # 0.1 mm steps
@@ -855,7 +870,9 @@ class ViewerApp:
         changed = " *" if dm != r.config.gp.d_m else ""
         self.dm_label.text = f"d_m {dm:.3f} m{changed}"
         refit = self.model.can_refit
-        self.threshold_slider.enabled = refit
+        self.threshold_edit.enabled = refit
+        for b in self.threshold_buttons:
+            b.enabled = refit
         self.dm_slider.enabled = refit
         # Multi-line labels change height: lay the panel out again.
         self.window.set_needs_layout()
@@ -940,6 +957,7 @@ class ViewerApp:
                 "status": self.status_label.text, "probe": self.probe_text,
                 "legend": self.legend_title.text, "legend_range": self.legend_range.text,
                 "threshold": self.model.results.config.hgmm.split_threshold,
+                "threshold_shown": self.threshold_edit.double_value,
                 "d_m": self.model.results.config.gp.d_m,
                 "generation": self.generation, "dropped_results": self.dropped_results,
                 "drawn": {k: list(map(str, v)) for k, v in self._geom_keys.items()},
