@@ -168,6 +168,27 @@ def test_save_then_open_the_map_folder(plane_model, tmp_path):
     assert len(r.mesh.faces) > 0
 
 
+def test_run_record_counts_and_the_fields_change_at_the_scan_points(plane_model):
+    from gmmgp_app.viz.gui_tuning import field_change, run_record
+
+    model, _ = plane_model
+    base = model.results
+    assert field_change(base, base) == 0.0
+    first = run_record(None, base)
+    assert first.field_change_rms is None
+    assert (first.leaves, first.gp_points) == (base.hgmm.leaves.n_components,
+                                               len(base.gp_points))
+    cfg = base.config.replace("gp.d_m", float(np.quantile(np.abs(base.gmr_error), 0.5)))
+    new = model.compute("gp", cfg, 0.2, base=base)
+    rec = run_record(base, new)
+    # oracle: both fields evaluated at every scan point (1500 < the subsample cap)
+    p = base.scan.points
+    ref = np.sqrt(np.mean((new.smap.predict(p)[0] - base.smap.predict(p)[0]) ** 2))
+    assert rec.field_change_rms == pytest.approx(ref, rel=1e-12) and ref > 0
+    assert rec.gp_points == len(new.gp_points) < first.gp_points
+    assert f"GP pts {rec.gp_points}" in rec.label() and "mm rms" in rec.label()
+
+
 def test_model_errors_name_the_problem_and_the_fix(tmp_path):
     with pytest.raises(ViewerError, match="does not exist; give a scan file or a map folder"):
         ViewerModel.open(tmp_path / "nope.ply")
@@ -392,6 +413,10 @@ def test_app_steps_through_stages_and_reruns_under_xvfb(tmp_path, box_scan):
     assert s2["threshold"] == 0.1 and s2["counts"]["leaves"] != s0["counts"]["leaves"]
     assert s2["threshold_shown"] == pytest.approx(0.1)  # the value itself, not its log10
     assert f"leaves {s2['counts']['leaves']}" in s2["counts_label"]
+    # one record per finished run: the first without a change, the re-run with one
+    assert len(s0["runs"]) == 1 and s0["runs"][0]["field_change_rms"] is None
+    assert len(s2["runs"]) == 2 and s2["runs"][1]["leaves"] == s2["counts"]["leaves"]
+    assert s2["runs"][1]["field_change_rms"] > 0 and "run 2: c* 0.1" in s2["runs_label"]
     # the newer run's results are shown (whether the superseded run had a stage result
     # left to drop depends on timing: not asserted)
     assert s3["d_m"] == 0.05 and s3["generation"] == s2["generation"] + 2

@@ -33,6 +33,7 @@ whole window through the X server instead of the 3D view alone), save, state, ca
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import sys
@@ -45,6 +46,7 @@ import numpy as np
 from .gui_model import (STAGE_LABELS, STAGES, Cancelled, StageResults, ViewerError,
                         ViewerModel, first_affected_stage)
 from .gui_screenshot import STAGE_LAYERS, materials
+from .gui_tuning import run_record
 
 __all__ = ["add_view_arguments", "cmd_view", "ViewerApp", "ViewerError", "run_app"]
 
@@ -189,6 +191,7 @@ class ViewerApp:
         # draws is checked offscreen, see gui_screenshot)
         self.draw_scene = draw_scene
         self._savers: list[threading.Thread] = []
+        self.runs: list = []  # RunRecord of each finished run
         self.errors: list[str] = []
         self.generation = 0          # bumped by every run; older results are dropped
         self.dropped_results = 0
@@ -337,6 +340,9 @@ class ViewerApp:
         sec.add_child(self.progress)
         self.status_label = gui.Label("")
         sec.add_child(self.status_label)
+        # one line per run: c*, d_m, leaves, GP points, RMS field change vs the run before
+        self.runs_label = gui.Label("")
+        sec.add_child(self.runs_label)
         panel.add_child(sec)
 
         # -- probe and export
@@ -485,8 +491,11 @@ class ViewerApp:
 
         def work():
             try:
-                self.model.compute(start, cfg, voxel, base=base, on_stage=on_stage,
-                                   cancelled=lambda: gen != self.generation, progress=progress)
+                r = self.model.compute(start, cfg, voxel, base=base, on_stage=on_stage,
+                                       cancelled=lambda: gen != self.generation,
+                                       progress=progress)
+                rec = run_record(base, r)  # the field's change: in the worker (predicts)
+                post(lambda: self._on_run_record(gen, rec))
             except Cancelled:
                 pass
             except Exception as e:  # shown in the panel; the app stays usable
@@ -516,13 +525,23 @@ class ViewerApp:
         self._run_info["done"] += 1
         self.progress.value = self._run_info["done"] / self._run_info["n"]
         secs = results.seconds.get(name, 0.0)
-        self.status_label.text = f"{STAGE_LABELS[name]} done ({secs:.1f} s)"
+        rest = STAGES[STAGES.index(name) + 1:]
+        self.status_label.text = f"{STAGE_LABELS[name]} done ({secs:.1f} s)" + (
+            f"\ncomputing {', '.join(STAGE_LABELS[s] for s in rest)} ..." if rest else "")
         if not self._user_stage:
             self.stage = name if name != "prepare" else "prepare"
             self.layers = set(STAGE_LAYERS[self.stage])
         if name == "hgmm":
             self.level = min(self.level, len(results.hgmm.levels) - 1)
         self._refresh()
+
+    def _on_run_record(self, gen, rec):
+        if gen != self.generation:
+            return
+        self.runs.append(rec)
+        self.runs_label.text = "\n".join(f"run {i + 1}: {r.label()}" for i, r in
+                                         list(enumerate(self.runs))[-4:])
+        self.window.set_needs_layout()
 
     def _on_progress(self, gen, stage, frac):
         if gen != self.generation:
@@ -958,6 +977,8 @@ class ViewerApp:
                 "legend": self.legend_title.text, "legend_range": self.legend_range.text,
                 "threshold": self.model.results.config.hgmm.split_threshold,
                 "threshold_shown": self.threshold_edit.double_value,
+                "runs": [dataclasses.asdict(r) for r in self.runs],
+                "runs_label": self.runs_label.text,
                 "d_m": self.model.results.config.gp.d_m,
                 "generation": self.generation, "dropped_results": self.dropped_results,
                 "drawn": {k: list(map(str, v)) for k, v in self._geom_keys.items()},
