@@ -40,6 +40,7 @@ _EXAMPLES = {
     "view": """examples:
   gmmgp view assets/demo_street.npz
   gmmgp view out/demo/map
+  gmmgp view out/demo --stage hgmm --level 2 --screenshot hgmm.png --size 1280x800
   xvfb-run -s "-screen 0 1600x1000x24" gmmgp view scan.ply     # on a machine without a display""",
     "eval": """examples:
   gmmgp eval out/demo --reference assets/demo_street_mesh.ply""",
