@@ -290,10 +290,10 @@ out = sys.argv[2]
 m = ViewerModel.open(sys.argv[1], MappingConfig().replace("gp.d_m", 0.05), voxel_size=0.2)
 m.results = m.compute("prepare", m.results.config, 0.2)
 for s in STAGES:
-    render_png(m, f"{out}/{s}.png", size=(400, 300), stage=s)
-render_png(m, f"{out}/hgmm_level2.png", size=(400, 300), stage="hgmm", level=2)
-render_png(m, f"{out}/surface_std.png", size=(400, 300), stage="surface", colour_by_variance=True)
-render_png(m, f"{out}/gp_points_only.png", size=(400, 300), stage="gp", layers=["gp_points"])
+    render_png(m, f"{out}/{s}.png", size=(320, 240), stage=s)
+render_png(m, f"{out}/hgmm_level2.png", size=(320, 240), stage="hgmm", level=2)
+render_png(m, f"{out}/surface_std.png", size=(320, 240), stage="surface", colour_by_variance=True)
+render_png(m, f"{out}/gp_points_only.png", size=(320, 240), stage="gp", layers=["gp_points"])
 print(json.dumps({**m.results.counts(), "gp_n": len(m.results.gp_points)}))
 """
 
@@ -301,12 +301,16 @@ print(json.dumps({**m.results.counts(), "gp_n": len(m.results.gp_points)}))
 @pytest.mark.slow
 def test_every_stage_is_drawn_and_differs_in_an_offscreen_render(tmp_path, box_scan):
     """What the 3D view draws, checked through one offscreen frame per stage (no window)."""
-    code, err = _run_quiet([sys.executable, "-c", _RENDER_STAGES, str(box_scan), str(tmp_path)])
+    # 320x240: on Mesa's CPU renderer a frame's cost grows with the lit triangles in view
+    # and is ~7x lower at this size than at 640x480 (measured); the timeout only guards
+    # against a hang, a busy machine must not fail this test.
+    code, err = _run_quiet([sys.executable, "-c", _RENDER_STAGES, str(box_scan), str(tmp_path)],
+                           timeout=900)
     assert code == 0, err[-3000:]
     names = list(STAGES) + ["hgmm_level2", "surface_std", "gp_points_only"]
     imgs = {n: _png(tmp_path / f"{n}.png") for n in names}
     for name, im in imgs.items():
-        assert im.shape == (300, 400, 3), name
+        assert im.shape == (240, 320, 3), name
         assert im.std() > 3, f"{name}.png is blank"
     for i, a in enumerate(names):
         for b in names[i + 1:]:
@@ -332,7 +336,7 @@ def test_view_screenshot_writes_a_png_and_exits(tmp_path, box_scan):
     try:
         code, err = _run_quiet([sys.executable, "-m", "gmmgp_app.viz.gui", str(box_scan),
                                 "--stage", "hgmm", "--level", "1", "--size", "480x320",
-                                "--screenshot", str(png)], env=env)
+                                "--screenshot", str(png)], env=env, timeout=900)
     finally:
         xvfb.kill()
         xvfb.wait()
@@ -383,7 +387,7 @@ def test_app_steps_through_stages_and_reruns_under_xvfb(tmp_path, box_scan):
         code, err = _run_quiet([sys.executable, "-m", "gmmgp_app.viz.gui", str(box_scan),
                                 "--size", "1200x800", "--voxel", "0.2", "--set", "gp.d_m=0.05",
                                 "--no-3d", "--script", str(out / "steps.json")], env=env,
-                               timeout=600)
+                               timeout=900)
     finally:
         xvfb.kill()
         xvfb.wait()
