@@ -5,12 +5,20 @@ same layers, materials and camera as the window's 3D view), written once: no eve
 loop, no swapchain, no frame to wait for. The tests check what is drawn through this
 path, and the README screenshots are made with it.
 
-Why not the window's own frames: with Mesa's CPU Vulkan driver (llvmpipe) the time of
-one frame grows with the number of *lit* triangles in view (measured: 0.3 s for 360,
-2 s for 6 k, 8 s for 19 k, over a minute for 40 k at 640x480; shading them unlit is
-about 4x cheaper, hidden geometry costs nothing), and the window draws a frame for
-every change, so a run that shows the HGMM ellipsoids and the surface mesh queued
-frames of tens of seconds to minutes each behind the GUI main thread.
+Why not the window's own frames: with Mesa's CPU Vulkan driver (llvmpipe/lavapipe,
+picked by Open3D's Filament when no GPU is found) one frame costs seconds to minutes of
+rasterizer CPU, and the window draws one for every change while the GUI main thread
+waits in ``FilamentRenderer::BeginFrame``; every posted callback (script steps, results)
+queues behind it. Measured (one 640x480 offscreen frame of a sphere of 6240 triangles,
+rasterizer CPU seconds; the wall time is 2-5x that on 2 cores at load 5-9):
+no vertex colours, lit 1.3 s; random vertex colours, lit 1.4 s; uniform grey 0.75
+(as the app's surface and grey points), lit 28 s, unlit 5.4 s; grey +- 0.004 jitter, lit
+26 s; a smooth z gradient, lit 16 s; 360 triangles 0.2 s; 19 k triangles (no colours)
+3.9 s; 6240 triangles at 320x240 0.17 s, at 1280x960 1.3 s. Threads (LP_NUM_THREADS
+0/1/2/4) change nothing; hidden geometry costs nothing; the slow frames often run on one
+rasterizer thread. So the cost depends on the content drawn (smoothly coloured lit
+meshes: the surface, the ellipsoids) and on the view size, and the wall time on the
+machine's load: tens of seconds to minutes per frame for the demo's layers.
 """
 
 from __future__ import annotations
