@@ -9,7 +9,9 @@ frame: wall time and CPU seconds per thread (main, llvmpipe-*, FEngine::loop).
 
 RES is Open3D's create_sphere resolution (40: 6240 triangles). Measured on 2 shared cores
 (load 5-9), 6240 triangles at 640x480, rasterizer CPU per frame: no colours 1.3 s,
-random colours 1.4 s, grey 0.75 lit 28 s (unlit 5.4 s), grey +- 0.004 26 s, z gradient 16 s.
+random colours 1.4 s, grey 0.75 lit 28 s (unlit 5.4 s), grey +- 0.004 26 s, z gradient 16 s;
+but 360 triangles at 320x240 without colours took 0.2 s once and 30 s (89.6 s wall) later:
+the same frame's cost varies by 100x between processes, so compare within one session.
 """
 
 import glob

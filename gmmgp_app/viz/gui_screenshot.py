@@ -15,10 +15,13 @@ no vertex colours, lit 1.3 s; random vertex colours, lit 1.4 s; uniform grey 0.7
 (as the app's surface and grey points), lit 28 s, unlit 5.4 s; grey +- 0.004 jitter, lit
 26 s; a smooth z gradient, lit 16 s; 360 triangles 0.2 s; 19 k triangles (no colours)
 3.9 s; 6240 triangles at 320x240 0.17 s, at 1280x960 1.3 s. Threads (LP_NUM_THREADS
-0/1/2/4) change nothing; hidden geometry costs nothing; the slow frames often run on one
-rasterizer thread. So the cost depends on the content drawn (smoothly coloured lit
-meshes: the surface, the ellipsoids) and on the view size, and the wall time on the
-machine's load: tens of seconds to minutes per frame for the demo's layers.
+0/1/2/4) change nothing; hidden geometry costs nothing; the slow frames run on one
+rasterizer thread, in JIT-compiled shader code. But the same content is not always
+equally slow: the 360-triangle, 320x240, uncoloured frame that took 0.2 s took 30 s of
+rasterizer CPU (90 s wall) in a later process, so the figures above are not a clean
+function of the content; the cause inside the renderer stack was not found. Hence the
+tests do not wait for the window's frames at all, and the offscreen frames they render
+are small (320x240) with time limits that only guard against a hang.
 """
 
 from __future__ import annotations
