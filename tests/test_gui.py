@@ -238,6 +238,22 @@ def test_compute_modules_never_import_the_gui():
 
 
 # --------------------------------------------------------------------------- the window
+def _lock_owner_alive(num) -> bool:
+    """Whether display :num is held by a running X server (a lock left by a killed one
+    is stale: the new server replaces it)."""
+    try:
+        pid = int(Path(f"/tmp/.X{num}-lock").read_text().strip())
+    except (OSError, ValueError):
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 def _start_xvfb(tmp_path):
     if not sys.platform.startswith("linux"):
         pytest.skip("the window test uses Xvfb (Linux only)")
@@ -245,18 +261,32 @@ def _start_xvfb(tmp_path):
     if exe is None:
         pytest.skip("Xvfb is not installed (apt-get install xvfb)")
     for num in range(170, 200):
-        if Path(f"/tmp/.X11-unix/X{num}").exists() or Path(f"/tmp/.X{num}-lock").exists():
+        if _lock_owner_alive(num):
             continue
         proc = subprocess.Popen([exe, f":{num}", "-screen", "0", "1600x1000x24", "-nolisten",
                                  "tcp"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        for _ in range(50):
-            if Path(f"/tmp/.X11-unix/X{num}").exists():
-                return proc, f":{num}"
+        for _ in range(100):  # ready once the lock holds our server's pid
+            try:
+                if int(Path(f"/tmp/.X{num}-lock").read_text().strip()) == proc.pid and \
+                        Path(f"/tmp/.X11-unix/X{num}").exists():
+                    return proc, f":{num}"
+            except (OSError, ValueError):
+                pass
             if proc.poll() is not None:
                 break
             time.sleep(0.1)
+        _stop_xvfb(proc)
+    pytest.fail("Xvfb is installed but did not start on any display :170-:199")
+
+
+def _stop_xvfb(proc):
+    """SIGTERM, so the server removes its lock and socket (SIGKILL left them behind)."""
+    proc.terminate()
+    try:
+        proc.wait(timeout=20)
+    except subprocess.TimeoutExpired:
         proc.kill()
-    pytest.skip("could not start Xvfb on any display :170-:199")
+        proc.wait()
 
 
 @pytest.fixture(scope="module")
@@ -336,8 +366,7 @@ def test_view_screenshot_writes_a_png_and_exits(tmp_path, box_scan):
                                 "--stage", "hgmm", "--level", "1", "--size", "480x320",
                                 "--screenshot", str(png)], env=env, timeout=900)
     finally:
-        xvfb.kill()
-        xvfb.wait()
+        _stop_xvfb(xvfb)
     assert code == 0, err[-3000:]
     assert "wrote" in err and "computing from prepare to hgmm" in err
     im = _png(png)
@@ -387,8 +416,7 @@ def test_app_steps_through_stages_and_reruns_under_xvfb(tmp_path, box_scan):
                                 "--no-3d", "--script", str(out / "steps.json")], env=env,
                                timeout=900)
     finally:
-        xvfb.kill()
-        xvfb.wait()
+        _stop_xvfb(xvfb)
     assert code == 0, err[-3000:]
     s0, s1, s2, s3 = (json.loads((out / f"s{i}.json").read_text()) for i in range(4))
     assert s0["errors"] == [] and s3["errors"] == []
