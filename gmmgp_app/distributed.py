@@ -103,10 +103,14 @@ def open_executor(workers: Optional[int] = None, scheduler: Optional[str] = None
         yield SerialExecutor()
         return
     if kind == "processes":
+        import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        with ProcessPoolExecutor(max_workers=int(workers),
-                                 initializer=_single_thread_blas) as ex:
+        # spawned, not forked: the parent's numba parallel kernels start GNU OpenMP
+        # threads, and a child forked from such a process aborts ("fork() called from a
+        # process already using GNU OpenMP")
+        with ProcessPoolExecutor(max_workers=int(workers), initializer=_single_thread_blas,
+                                 mp_context=multiprocessing.get_context("spawn")) as ex:
             yield ex
         return
     from distributed import Client, LocalCluster
