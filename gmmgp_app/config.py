@@ -272,7 +272,7 @@ class FarFieldConfig:
     enabled: bool = _f(
         True, "Mix the GP field with the IMLS distance of the training hit points by "
         "inverse variance (gmmgp only; false: the paper's field alone).",
-        source="chosen: scripts/bench_field.py, docs/field.md")
+        source="chosen: scripts/bench_accuracy.py, docs/field.md")
     neighbours: int = _f(16, "Hit points k per query of the IMLS distance.", 1, 256,
                          source="chosen on the synthetic street (8 and 16 agree near, "
                          "16 is better beyond 0.5 m)")
