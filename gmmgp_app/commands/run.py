@@ -119,6 +119,10 @@ def run(args) -> int:
                          executor=executor, progress=bar)
         bar.close()
     smap.summary["seconds"] = {"read": read_s, **smap.summary["seconds"]}
+    if smap.summary.get("auto") and not args.quiet:
+        from ..pipeline import format_auto
+
+        print(format_auto(smap.summary["auto"]))
     if args.stage == "hgmm" and smap.hgmm is not None:
         from ..pipeline import format_level_history
 
@@ -134,7 +138,11 @@ def run(args) -> int:
                                      prior_mesh=args.prior_mesh)
         if recorder is not None:
             recorder.close()  # writes the recording's footer now, not at interpreter exit
-        atomic_write_text(out / "config.toml", cfg.to_toml())
+        # the values the map was built with; those chosen from the scan say why
+        from ..pipeline import auto_reasons
+
+        atomic_write_text(out / "config.toml",
+                          smap.config.to_toml(auto_reasons(smap.summary.get("auto"))))
         smap.summary["seconds"]["total"] = time.perf_counter() - t0
         atomic_write_text(out / "summary.json", json.dumps(jsonable(smap.summary), indent=2))
         written += [out / "config.toml", out / "summary.json"]
