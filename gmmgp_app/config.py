@@ -262,6 +262,23 @@ class GPConfig:
         300, "Cap on training points per block (subsampled beyond).", 1, 100000)
     jitter: float = _f(
         1e-8, "Cholesky jitter added to the block covariance diagonal (relative).", 0.0, 1.0)
+    prior_scale: float = _f(
+        AUTO, "Multiplier c on the prior's standard deviation sigma_p in the kernel "
+        "(c^2 S K_j S, eq. kernel2) and in the GP field's prior variance.", 1e-3, 1e3,
+        unit="1", symbol="c", urban=1.0,
+        source="1 (the GMR's sigma_p, the paper's); 'auto' with marginal_likelihood: "
+        "the multiplier in {0.5, 1, 2} of largest marginal likelihood")
+    marginal_likelihood: bool = _f(
+        False, "Choose the GP fields left at 'auto' (length_scale, value_noise, "
+        "gradient_noise, prior_scale) by maximum marginal likelihood (eq. lml) over a "
+        "sample of blocks: multipliers of the automatic values on a small grid "
+        "(stages/gp_hyper.py); false: the automatic rules alone.",
+        source="scripts/bench_field.py, docs/field.md (GP hyper-parameters)")
+    hyper_blocks: int = _f(
+        48, "Blocks sampled (seeded) for the marginal likelihood; bounds its cost.",
+        1, 10000)
+    hyper_block_points: int = _f(
+        64, "Points per sampled block (those nearest the block centre).", 4, 1000)
 
 
 @dataclass(frozen=True)
