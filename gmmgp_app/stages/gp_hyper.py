@@ -12,8 +12,7 @@ targets (eq. lml, Rasmussen & Williams 2006, eq. 2.30)::
     log p(y | X, theta) = -1/2 y^T K^-1 y - 1/2 log |K| - (4 n / 2) log 2 pi      (eq. lml)
 
 sums it over the blocks and picks the multipliers of the automatic values that
-maximise the sum over a small grid (:data:`GRID`), one parameter at a time
-(coordinate ascent, repeated until no multiplier changes). The blocks are the
+maximise the sum over a small grid (:data:`GRID`; every combination, at most 135). The blocks are the
 :class:`~.octree.BlockGrid` leaves of the GP points, drawn uniformly among the
 occupied leaves with a fixed seed; each contributes the (at most ``max_points``)
 training points of its region nearest to its centre, a compact patch whose spacing
@@ -23,18 +22,21 @@ every candidate shifts by the same constant and the choice is the same at every
 scale.
 
 Only fields still chosen automatically are searched (a ``--set`` value is kept at
-multiplier 1). The jitter is the one :func:`.gp.fit_block` adds: ``jitter`` times
-the mean diagonal, raised x10 when the factorisation fails.
+multiplier 1). The jitter is ``GPConfig.jitter`` (1e-8) times each row's own variance,
+raised x10 when the factorisation fails (:func:`.gp.fit_block` uses the mean diagonal;
+per row keeps the choice independent of the units).
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.linalg import LinAlgError, cho_solve, cholesky
 
+from gmmgp_app.stages._blas import single_threaded_blas
 from gmmgp_app.stages.gp import MAX_RELATIVE_JITTER, GPError
 from gmmgp_app.stages.kernels import matern32_joint
 from gmmgp_app.stages.octree import BlockGrid
@@ -55,18 +57,20 @@ _LOG2PI = math.log(2.0 * math.pi)
 
 
 def _cholesky_with_jitter(K: np.ndarray, jitter: float):
-    """Lower Cholesky factor of ``K + eps I``, ``eps = rel * mean(diag K)`` with
-    ``rel = jitter`` raised x10 on failure up to :data:`.gp.MAX_RELATIVE_JITTER`
-    (the rule of :func:`.gp.fit_block`). Returns ``(L, eps, times raised)``."""
-    scale = float(np.mean(np.diag(K)))
+    """Lower Cholesky factor of ``K + eps diag(K)`` with ``eps = jitter`` raised x10 on
+    failure up to :data:`.gp.MAX_RELATIVE_JITTER` (the rule of :func:`.gp.fit_block`,
+    but relative to each row's own variance rather than the mean diagonal: value rows
+    (m^2) and gradient rows (1) scale differently with the scan, and a jitter of the
+    mean diagonal would make the choice depend on the units). Returns ``(L, largest
+    absolute jitter, times raised)``."""
+    dK = np.diag(K).copy()
     rel, raised = float(jitter), 0
     idx = np.diag_indices_from(K)
     while True:
-        eps = rel * scale
         A = K.copy()
-        A[idx] += eps
+        A[idx] += rel * dK
         try:
-            return cholesky(A, lower=True, check_finite=False), eps, raised
+            return cholesky(A, lower=True, check_finite=False), rel * float(dK.max()), raised
         except LinAlgError:
             rel = max(rel * 10.0, 1e-12)
             raised += 1
@@ -89,6 +93,7 @@ def _lml_from(Kj, sigma_p, y, value_noise, gradient_noise, prior_scale, jitter):
     return lml, eps, raised
 
 
+@single_threaded_blas
 def block_log_marginal_likelihood(X, sigma_p, targets, length_scale: float,
                                   value_noise: float, gradient_noise: float,
                                   jitter: float = 1e-8, prior_scale: float = 1.0):
@@ -108,8 +113,8 @@ def block_log_marginal_likelihood(X, sigma_p, targets, length_scale: float,
 
     Returns
     -------
-    (lml, eps, raised): the log marginal likelihood (nats), the absolute jitter added
-    to the diagonal (m^2) and how many times it was raised x10.
+    (lml, eps, raised): the log marginal likelihood (nats), the largest absolute jitter
+    added to the diagonal and how many times it was raised x10.
     """
     X = np.asarray(X, dtype=np.float64).reshape(-1, 3)
     sp = np.asarray(sigma_p, dtype=np.float64).reshape(-1)
@@ -246,8 +251,13 @@ class HyperChoice:
                 f"({self.n_points} points)")
 
 
+def _dist(m: dict) -> float:
+    return sum(abs(math.log(v)) for v in m.values())
+
+
+@single_threaded_blas
 def select_hyperparameters(sample: BlockSample, start: dict, free, *, jitter: float = 1e-8,
-                           grid: dict = GRID, max_sweeps: int = 3) -> HyperChoice:
+                           grid: dict = GRID) -> HyperChoice:
     """Maximise the summed block LML (eq. lml) over multipliers of ``start``.
 
     Parameters
@@ -262,8 +272,6 @@ def select_hyperparameters(sample: BlockSample, start: dict, free, *, jitter: fl
         Relative Cholesky jitter (``GPConfig.jitter``).
     grid : dict
         Multipliers per field (:data:`GRID`).
-    max_sweeps : int
-        Coordinate-ascent sweeps at most.
 
     Returns
     -------
@@ -302,15 +310,16 @@ def select_hyperparameters(sample: BlockSample, start: dict, free, *, jitter: fl
 
     cur = {k: 1.0 for k in _ORDER}
     lml0 = total(cur)
-    for _ in range(max_sweeps):
-        changed = False
-        for k in free:
-            best = max(grid[k], key=lambda v: (total(dict(cur, **{k: v})),
-                                               -abs(math.log(v))))
-            if best != cur[k]:
-                cur[k], changed = best, True
-        if not changed:
-            break
+    # every combination of the free fields' multipliers (at most 5 x 3 x 3 x 3 = 135):
+    # the length scale, the prior scale and the gradient noise trade off against each
+    # other (the gradient's prior variance is c^2 sigma_p^2 3 / l^2), and coordinate
+    # ascent stopped on that ridge on draws from the exact model
+    axes = [grid[k] if k in free else (1.0,) for k in _ORDER]
+    for combo in itertools.product(*axes):
+        m = dict(zip(_ORDER, combo))
+        # ties (round-off) go to the candidate nearest the rule
+        if (total(m), -_dist(m)) > (total(cur), -_dist(cur)):
+            cur = m
     # the candidates' summed LML around the choice, one field at a time
     profile = {k: {float(v): total(dict(cur, **{k: v})) for v in grid[k]} for k in free}
     vals = {k: start[k] * cur[k] for k in free}
