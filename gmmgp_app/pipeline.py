@@ -427,6 +427,7 @@ def hyper_record(choice, jitter: float) -> dict:
             "start": dict(choice.start),
             "summed_lml": {k: {f"x{m:g}": float(v) for m, v in p.items()}
                            for k, p in choice.profile.items()},
+            "at_grid_edge": list(choice.at_edge),
             "lml_start": float(choice.lml_start), "lml_best": float(choice.lml_best),
             "evaluations": int(choice.evaluations), "blocks": int(choice.n_blocks),
             "points": int(choice.n_points), "blocks_total": int(choice.n_blocks_total),
@@ -436,8 +437,9 @@ def hyper_record(choice, jitter: float) -> dict:
 
 def _gp_hyper_message(choice) -> str:
     mult = ", ".join(f"{k} x{v:g}" for k, v in choice.multipliers.items() if k in choice.values)
+    edge = f"; at the grid's edge: {', '.join(choice.at_edge)}" if choice.at_edge else ""
     return (f"GP hyper-parameters, {choice.reason}: {mult} (summed LML {choice.lml_start:.1f} "
-            f"-> {choice.lml_best:.1f}; max jitter {choice.max_jitter:.3g})")
+            f"-> {choice.lml_best:.1f}; max jitter {choice.max_jitter:.3g}{edge})")
 
 
 def _gp_stage(ctx, gp_points, gp_normals, prior):

@@ -113,6 +113,7 @@ def test_selection_recovers_the_true_values_within_the_grid():
         assert set(prof) == set(GRID[k])
         assert max(prof, key=prof.get) == ch.multipliers[k]
     assert ch.n_blocks == 30 and ch.n_points == 1500 and ch.max_jitter > 0
+    assert ch.at_edge == ["value_noise", "gradient_noise", "prior_scale"]
 
 
 def test_fields_set_by_hand_are_not_searched():

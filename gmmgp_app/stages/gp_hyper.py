@@ -246,6 +246,13 @@ class HyperChoice:
     start: dict = field(default_factory=dict)
 
     @property
+    def at_edge(self) -> list:
+        """Fields whose choice is the grid's smallest or largest multiplier (the
+        maximum may lie beyond the grid)."""
+        return [k for k, p in self.profile.items()
+                if len(p) > 1 and self.multipliers[k] in (min(p), max(p))]
+
+    @property
     def reason(self) -> str:
         return (f"max. marginal likelihood over {self.n_blocks} blocks "
                 f"({self.n_points} points)")
