@@ -170,7 +170,7 @@ def box_scan():
     return scan
 
 
-ML = ["gp.marginal_likelihood=true"]
+ML = ["gp.marginal_likelihood=true", "gp.prior_scale=auto"]
 
 
 def test_build_map_records_the_choice_and_keeps_set_values(box_scan):
@@ -189,6 +189,11 @@ def test_build_map_records_the_choice_and_keeps_set_values(box_scan):
     m2 = _quiet(gm.build_map, box_scan, cfg.replace("gp.length_scale", 0.07))
     assert m2.config.gp.length_scale == 0.07
     assert m2.summary["auto"]["gp.hyper"]["multipliers"]["length_scale"] == 1.0
+    # the prior scale is a number (1) by default: searched only when set to 'auto'
+    m3 = _quiet(gm.build_map, box_scan, gm.MappingConfig().with_overrides(ML[:1]))
+    assert m3.config.gp.prior_scale == 1.0
+    assert set(m3.summary["auto"]["gp.hyper"]["summed_lml"]) == {
+        "length_scale", "value_noise", "gradient_noise"}
 
 
 def test_saved_map_with_a_prior_scale_predicts_identically(box_scan, tmp_path):
