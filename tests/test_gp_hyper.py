@@ -98,7 +98,7 @@ def _draw_blocks(n_blocks, n_pts, ls, vn, gn, c, seed, spacing=0.02):
 
 def test_selection_recovers_the_true_values_within_the_grid():
     ls, vn, gn, c = 0.04, 4e-5, 2e-3, 1.0
-    sample = _draw_blocks(30, 50, ls, vn, gn, c, seed=1)
+    sample = _draw_blocks(20, 40, ls, vn, gn, c, seed=1)
     # start one grid step off in every field: the truth is a grid point
     start = {"length_scale": ls / 1.4, "value_noise": vn * 4, "gradient_noise": gn / 4,
              "prior_scale": c * 2}
@@ -112,7 +112,13 @@ def test_selection_recovers_the_true_values_within_the_grid():
     for k, prof in ch.profile.items():
         assert set(prof) == set(GRID[k])
         assert max(prof, key=prof.get) == ch.multipliers[k]
-    assert ch.n_blocks == 30 and ch.n_points == 1500 and ch.max_jitter > 0
+    assert ch.n_blocks == 20 and ch.n_points == 800 and ch.max_jitter > 0
+    # the batched sum equals the sum of the blocks' own LMLs
+    per_block = sum(block_log_marginal_likelihood(
+        X, sp, t, ch.values["length_scale"], ch.values["value_noise"],
+        ch.values["gradient_noise"], prior_scale=ch.values["prior_scale"])[0]
+        for X, sp, t in zip(sample.X, sample.sigma_p, sample.targets))
+    assert ch.lml_best == pytest.approx(per_block, rel=1e-9)
     assert ch.at_edge == ["value_noise", "gradient_noise", "prior_scale"]
 
 

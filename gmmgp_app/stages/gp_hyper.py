@@ -34,7 +34,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.linalg import LinAlgError, cho_solve, cholesky
+from scipy.linalg import LinAlgError, cho_solve, cholesky, solve_triangular
 
 from gmmgp_app.stages._blas import single_threaded_blas
 from gmmgp_app.stages.gp import MAX_RELATIVE_JITTER, GPError
@@ -290,29 +290,68 @@ def select_hyperparameters(sample: BlockSample, start: dict, free, *, jitter: fl
                       "hyper-parameters, found none; set them by hand or turn "
                       "gp.marginal_likelihood off.")
     ys = [np.asarray(t, dtype=np.float64).reshape(-1) for t in sample.targets]
+    # all blocks at once: padded to the largest, padding rows are independent unit
+    # variables with target 0 (they add nothing to y^T K^-1 y nor to log |K|)
+    B, M = sample.n_blocks, 4 * max(len(x) for x in sample.X)
+    rows = np.array([len(y) for y in ys])
+    real = np.arange(M)[None, :] < rows[:, None]                    # (B, M)
+    Y = np.zeros((B, M))
+    SP = np.zeros((B, M))
+    for b, (sp, y) in enumerate(zip(sample.sigma_p, ys)):
+        Y[b, :len(y)] = y
+        SP[b, :len(y)] = np.repeat(sp, 4)
+    is_val = (np.arange(M) % 4 == 0)[None, :] & real
+    is_grad = (np.arange(M) % 4 != 0)[None, :] & real
     kj_cache: dict = {}
     cache: dict = {}
     jit = {"max": 0.0, "raised": 0}
+    const = -0.5 * float(rows.sum()) * _LOG2PI
+    ar = np.arange(M)
 
     def kj(ml):
         if ml not in kj_cache:
             ls = start["length_scale"] * ml
-            kj_cache[ml] = [matern32_joint(X, X, ls) for X in sample.X]
+            K = np.zeros((B, M, M))
+            for b, X in enumerate(sample.X):
+                n4 = 4 * len(X)
+                K[b, :n4, :n4] = matern32_joint(X, X, ls)
+            kj_cache[ml] = K * SP[:, :, None] * SP[:, None, :]
         return kj_cache[ml]
+
+    def total_each(m):
+        """Per-block loop with the jitter raised where needed (the batch failed)."""
+        tot, ls = 0.0, start["length_scale"] * m["length_scale"]
+        c = start["prior_scale"] * m["prior_scale"]
+        for X, sp, y in zip(sample.X, sample.sigma_p, ys):
+            lml, eps, raised = _lml_from(
+                matern32_joint(X, X, ls), sp, y, start["value_noise"] * m["value_noise"],
+                start["gradient_noise"] * m["gradient_noise"], c, jitter)
+            tot += lml
+            jit["max"] = max(jit["max"], eps)
+            jit["raised"] += raised > 0
+        return tot
 
     def total(m):
         key = tuple(m[k] for k in _ORDER)
         if key not in cache:
-            tot = 0.0
-            for Kj, sp, y in zip(kj(m["length_scale"]), sample.sigma_p, ys):
-                lml, eps, raised = _lml_from(
-                    Kj, sp, y, start["value_noise"] * m["value_noise"],
-                    start["gradient_noise"] * m["gradient_noise"],
-                    start["prior_scale"] * m["prior_scale"], jitter)
-                tot += lml
-                jit["max"] = max(jit["max"], eps)
-                jit["raised"] += raised > 0
-            cache[key] = tot
+            c2 = (start["prior_scale"] * m["prior_scale"]) ** 2
+            K = c2 * kj(m["length_scale"])
+            d = (is_val * (start["value_noise"] * m["value_noise"])
+                 + is_grad * (start["gradient_noise"] * m["gradient_noise"]))
+            diag = K[:, ar, ar] + d
+            diag = np.where(real, diag * (1.0 + jitter), 1.0)
+            K[:, ar, ar] = diag
+            try:
+                L = np.linalg.cholesky(K)
+            except np.linalg.LinAlgError:
+                cache[key] = total_each(m)
+                return cache[key]
+            quad = sum(float(np.dot(z, z)) for z in (
+                solve_triangular(L[b], Y[b], lower=True, check_finite=False)
+                for b in range(B)))
+            logdet = np.sum(np.log(L[:, ar, ar]))
+            cache[key] = float(-0.5 * quad - logdet + const)
+            jit["max"] = max(jit["max"], float(jitter * np.max(np.where(real, diag, 0.0))))
         return cache[key]
 
     cur = {k: 1.0 for k in _ORDER}
