@@ -20,6 +20,7 @@ is re-exported here (bottom of the file).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from dataclasses import dataclass, field
@@ -34,6 +35,7 @@ from .config import METHODS, MappingConfig, is_auto
 from .stages import gmr as _gmr
 from .stages import farfield as _farfield
 from .stages import gp as _gp
+from .stages import gp_hyper as _gp_hyper
 from .stages import hgmm as _hgmm
 from .stages import loggpis as _loggpis
 from .stages import octree as _octree
@@ -304,6 +306,9 @@ class RunContext:
         Progress of the marching-cubes blocks.
     loggpis_lambda : float, optional
         Log-GPIS lambda (1/m); default ``sqrt(3) / cfg.gp.length_scale``.
+    auto_fields : tuple of str
+        Dotted fields whose value was chosen from the scan (``"auto"``); the
+        ``gp_hyper`` stage searches only these.
     """
 
     cfg: MappingConfig
@@ -313,6 +318,7 @@ class RunContext:
     voxel_size: Optional[float] = None
     surface_progress: Optional[Callable] = None
     loggpis_lambda: Optional[float] = None
+    auto_fields: tuple = ()
 
 
 @dataclass(frozen=True)
@@ -374,6 +380,66 @@ def _constant_prior_stage(ctx, data):
     mask = np.ones(len(data.points), dtype=bool)  # the GPIS baseline trains on every point
     return {"prior": _gp.ConstantPrior(**GPIS_PRIOR), "gp_points": data.points[mask],
             "gp_normals": data.normals[mask]}
+
+
+#: GP fields the marginal likelihood may choose (stages/gp_hyper.py).
+GP_HYPER_FIELDS = ("gp.length_scale", "gp.value_noise", "gp.gradient_noise", "gp.prior_scale")
+
+
+def auto_fields(record: dict) -> tuple:
+    """Dotted fields a resolve_config record says were chosen from the scan."""
+    return tuple(k for k, v in record.items() if isinstance(v, dict) and v.get("auto"))
+
+
+def _gp_hyper_stage(ctx, gp_points, gp_normals, prior, summary=None):
+    """GP hyper-parameters by maximum marginal likelihood over sampled blocks; the
+    run's configuration takes the chosen values (``cfg`` output)."""
+    from .stages.autoscale import clip_to_field
+
+    g = ctx.cfg.gp
+    free = [k for k in GP_HYPER_FIELDS if k in ctx.auto_fields]
+    blocks, n_total = _gp_hyper.sample_blocks(gp_points, g.block_size, g.block_overlap,
+                                              g.hyper_blocks, g.hyper_block_points,
+                                              seed=ctx.cfg.seed)
+    sample = _gp_hyper.BlockSample.from_prior(gp_points, gp_normals, prior, blocks, n_total)
+    if sample.n_blocks == 0:
+        return {"cfg": None, "gp_hyper": None}
+    start = {k.partition(".")[2]: float(getattr(g, k.partition(".")[2]))
+             for k in GP_HYPER_FIELDS}
+    choice = _gp_hyper.select_hyperparameters(
+        sample, start, [k.partition(".")[2] for k in free], jitter=g.jitter)
+    updates = {f"gp.{k}": clip_to_field(f"gp.{k}", v) for k, v in choice.values.items()}
+    if summary is not None:
+        rec = summary.setdefault("auto", {})
+        for key, val in updates.items():
+            name = key.partition(".")[2]
+            prev = rec.get(key, {}).get("reason", "")
+            rec[key] = {"value": float(val), "auto": True,
+                        "reason": f"{choice.reason}: x{choice.multipliers[name]:g} of the "
+                                  f"rule ({prev})"}
+        rec["gp.hyper"] = hyper_record(choice, g.jitter)
+    return {"cfg": ctx.cfg.replace(updates), "gp_hyper": choice}
+
+
+def hyper_record(choice, jitter: float) -> dict:
+    """What summary["auto"]["gp.hyper"] keeps of a HyperChoice (JSON-ready)."""
+    return {"reason": choice.reason, "multipliers": dict(choice.multipliers),
+            "start": dict(choice.start),
+            "summed_lml": {k: {f"x{m:g}": float(v) for m, v in p.items()}
+                           for k, p in choice.profile.items()},
+            "at_grid_edge": list(choice.at_edge),
+            "lml_start": float(choice.lml_start), "lml_best": float(choice.lml_best),
+            "evaluations": int(choice.evaluations), "blocks": int(choice.n_blocks),
+            "points": int(choice.n_points), "blocks_total": int(choice.n_blocks_total),
+            "jitter_relative": float(jitter), "max_jitter": float(choice.max_jitter),
+            "n_jitter_raised": int(choice.n_jitter_raised)}
+
+
+def _gp_hyper_message(choice) -> str:
+    mult = ", ".join(f"{k} x{v:g}" for k, v in choice.multipliers.items() if k in choice.values)
+    edge = f"; at the grid's edge: {', '.join(choice.at_edge)}" if choice.at_edge else ""
+    return (f"GP hyper-parameters, {choice.reason}: {mult} (summed LML {choice.lml_start:.1f} "
+            f"-> {choice.lml_best:.1f}; max jitter {choice.max_jitter:.3g}{edge})")
 
 
 def _gp_stage(ctx, gp_points, gp_normals, prior):
@@ -466,6 +532,16 @@ STAGES = {s.name: s for s in (
           reported=False),
     Stage("constant_prior", _constant_prior_stage, ("data",),
           ("prior", "gp_points", "gp_normals"), reported=False),
+    Stage("gp_hyper", _gp_hyper_stage, ("gp_points", "gp_normals", "prior"),
+          ("cfg", "gp_hyper"), optional=("summary",),
+          payload=lambda o, i: (o["gp_hyper"], {} if o["gp_hyper"] is None else
+                                {"message": _gp_hyper_message(o["gp_hyper"])}),
+          counts=lambda o, c: {} if o["gp_hyper"] is None else {
+              "blocks": o["gp_hyper"].n_blocks, "points": o["gp_hyper"].n_points,
+              "evaluations": o["gp_hyper"].evaluations,
+              "max_jitter": o["gp_hyper"].max_jitter},
+          when=lambda i, c: (c.cfg.gp.marginal_likelihood and len(i["gp_points"]) > 0
+                             and any(k in c.auto_fields for k in GP_HYPER_FIELDS))),
     Stage("gp", _gp_stage, ("gp_points", "gp_normals", "prior"), ("gp",),
           payload=lambda o, i: (o["gp"], {"points": i["gp_points"], "normals": i["gp_normals"]}),
           counts=_info_counts, when=lambda i, c: len(i["gp_points"]) > 0),
@@ -482,7 +558,7 @@ STAGES = {s.name: s for s in (
 
 #: Stages of each method, in order (``map`` assembles the SurfaceMap).
 RECIPES = {
-    "gmmgp": ("prepare", "hgmm", "gmr", "select", "gp", "far"),
+    "gmmgp": ("prepare", "hgmm", "gmr", "select", "far", "gp_hyper", "gp"),
     "hgmm": ("prepare", "hgmm", "gmr"),
     "gpis": ("prepare", "constant_prior", "gp"),
     "loggpis": ("prepare", "loggpis"),
@@ -536,6 +612,8 @@ def run_stages(names, state: dict, ctx: RunContext, *, observer=None,
         out = st.fn(ctx, **kw)
         seconds = time.perf_counter() - t0
         state.update(out)
+        if out.get("cfg") is not None:     # a stage refined the run's configuration
+            ctx = dataclasses.replace(ctx, cfg=out["cfg"])
         if st.counts is not None:
             summary["counts"][name] = st.counts(out, ctx)
         if st.reported:
@@ -598,7 +676,7 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
         on_config(cfg, summary["auto"])
     observer.on_stage("scan", StagePayload(scan, 0.0))
     ctx = RunContext(cfg, method, executor=executor, progress=progress,
-                     loggpis_lambda=loggpis_lambda)
+                     loggpis_lambda=loggpis_lambda, auto_fields=auto_fields(summary["auto"]))
     state = run_stages(recipe + ("map",), {"scan": scan, "summary": summary}, ctx,
                        observer=observer, summary=summary)
     return state["smap"]

@@ -61,6 +61,9 @@ class ConsoleObserver:
         if not self.enabled:
             return
         self.stream.write(f"[{name}] done in {payload.seconds:.2f} s\n")
+        msg = (getattr(payload, "extra", None) or {}).get("message")
+        if msg:
+            self.stream.write(f"[{name}] {msg}\n")
         self.stream.flush()
 
     def progress(self, total: int, desc: str) -> ProgressBar:

@@ -76,8 +76,14 @@ def test_observer_sees_every_stage_in_order(sphere):
             seen.append((name, payload.seconds >= 0))
 
     gm.build_map(scan, gm.MappingConfig(), observer=Recorder())
-    assert [s for s, _ in seen] == ["scan", "prepare", "hgmm", "gmr", "gp", "far"]
+    # the far field comes before the GP: it keeps the measured noise when gp_hyper
+    # (opt-in, not run here) changes the GP's value noise
+    assert [s for s, _ in seen] == ["scan", "prepare", "hgmm", "gmr", "far", "gp"]
     assert all(ok for _, ok in seen)
+    seen.clear()
+    gm.build_map(scan, gm.MappingConfig().replace("gp.marginal_likelihood", True),
+                 observer=Recorder())
+    assert [s for s, _ in seen] == ["scan", "prepare", "hgmm", "gmr", "far", "gp_hyper", "gp"]
 
 
 def test_predict_rejects_bad_queries(sphere):

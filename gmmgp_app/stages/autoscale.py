@@ -31,6 +31,7 @@ block size                   ``4/3 l`` snapped to 1, 2, 5 x 10^k m (the old 0.2 
 value noise                  ``sigma^2``
 gradient noise               ``(2 sigma / r_n)^2`` clipped to [1e-4, 0.05]: the angle
                              error of a PCA normal from noise sigma over radius r_n
+GP prior scale ``c``         1 (the GMR's ``sigma_p``, eq. kernel2)
 surface voxel                ``0.6 h_t``
 HGMM ``reg_covar``           ``(0.004 s)^2`` (1e-6 m^2 at s = 0.25 m)
 GMR ``far_growth_floor``     ``1.2 s``
@@ -51,7 +52,7 @@ from scipy.spatial import cKDTree
 from gmmgp_app.config import MappingConfig, is_auto
 
 __all__ = ["ScanScale", "AutoScaleError", "measure_scan", "auto_values", "resolve_config",
-           "TRAIN_BUDGET"]
+           "TRAIN_BUDGET", "clip_to_field"]
 
 #: Hit points trained on before the voxel subset starts (about 2 s of prepare + HGMM
 #: per 100k points here).
@@ -204,6 +205,7 @@ def auto_values(scale: ScanScale, budget: int = TRAIN_BUDGET, *,
         "gp.d_m": (sig, "sigma: correct the prior where it misses a hit by more than the noise"),
         "gp.value_noise": (sig ** 2, "sigma^2: the noise along the normals"),
         "gp.gradient_noise": (gn, "(2 sigma / r_n)^2 in [1e-4, 0.05]: PCA normal angle error"),
+        "gp.prior_scale": (1.0, "1: the prior's sigma_p scales the kernel (eq. kernel2)"),
         "surface.voxel_size": (0.6 * ht, "0.6 h_t"),
         "far.kernel_floor": (ht, "h_t: a few tangent planes near the data"),
     }
@@ -231,7 +233,7 @@ def resolve_config(cfg: MappingConfig, points, origins=None, *,
     record: dict = {"scan": scale.to_dict()}
     updates = {}
     for key in wanted:
-        updates[key] = _clip_to_field(key, vals[key]["value"])
+        updates[key] = clip_to_field(key, vals[key]["value"])
     # the voxel subset is a voxel size, not a rate
     if "prepare.subsample_rate" in updates and scale.n_points > TRAIN_BUDGET \
             and cfg.prepare.subsample_voxel is None:
@@ -268,7 +270,7 @@ def _voxel_for_budget(points, start: float, budget: int, rounds: int = 4) -> flo
     return _sig3(c)
 
 
-def _clip_to_field(dotted: str, value: float) -> float:
+def clip_to_field(dotted: str, value: float) -> float:
     """Keep an automatic value inside the field's documented range (a scan of a few
     isolated points would otherwise ask for a 265 m normal radius)."""
     sec, _, name = dotted.partition(".")

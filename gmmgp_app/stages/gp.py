@@ -42,7 +42,8 @@ __all__ = [
 #: Cholesky jitter is raised x10 from ``GPConfig.jitter`` up to this (relative) bound.
 MAX_RELATIVE_JITTER = 1e-2
 
-_HYPER = ("length_scale", "value_noise", "gradient_noise", "block_size", "block_overlap")
+_HYPER = ("length_scale", "value_noise", "gradient_noise", "block_size", "block_overlap",
+          "prior_scale")
 
 
 class GPError(ValueError):
@@ -425,6 +426,8 @@ class LocalGPField:
         x = _xyz(xyz, "query points")
         out = self.prior.predict(x, return_grad=return_grad)
         m, v = np.array(out[0], dtype=np.float64), np.array(out[1], dtype=np.float64)
+        # the GP's prior standard deviation is c sigma_p (GPConfig.prior_scale)
+        v *= self.hyper.get("prior_scale", 1.0) ** 2
         g = np.array(out[2], dtype=np.float64) if return_grad else None
         if len(x) == 0 or not self.blocks:
             return (m, v, g) if return_grad else (m, v)
@@ -522,6 +525,7 @@ class LocalGPField:
             raise GPError(f"Expected saved GP arrays {list(need)}, missing {missing}; "
                           "the map directory may be incomplete.")
         hyper = dict(zip(_HYPER, (float(h) for h in arrays["gp_hyper"])))
+        hyper.setdefault("prior_scale", 1.0)     # maps saved before the field existed
         for k in _HYPER:
             if not math.isclose(hyper[k], float(getattr(cfg, k)), rel_tol=1e-12):
                 raise GPError(f"Saved GP was fitted with {k}={hyper[k]!r}, the config has "
@@ -608,7 +612,7 @@ def fit_local_gps(points, normals, prior, cfg, *, rng=None, executor=None,
     rng = np.random.default_rng(0) if rng is None else rng
     m, v, g = prior.predict(pts, return_grad=True)
     targets = np.column_stack([-np.asarray(m), nrm - np.asarray(g)])
-    sigma_p = np.sqrt(np.maximum(np.asarray(v, dtype=np.float64), 0.0))
+    sigma_p = cfg.prior_scale * np.sqrt(np.maximum(np.asarray(v, dtype=np.float64), 0.0))
     if np.any(sigma_p <= 0):
         raise GPError("Expected a positive prior variance at every GP point, found zeros; "
                       "the prior cannot scale the kernel (eq. kernel2).")
@@ -704,10 +708,13 @@ def fit_gp_blocks_at(keys, points, normals, prior, cfg, executor=None) -> LocalG
     update of a map refits only the blocks new points touch); points per block are
     capped as there, with the same seed.
     """
+    from gmmgp_app.config import concrete
+
+    cfg = concrete(cfg)
     grid = BlockGrid(keys, cfg.block_size, cfg.block_overlap)
     m, v, g = prior.predict(points, return_grad=True)
     targets = np.column_stack([-np.asarray(m), normals - np.asarray(g)])
-    sigma_p = np.sqrt(np.maximum(np.asarray(v, dtype=np.float64), 0.0))
+    sigma_p = cfg.prior_scale * np.sqrt(np.maximum(np.asarray(v, dtype=np.float64), 0.0))
     pi, bi = grid.cover(points)
     rng = np.random.default_rng(0)
     items = []

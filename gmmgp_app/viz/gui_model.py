@@ -37,7 +37,8 @@ STAGE_LABELS = {"scan": "Scan", "prepare": "Prepared rows", "hgmm": "HGMM",
                 "gmr": "GMR error", "gp": "GP points", "surface": "Surface"}
 #: The pipeline stages behind each shown stage (gmmgp recipe, then the map and its mesh).
 _PIPELINE_STAGES = {"prepare": ("prepare",), "hgmm": ("hgmm",), "gmr": ("gmr",),
-                    "gp": ("select", "gp", "far", "map"), "surface": ("surface",)}
+                    "gp": ("select", "far", "gp_hyper", "gp", "map"),
+                    "surface": ("surface",)}
 
 
 class ViewerError(ValueError):
@@ -218,7 +219,7 @@ class ViewerModel:
         -------
         StageResults
         """
-        from ..pipeline import RunContext, resolve_config, run_stages
+        from ..pipeline import RunContext, auto_fields, resolve_config, run_stages
 
         r = self.results if base is None else base
         if start not in STAGES[1:]:
@@ -264,8 +265,9 @@ class ViewerModel:
 
         bar = _ProgressBar(progress) if progress is not None else None
         # "auto" fields resolved from the scan exactly as build_map does
-        run_cfg = cfg if r.scan is None else resolve_config(cfg, r.scan)[0]
-        ctx = RunContext(run_cfg, "gmmgp", voxel_size=voxel_size, surface_progress=bar)
+        run_cfg, record = (cfg, {}) if r.scan is None else resolve_config(cfg, r.scan)
+        ctx = RunContext(run_cfg, "gmmgp", voxel_size=voxel_size, surface_progress=bar,
+                         auto_fields=auto_fields(record))
         names = [p for s in order for p in _PIPELINE_STAGES[s]]
         if cancelled():
             raise Cancelled(start)
