@@ -271,7 +271,7 @@ class GPConfig:
         "every bench scene (the residuals at the GP points are smaller than sigma_p), "
         "but c also scales the prior variance where no GP point is near, and there the "
         "GMR's error is not smaller: Log-likelihood of the paper's field 0.1-0.2 m from "
-        "the pipes -276 -> -1107 (scripts/bench_field.py, docs/field.md)")
+        "the pipes -276 -> -1107 (scripts/bench_accuracy.py, docs/field.md)")
     marginal_likelihood: bool = _f(
         False, "Choose the GP fields left at 'auto' (length_scale, value_noise, "
         "gradient_noise, prior_scale) by maximum marginal likelihood (eq. lml) over a "
@@ -281,7 +281,7 @@ class GPConfig:
         "field within 0.1 mm and lowers the paper's field's near RMSE (street2 0.1-0.2 m "
         "21.0 -> 18.8 mm), but the calibrated variance (fitted with the rule values) "
         "then over-covers near the data (street2 0-0.05 m: 0.76 -> 0.84 within 1 sigma); "
-        "scripts/bench_field.py, docs/field.md")
+        "scripts/bench_accuracy.py, docs/field.md")
     hyper_blocks: int = _f(
         48, "Blocks sampled (seeded) for the marginal likelihood; bounds its cost.",
         1, 10000)
