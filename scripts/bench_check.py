@@ -47,9 +47,9 @@ class _TimedMap:
         self.offset = smap.offset
         self.seed_points = getattr(smap, "seed_points", None)
 
-    def predict(self, xyz, return_grad=False):
+    def predict(self, xyz, return_grad=False, **kw):
         t = time.perf_counter()
-        out = self.smap.predict(xyz, return_grad=return_grad)
+        out = self.smap.predict(xyz, return_grad=return_grad, **kw)
         self.seconds += time.perf_counter() - t
         self.points += len(xyz)
         self.calls += 1
