@@ -309,7 +309,14 @@ def _map_box(smap):
 def _voxel_sample(points, voxel, max_points, rng):
     """Indices of one point per ``voxel`` cell, at most ``max_points`` (random)."""
     keys = np.floor(points / voxel).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
+    keys -= keys.min(0)
+    span = keys.max(0) + 1
+    if float(span[0]) * float(span[1]) * float(span[2]) < 2.0 ** 62:
+        # one integer per cell: a 1-D unique is 7x faster than unique(axis=0) (same cells)
+        _, first = np.unique((keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2],
+                             return_index=True)
+    else:
+        _, first = np.unique(keys, axis=0, return_index=True)
     idx = np.sort(first)
     if len(idx) > max_points:
         idx = np.sort(rng.choice(idx, max_points, replace=False))
@@ -416,8 +423,43 @@ def _apply(T, x):
     return x @ T[:3, :3].T + T[:3, 3]
 
 
+def _aitken(step, prev, D, accelerate, min_cos=0.9, max_rate=0.9):
+    """Extrapolate a linearly converging Gauss-Newton sequence along its direction.
+
+    Where the points slide along a weakly constrained direction (along a street whose
+    facades are nearly parallel), the normal matrix ``J^T W J`` overstates the cost's
+    curvature there: the map's gradient is not exactly normal to a wall, and its small
+    components along the wall count as constraint that moving along it does not meet.
+    Gauss-Newton then takes only a fraction ``1 - r`` of the remaining distance per
+    step, always in the same direction (synthetic street: r = 0.6 along x, steps 0.60,
+    0.36, 0.23, 0.16 mm, cosine between successive steps > 0.99). Aitken's delta^2
+    on that component: with ``u`` the previous step's unit direction (scaled space,
+    rotations times the lever) and ``r = (s . u) / |s_prev|`` the observed rate, the
+    steps still to come sum to ``(s . u) r / (1 - r)`` along ``u``, which is added.
+    Only when the steps agree in direction (cosine > ``min_cos``) and ``0 < r <
+    max_rate``; after an extrapolated step the next one is plain Gauss-Newton (its
+    rate would compare a step with a jump). The fixed point is unchanged: at it the
+    Gauss-Newton step, and so the extrapolation, is zero.
+
+    Returns (step, previous plain step in scaled space or None, factor along u).
+    """
+    s = step / D
+    if not accelerate:
+        return step, None, 1.0
+    if prev is not None:
+        n_prev, n_s = float(np.linalg.norm(prev)), float(np.linalg.norm(s))
+        if n_prev > 0 and n_s > 0:
+            u = prev / n_prev
+            a = float(s @ u)
+            r = a / n_prev
+            if a / n_s > min_cos and 0.0 < r < max_rate:
+                return D * (s + u * a * r / (1.0 - r)), None, 1.0 / (1.0 - r)
+    return step, s, 1.0
+
+
 def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, max_iter,
-                  frame=None, tol_t=5e-5, tol_r=5e-6, max_step_t=0.5, max_step_r=0.05):
+                  frame=None, tol_t=5e-5, tol_r=5e-6, max_step_t=0.5, max_step_r=0.05,
+                  accelerate=True):
     """Robust Gauss-Newton from ``T0``, never stepping along the ``frozen`` directions.
 
     ``frozen`` holds unit vectors of the scaled space (rotation times the lever of
@@ -429,6 +471,7 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, max
     pivot, D = (None, None) if frame is None else frame
     F = np.zeros((6, 0)) if not frozen else np.stack(frozen, axis=1)
     P = np.eye(6) - F @ F.T
+    prev = None
     for it in range(1, max_iter + 1):
         y = _apply(T, x)
         m, var, g = _predict(smap, y)
@@ -448,6 +491,8 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, max
         good = lam > 1e-9 * lam[-1]  # numerically singular only (and the frozen ones)
         Vg = V[:, good]
         step = D * (Vg @ ((Vg.T @ (P @ (D * b))) / lam[good]))  # back to (m, rad)
+        gn_step = step
+        step, prev, factor = _aitken(step, prev, D, accelerate)
         # cap the step (far from the surface the field's gradient is only a guide)
         f = min(1.0, max_step_t / max(np.linalg.norm(step[:3]), 1e-300),
                 max_step_r / max(np.linalg.norm(step[3:]), 1e-300))
@@ -457,8 +502,9 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, max
         T[:3, :3] = U @ Wt
         history.append({"iteration": it, "points": n_used, "z_scale": scale,
                         "step_m": float(np.linalg.norm(step[:3])),
-                        "step_deg": float(np.degrees(np.linalg.norm(step[3:])))})
-        if np.linalg.norm(step[:3]) < tol_t and np.linalg.norm(step[3:]) < tol_r:
+                        "step_deg": float(np.degrees(np.linalg.norm(step[3:]))),
+                        "step": step.tolist(), "extrapolation": factor})
+        if np.linalg.norm(gn_step[:3]) < tol_t and np.linalg.norm(gn_step[3:]) < tol_r:
             converged = True
             break
     return T, it, converged, history
@@ -696,7 +742,8 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
         if len(sample) < 6:
             raise CheckError(f"Expected at least 6 distinct points to register {src}, found "
                              f"{len(sample)}.")
-        m0, v0, _ = _predict(smap, far=True, y=y0[sample])  # faster than without grad
+        # the registration's own field (no far field): is anything known at all?
+        m0, v0, _ = _predict(smap, y=y0[sample])
         if not (np.sqrt(v0) < known_std).any():
             raise _nothing_known(src, known_std, float(np.sqrt(v0.min())))
         ta = time.perf_counter()
