@@ -111,6 +111,9 @@ class ChangeSegment:
     mean_distance : float
         Mean map distance of the points (m; > 0: in front of the map's surface,
         something new; < 0: behind it, something gone or moved).
+    mean_abs_z : float
+        Mean |z| of the points (how far beyond the map's and the sensor's
+        uncertainty they lie).
     indices : (size,) int64
         Indices of the points in the input scan.
     """
@@ -120,12 +123,14 @@ class ChangeSegment:
     bbox_min: np.ndarray
     bbox_max: np.ndarray
     mean_distance: float
+    mean_abs_z: float
     indices: np.ndarray = field(repr=False)
 
     def to_dict(self) -> dict:
         return {"size": int(self.size), "centroid": self.centroid.tolist(),
                 "bbox_min": self.bbox_min.tolist(), "bbox_max": self.bbox_max.tolist(),
-                "mean_distance_m": float(self.mean_distance)}
+                "mean_distance_m": float(self.mean_distance),
+                "mean_abs_z": float(self.mean_abs_z)}
 
 
 @dataclass(frozen=True)
@@ -221,9 +226,13 @@ class CheckResult:
     def to_dict(self) -> dict:
         """The JSON summary written as ``check.json`` by ``gmmgp check``."""
         out = dict(self.summary)
-        out["segments"] = [s.to_dict() for s in self.segments]
+        # "id" is the value of the per-point field ``segment`` of points.ply
+        out["segments"] = [dict(id=i, **s.to_dict()) for i, s in enumerate(self.segments)]
+        out["segments_frame"] = "map (original coordinates; bbox axis-aligned in the map frame)"
+        # scan -> map frame: the registration's result with align, else the guess (or
+        # identity); a viewer brings points.ply into the map frame with it
+        out["matrix"] = self.transform.tolist()
         if self.aligned:
-            out["matrix"] = self.transform.tolist()
             out["covariance"] = self.covariance.tolist()
             out["covariance_convention"] = (
                 "xi = (tx, ty, tz, rx, ry, rz) in m and rad; T_true = exp(xi) T (left "
@@ -337,7 +346,7 @@ def _name_direction(v, lever) -> str:
     return f"{kind} ({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f})"
 
 
-def _segments(points, changed, distance, radius, min_points, offset):
+def _segments(points, changed, distance, z, radius, min_points, offset):
     """Connected components of the changed points (radius graph)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -359,7 +368,8 @@ def _segments(points, changed, distance, radius, min_points, offset):
         q = points[members] + offset
         label[members] = new
         segs.append(ChangeSegment(int(len(members)), q.mean(0), q.min(0), q.max(0),
-                                  float(distance[members].mean()), members))
+                                  float(distance[members].mean()),
+                                  float(np.abs(z[members]).mean()), members))
     return label, tuple(segs)
 
 
@@ -468,8 +478,14 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, max
     ``frozen`` holds unit vectors of the scaled space (rotation times the lever of
     the first iteration, or ``frame = (pivot, D)`` when given); pivot and lever
     stay fixed, so the frozen directions mean the same thing at every step.
+
+    Converged when the Gauss-Newton step computed at ``T`` is under ``tol_t`` and
+    ``tol_r``; that last step is not applied, so the map's prediction at the returned
+    ``T`` is at hand and returned too (``last``: y, m, var, g; None if not converged)
+    for the information at the solution without another query.
     """
     T = T0.copy()
+    last = None
     history, converged, it = [], False, 0
     pivot, D = (None, None) if frame is None else frame
     F = np.zeros((6, 0)) if not frozen else np.stack(frozen, axis=1)
@@ -494,7 +510,13 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, max
         good = lam > 1e-9 * lam[-1]  # numerically singular only (and the frozen ones)
         Vg = V[:, good]
         step = D * (Vg @ ((Vg.T @ (P @ (D * b))) / lam[good]))  # back to (m, rad)
-        gn_step = step
+        if np.linalg.norm(step[:3]) < tol_t and np.linalg.norm(step[3:]) < tol_r:
+            history.append({"iteration": it, "points": n_used, "z_scale": scale,
+                            "step_m": 0.0, "step_deg": 0.0, "step": [0.0] * 6,
+                            "extrapolation": 1.0,
+                            "converged": "Gauss-Newton step below the tolerance, not applied"})
+            converged, last = True, dict(y=y, m=m, var=var, g=g)
+            break
         step, prev, factor = _aitken(step, prev, D, accelerate)
         # cap the step (far from the surface the field's gradient is only a guide)
         f = min(1.0, max_step_t / max(np.linalg.norm(step[:3]), 1e-300),
@@ -507,10 +529,7 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, max
                         "step_m": float(np.linalg.norm(step[:3])),
                         "step_deg": float(np.degrees(np.linalg.norm(step[3:]))),
                         "step": step.tolist(), "extrapolation": factor})
-        if np.linalg.norm(gn_step[:3]) < tol_t and np.linalg.norm(gn_step[3:]) < tol_r:
-            converged = True
-            break
-    return T, it, converged, history
+    return T, it, converged, history, last
 
 
 def _coarse_to_fine(smap, x, T0, frozen, frame, max_iter, kw, coarse_points=5000):
@@ -528,18 +547,22 @@ def _coarse_to_fine(smap, x, T0, frozen, frame, max_iter, kw, coarse_points=5000
         frame = (pivot, np.r_[np.ones(3), np.full(3, 1.0 / lever)])
     stride = len(x) // coarse_points
     if stride >= 2:
-        T, it, _, history = _gauss_newton(smap, x[::stride], T0, frozen, max_iter=max_iter,
+        T, it, _, history, _ = _gauss_newton(smap, x[::stride], T0, frozen, max_iter=max_iter,
                                           frame=frame, tol_t=1e-3, tol_r=1e-4, **kw)
         history = [dict(h, stage="coarse") for h in history]
-    T, it2, converged, h2 = _gauss_newton(smap, x, T, frozen, max_iter=max_iter, frame=frame,
-                                          **kw)
-    return T, it + it2, converged, history + h2
+    T, it2, converged, h2, last = _gauss_newton(smap, x, T, frozen, max_iter=max_iter,
+                                                frame=frame, **kw)
+    return T, it + it2, converged, history + h2, last
 
 
-def _information(smap, x, T, *, noise2, known_std, c_robust, loss):
-    """Weights, residuals, Jacobian, pivot, lever and scaling at ``T``."""
-    y = _apply(T, x)
-    m, var, g = _predict(smap, y)
+def _information(smap, x, T, *, noise2, known_std, c_robust, loss, last=None):
+    """Weights, residuals, Jacobian, pivot, lever and scaling at ``T`` (``last``: the
+    map's prediction at ``T`` when the caller has it)."""
+    if last is None:
+        y = _apply(T, x)
+        m, var, g = _predict(smap, y)
+    else:
+        y, m, var, g = last["y"], last["m"], last["var"], last["g"]
     w, scale = _weights(m, var, noise2, np.sqrt(var) < known_std, c_robust, loss)
     pivot = (w[:, None] * y).sum(0) / w.sum()
     lever = max(float(np.sqrt(np.average(((y - pivot) ** 2).sum(1), weights=w))), 1e-3)
@@ -582,8 +605,8 @@ def _register(smap, x, T0, *, noise, known_std, c_robust, loss, max_iter, degene
     """
     noise2 = noise * noise
     kw = dict(noise2=noise2, known_std=known_std, c_robust=c_robust, loss=loss)
-    T, it, converged, history = _coarse_to_fine(smap, x, T0, [], None, max_iter, kw)
-    info = _information(smap, x, T, **kw)
+    T, it, converged, history, last = _coarse_to_fine(smap, x, T0, [], None, max_iter, kw)
+    info = _information(smap, x, T, last=last, **kw)
     Hs = info["H"] * info["D"][:, None] * info["D"][None, :]
     lam, V = np.linalg.eigh(Hs)
     degenerate = []
@@ -595,7 +618,7 @@ def _register(smap, x, T0, *, noise, known_std, c_robust, loss, max_iter, degene
                                                   V[:, k].copy(), float(ratio)))
     if degenerate:
         # the frozen vectors refer to the solution's pivot and lever: keep them
-        T, it2, converged, history2 = _coarse_to_fine(
+        T, it2, converged, history2, last = _coarse_to_fine(
             smap, x, T0, [d.vector for d in degenerate], (info["pivot"], info["D"]),
             max_iter, kw)
         history = history + [{"restart": "frozen " + ", ".join(d.name for d in degenerate)}] \
@@ -774,7 +797,7 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
     known, changed = full(kn, False), full(ch, False)
     points = full(y + m_off, np.nan)
     seg_local, segments = _segments(np.nan_to_num(points - m_off), changed,
-                                    np.nan_to_num(distance), segment_radius,
+                                    np.nan_to_num(distance), np.nan_to_num(z), segment_radius,
                                     min_segment_points, m_off)
     T_out = T_loc.copy()
     T_out[:3, 3] = T_loc[:3, 3] - T_loc[:3, :3] @ s_off + m_off
