@@ -532,7 +532,10 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, max
     return T, it, converged, history, last
 
 
-def _coarse_to_fine(smap, x, T0, frozen, frame, max_iter, kw, coarse_points=5000):
+_COARSE_POINTS = 5000
+
+
+def _coarse_to_fine(smap, x, T0, frozen, frame, max_iter, kw, coarse_points=_COARSE_POINTS):
     """Gauss-Newton on every ``len(x) // coarse_points``-th point until the steps are
     under 1 mm and 0.006 deg, then on all of ``x`` (the costly map queries of the
     first, long steps are made on few points)."""
@@ -571,7 +574,7 @@ def _information(smap, x, T, *, noise2, known_std, c_robust, loss, last=None):
     return dict(y=y, m=m, w=w, scale=scale, pivot=pivot, lever=lever, J=J, H=H, D=D)
 
 
-def _finite_information(smap, x, T, info, v, delta):
+def _finite_information(smap, x, T, info, v, delta, stride: int = 4):
     """Curvature of the weighted cost along the scaled direction ``v``, measured by
     moving the points +-``delta`` metres (second difference), not from the gradient.
 
@@ -579,16 +582,24 @@ def _finite_information(smap, x, T, info, v, delta):
     as constraint (a flat wall's gradient is never exactly normal to it); shifting
     the points along a wall does not change their distances, so the measured
     curvature stays at the level of the map's noise.
+
+    Measured on every ``stride``-th weighted point and scaled by the weight sums to
+    all of them (the two extra map queries are the cost; ratios to the largest
+    eigenvalue with stride 4 against all points: corridor 8.7e-5 / 8.4e-5, synthetic
+    street 1.18e-2 / 1.13e-2, threshold 3e-4).
     """
     w, m0 = info["w"], info["m"]
-    use = w > 0
+    pos = w > 0
+    use = pos & (np.arange(len(w)) % max(int(stride), 1) == 0)
+    if use.sum() < 100:
+        use = pos
     c0 = float((w[use] * m0[use] ** 2).sum())
     cost = []
     for sgn in (1.0, -1.0):
         Td = _transform_step(sgn * delta * info["D"] * v, info["pivot"])
         mm, _, _ = _predict(smap, _apply(Td, info["y"][use]))
         cost.append(float((w[use] * mm ** 2).sum()))
-    return (cost[0] + cost[1] - 2 * c0) / (2 * delta * delta)
+    return (cost[0] + cost[1] - 2 * c0) / (2 * delta * delta) * (w[pos].sum() / w[use].sum())
 
 
 def _register(smap, x, T0, *, noise, known_std, c_robust, loss, max_iter, degeneracy_ratio,
@@ -768,8 +779,9 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
         if len(sample) < 6:
             raise CheckError(f"Expected at least 6 distinct points to register {src}, found "
                              f"{len(sample)}.")
-        # the registration's own field (no far field): is anything known at all?
-        m0, v0, _ = _predict(smap, y=y0[sample])
+        # the registration's own field (no far field), on the points of its coarse
+        # stage: is anything known at all?
+        m0, v0, _ = _predict(smap, y=y0[sample][::max(len(sample) // _COARSE_POINTS, 1)])
         if not (np.sqrt(v0) < known_std).any():
             raise _nothing_known(src, known_std, float(np.sqrt(v0.min())))
         ta = time.perf_counter()
