@@ -35,8 +35,14 @@ map frame about a pivot ``c`` (the weighted centroid of the aligned points)::
 with ``rho`` in metres (map frame axes) and ``phi`` in radians (rotation vector).
 The residual's Jacobian is ``J_i = [g_i^T, ((y_i - c) x g_i)^T]``. The registration
 uses one point per 0.1 m cell (at most 30k), first every n-th of them (5k) until
-the steps are under 1 mm, then all of them until under 50 um and 5 urad; on a
-loaded map 75-90 % of its time is the map's ``predict``.
+the steps are under 1 mm, then all of them until the step computed at ``T`` is
+under 50 um and 5 urad (that step is not applied: its prediction serves the
+information at the solution). Near the solution the steps along a weakly
+constrained direction shrink geometrically and are extrapolated (Aitken, see
+:func:`_aitken`). On a loaded map 75-90 % of the time is the map's ``predict``:
+the GMR prior (its kernel and the per-cell candidate lists built for the cells the
+moving points enter), the block cover and posteriors and, in the final check, the
+far field's neighbour query and weights.
 
 Degenerate directions: the normal matrix ``H = sum w_i J_i^T J_i`` is scaled so
 that rotations count as the displacement they cause at the points' RMS distance
@@ -69,9 +75,9 @@ mean (median error 0.03 on a corridor map). With it the corridor's free directio
 looked constrained (no degeneracy reported, the fit drifted 1.2 cm along it).
 
 The map is used only through its public ``predict(xyz, return_grad=True)`` (also
-where no gradient is needed: on scattered scan points the gradient path of the
-local GPs is 10-20x faster than the value-only one, which is tuned for the dense
-surface lattice; 64k street points: 0.3 s against 2.5-6 s); a
+where no gradient is needed: since the compiled value predictor both paths cost
+about the same on scattered scan points, 30k street points 0.27 s each on a loaded
+machine, and the check needs the gradient for the feet of the unsure points); a
 :class:`~gmmgp_app.pipeline.SurfaceMap` and a :class:`~gmmgp_app.tiling.TiledMap`
 both work.
 """
