@@ -294,7 +294,9 @@ class _PriorOnly:
     def __init__(self, smap):
         self.smap, self.config, self.seed_points = smap, smap.config, smap.seed_points
 
-    def predict(self, xyz, return_grad: bool = False):
+    def predict(self, xyz, return_grad: bool = False, far: bool = True):
+        """The GMR prior (``far`` is accepted for the map interface: the prior has no
+        far field; TiledMap.predict passes it to every tile)."""
         return self.smap.prior.predict(np.asarray(xyz, dtype=np.float64),
                                        return_grad=return_grad)
 

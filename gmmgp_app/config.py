@@ -272,7 +272,7 @@ class FarFieldConfig:
     enabled: bool = _f(
         True, "Mix the GP field with the IMLS distance of the training hit points by "
         "inverse variance (gmmgp only; false: the paper's field alone).",
-        source="chosen: scripts/bench_field.py, docs/field.md")
+        source="chosen: scripts/bench_accuracy.py, docs/field.md")
     neighbours: int = _f(16, "Hit points k per query of the IMLS distance.", 1, 256,
                          source="chosen on the synthetic street (8 and 16 agree near, "
                          "16 is better beyond 0.5 m)")
@@ -393,18 +393,29 @@ class MappingConfig:
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 
-    def to_toml(self) -> str:
-        """The resolved configuration as TOML (fields set to None are omitted)."""
+    def to_toml(self, comments: Optional[dict] = None) -> str:
+        """The configuration as TOML (fields set to None are omitted).
+
+        ``comments``: dotted field name -> text written after the value as a TOML
+        comment (``gmmgp run`` passes the reason of every value chosen from the scan,
+        so the file read back with ``--config`` reproduces the run and says why).
+        """
+        comments = comments or {}
+
+        def line(name, value, dotted):
+            c = comments.get(dotted)
+            return f"{name} = {_toml_value(value)}" + (f"  # {c}" if c else "")
+
         lines = []
         top = {k: v for k, v in self.to_dict().items() if not isinstance(v, dict)}
         for k, v in top.items():
-            lines.append(f"{k} = {_toml_value(v)}")
+            lines.append(line(k, v, k))
         for k, v in self.to_dict().items():
             if isinstance(v, dict):
                 lines.append(f"\n[{k}]")
                 for kk, vv in v.items():
                     if vv is not None:
-                        lines.append(f"{kk} = {_toml_value(vv)}")
+                        lines.append(line(kk, vv, f"{k}.{kk}"))
         return "\n".join(lines) + "\n"
 
     @classmethod

@@ -106,11 +106,11 @@ def open_executor(workers: Optional[int] = None, scheduler: Optional[str] = None
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        # not fork: once a parallel numba kernel has run, the parent uses GNU OpenMP
-        # (NUMBA_THREADING_LAYER=omp) and libgomp kills a forked child ("fork() called
-        # from a process already using GNU OpenMP, this is unsafe")
+        # spawned, not forked: the parent's numba parallel kernels start GNU OpenMP
+        # threads, and a child forked from such a process aborts ("fork() called from a
+        # process already using GNU OpenMP")
         with ProcessPoolExecutor(max_workers=int(workers), initializer=_single_thread_blas,
-                                 mp_context=multiprocessing.get_context("forkserver")) as ex:
+                                 mp_context=multiprocessing.get_context("spawn")) as ex:
             yield ex
         return
     from distributed import Client, LocalCluster

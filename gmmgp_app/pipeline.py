@@ -43,7 +43,7 @@ from .types import GaussianMixture, HGMMLevel, HierarchicalGMM, Scan, SurfaceMes
 
 __all__ = ["build_map", "SurfaceMap", "load_map", "update_map", "run_stages", "Stage",
            "STAGES", "RECIPES", "RunContext", "NullObserver", "FanoutObserver", "METHODS",
-           "MapFormatError", "PipelineError", "StagePayload"]
+           "MapFormatError", "PipelineError", "StagePayload", "auto_reasons", "format_auto"]
 
 MAP_FORMAT_VERSION = 1
 #: The GPIS baseline's constant prior (the paper's setup): distance 0.2 m, variance 0.2^2.
@@ -658,6 +658,31 @@ def resolve_config(cfg: MappingConfig, scan: Scan) -> tuple:
         # too few or coincident points to measure: the urban values, and prepare
         # gives its own one-line error if the scan cannot be mapped at all
         return concrete(cfg), {"fallback": f"urban values ({exc})"}
+
+
+def auto_reasons(record: dict) -> dict:
+    """Dotted field name -> ``"auto: <reason>"`` for every value chosen from the scan
+    (``summary["auto"]``); what :meth:`MappingConfig.to_toml` writes beside it."""
+    return {k: f"auto: {v['reason']}" for k, v in (record or {}).items()
+            if isinstance(v, dict) and v.get("auto") and "." in k}
+
+
+def format_auto(record: dict) -> str:
+    """The values chosen from the scan, one line each with its reason (printed by
+    ``gmmgp run``); empty when no field was ``"auto"``."""
+    if not record:
+        return ""
+    if "fallback" in record:
+        return f"auto values: {record['fallback']}"
+    sc = record.get("scan", {})
+    head = (f"auto values from the scan ({sc.get('n_points', 0):,} points, spacing h = "
+            f"{sc.get('spacing', float('nan')):.4g} m, noise sigma = "
+            f"{sc.get('noise', float('nan')):.3g} m):")
+    rows = [(k, v) for k, v in record.items() if isinstance(v, dict) and v.get("auto")
+            and "." in k]
+    width = max((len(k) for k, _ in rows), default=0)
+    return "\n".join([head] + [f"  {k:<{width}} = {v['value']:<10.4g} {v['reason']}"
+                               for k, v in rows])
 
 
 def check_surface_grid(scan: Scan, cfg: MappingConfig) -> int:

@@ -184,12 +184,26 @@ def test_corridor_reports_the_unconstrained_direction(corridor_map):
 
 @pytest.fixture(scope="module")
 def drives(tmp_path_factory):
-    """Map of the first drive, second drive with the van, truth, and their files."""
+    """Map of the first drive, second drive with the van, truth, and their files.
+
+    The map is the paper's field with the fixed urban values (``concrete`` config, far
+    field off): these tests measure the check (registration, covariance, change
+    detection) against a fixed map. With the default map (scale-aware 'auto' values
+    and the far field, issue 15) the same pair gives, measured: along-track
+    translation 4.7 cm (across and height < 0.3 mm, rotation 0.006 deg; the street's
+    few x-facing faces are mapped at 31-33 mm RMS by both maps, so the along-track
+    minimum is decided by their noise) and 1.1-1.2 % false flags (the default map
+    claims a std of about 7 mm at surfaces the first drive did not see, 5-35 cm from
+    its points, where it misses by about 4 cm). Both are reported as shortfalls of
+    issues 15 and 17, not hidden here.
+    """
     import gmmgp_app as gm
+    from gmmgp_app.config import MappingConfig, concrete
     from gmmgp_app.synth import save_scan_npz, scan_scene
 
     first, street = scan_scene("street", density=0.1, seed=0, scene_params=dict(length=20.0))
-    smap = gm.build_map(first)
+    cfg = concrete(MappingConfig()).replace({"far.enabled": False})
+    smap = gm.build_map(first, cfg)
     second, _ = scan_scene("street_van", density=0.1, seed=1, scene_params=dict(length=20.0),
                            lane_y=-1.5)
     T = _truth()
@@ -356,11 +370,13 @@ def test_tiled_map_checks_like_the_single_map(drives):
     stitched field pulls the scan 4 cm off (measured: x -39.6 mm, Mahalanobis^2
     2113: the covariance does not cover it). Open problem, see the report of issue
     17; this test pins what holds."""
+    from gmmgp_app.config import MappingConfig, concrete
     from gmmgp_app.synth import scan_scene
     from gmmgp_app.tiling import TileSpec, build_tiled_map
 
     first, _ = scan_scene("street", density=0.1, seed=0, scene_params=dict(length=20.0))
-    tmap = build_tiled_map(first, spec=TileSpec(size=10.0, overlap=2.0))
+    cfg = concrete(MappingConfig()).replace({"far.enabled": False})  # as the single map
+    tmap = build_tiled_map(first, cfg, spec=TileSpec(size=10.0, overlap=2.0))
     van = drives["second"].labels == 8
     at_truth = check_scan(Scan(drives["moved"]), tmap, init=drives["T"])
     single = check_scan(Scan(drives["moved"]), drives["smap"], init=drives["T"])

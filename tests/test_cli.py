@@ -81,6 +81,31 @@ def test_synth_then_run_writes_map_meshes_and_summary(tmp_path):
     assert not [p for p in out.iterdir() if p.name.startswith(".")]
 
 
+def test_auto_values_are_printed_and_saved_with_their_reasons(tmp_path):
+    """Issue 15: the values chosen from the scan are printed, saved in summary.json and
+    in config.toml (as numbers, each with its reason), and config.toml read back with
+    --config reproduces them; a --set value stays as set."""
+    from gmmgp_app.config import MappingConfig
+
+    r = _run("synth", "box", "--out", tmp_path / "box", "--density", "0.2")
+    assert r.returncode == 0, r.stderr
+    out = tmp_path / "run"
+    r = _run("run", tmp_path / "box" / "scan.npz", "--out", out, "--no-mesh",
+             "--set", "gp.d_m=0.01")
+    assert r.returncode == 0, r.stderr
+    assert "auto values from the scan" in r.stdout and "gp.length_scale" in r.stdout
+    assert "gp.d_m " not in r.stdout                  # set by hand: not an auto value
+    auto = json.loads((out / "summary.json").read_text())["auto"]
+    text = (out / "config.toml").read_text()
+    assert '"auto"' not in text
+    ls = auto["gp.length_scale"]
+    line = next(ln for ln in text.splitlines() if ln.startswith("length_scale ="))
+    assert f"# auto: {ls['reason']}" in line
+    cfg = MappingConfig.from_toml(out / "config.toml")
+    assert cfg.gp.length_scale == pytest.approx(ls["value"], rel=1e-12)
+    assert cfg.gp.d_m == 0.01
+
+
 def test_stage_hgmm_prints_the_level_history(tmp_path):
     r = _run("synth", "box", "--out", tmp_path / "box", "--density", "0.2")
     assert r.returncode == 0, r.stderr

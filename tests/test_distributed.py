@@ -1,6 +1,6 @@
 """Executors, batching, tiles and incremental updates (gmmgp_app.distributed / .tiling)."""
 
-from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -320,12 +320,8 @@ def test_fit_local_gps_process_pool_matches_serial():
     pts, nrm = _plane_points()
     cfg = GPConfig(block_size=0.3, max_block_points=120)
     prior = ConstantPrior(0.1, 0.01)
-    ref = fit_local_gps(pts, nrm, prior, cfg)
-    # forkserver, as open_executor: after the serial fit ran numba's OpenMP kernels a
-    # forked worker is killed by libgomp (BrokenProcessPool)
-    import multiprocessing
-
-    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("forkserver")) as ex:
+    ref = fit_local_gps(pts, nrm, prior, cfg)  # parallel numba kernels run in this process
+    with open_executor(workers=2, kind="processes") as ex:  # so the pool must not fork
         par = fit_local_gps(pts, nrm, prior, cfg, executor=ex)
     q = np.random.default_rng(3).uniform([0, 0, -0.2], [1.2, 1.2, 0.2], size=(500, 3))
     assert np.abs(ref.predict(q)[0] - par.predict(q)[0]).max() < 1e-9

@@ -23,6 +23,7 @@ from gmmgp_app.types import Scan
 from gmmgp_app.viz import gui_geometry as G
 from gmmgp_app.viz.gui_model import (STAGES, Cancelled, StageResults, ViewerError,
                                      ViewerModel, first_affected_stage)
+from gmmgp_app.viz.gui_screenshot import STAGE_LAYERS
 
 
 def _random_gaussians(k=5, d=4, seed=0):
@@ -167,6 +168,27 @@ def test_save_then_open_the_map_folder(plane_model, tmp_path):
     assert len(r.mesh.faces) > 0
 
 
+def test_run_record_counts_and_the_fields_change_at_the_scan_points(plane_model):
+    from gmmgp_app.viz.gui_tuning import field_change, run_record
+
+    model, _ = plane_model
+    base = model.results
+    assert field_change(base, base) == 0.0
+    first = run_record(None, base)
+    assert first.field_change_rms is None
+    assert (first.leaves, first.gp_points) == (base.hgmm.leaves.n_components,
+                                               len(base.gp_points))
+    cfg = base.config.replace("gp.d_m", float(np.quantile(np.abs(base.gmr_error), 0.5)))
+    new = model.compute("gp", cfg, 0.2, base=base)
+    rec = run_record(base, new)
+    # oracle: both fields evaluated at every scan point (1500 < the subsample cap)
+    p = base.scan.points
+    ref = np.sqrt(np.mean((new.smap.predict(p)[0] - base.smap.predict(p)[0]) ** 2))
+    assert rec.field_change_rms == pytest.approx(ref, rel=1e-12) and ref > 0
+    assert rec.gp_points == len(new.gp_points) < first.gp_points
+    assert f"GP pts {rec.gp_points}" in rec.label() and "mm rms" in rec.label()
+
+
 def test_model_errors_name_the_problem_and_the_fix(tmp_path):
     with pytest.raises(ViewerError, match="does not exist; give a scan file or a map folder"):
         ViewerModel.open(tmp_path / "nope.ply")
@@ -217,6 +239,22 @@ def test_compute_modules_never_import_the_gui():
 
 
 # --------------------------------------------------------------------------- the window
+def _lock_owner_alive(num) -> bool:
+    """Whether display :num is held by a running X server (a lock left by a killed one
+    is stale: the new server replaces it)."""
+    try:
+        pid = int(Path(f"/tmp/.X{num}-lock").read_text().strip())
+    except (OSError, ValueError):
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 def _start_xvfb(tmp_path):
     if not sys.platform.startswith("linux"):
         pytest.skip("the window test uses Xvfb (Linux only)")
@@ -224,18 +262,32 @@ def _start_xvfb(tmp_path):
     if exe is None:
         pytest.skip("Xvfb is not installed (apt-get install xvfb)")
     for num in range(170, 200):
-        if Path(f"/tmp/.X11-unix/X{num}").exists() or Path(f"/tmp/.X{num}-lock").exists():
+        if _lock_owner_alive(num):
             continue
         proc = subprocess.Popen([exe, f":{num}", "-screen", "0", "1600x1000x24", "-nolisten",
                                  "tcp"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        for _ in range(50):
-            if Path(f"/tmp/.X11-unix/X{num}").exists():
-                return proc, f":{num}"
+        for _ in range(100):  # ready once the lock holds our server's pid
+            try:
+                if int(Path(f"/tmp/.X{num}-lock").read_text().strip()) == proc.pid and \
+                        Path(f"/tmp/.X11-unix/X{num}").exists():
+                    return proc, f":{num}"
+            except (OSError, ValueError):
+                pass
             if proc.poll() is not None:
                 break
             time.sleep(0.1)
+        _stop_xvfb(proc)
+    pytest.fail("Xvfb is installed but did not start on any display :170-:199")
+
+
+def _stop_xvfb(proc):
+    """SIGTERM, so the server removes its lock and socket (SIGKILL left them behind)."""
+    proc.terminate()
+    try:
+        proc.wait(timeout=20)
+    except subprocess.TimeoutExpired:
         proc.kill()
-    pytest.skip("could not start Xvfb on any display :170-:199")
+        proc.wait()
 
 
 @pytest.fixture(scope="module")
@@ -243,7 +295,7 @@ def box_scan(tmp_path_factory):
     from gmmgp_app.synth import scan_scene
     from gmmgp_app.synth.io import save_scan_npz
 
-    scan, _ = scan_scene("box", density=0.2)
+    scan, _ = scan_scene("box", density=0.08)  # small: the app's runs take seconds
     return save_scan_npz(tmp_path_factory.mktemp("box") / "box.npz", scan.points, scan.origins)
 
 
@@ -253,68 +305,151 @@ def _png(path):
     return np.asarray(Image.open(path).convert("RGB")).astype(np.int16)
 
 
+def _run_quiet(cmd, env=None, timeout=300):
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout)
+    noise = ("[Open3D", "Using 'soft'", "FEngine", "Vulkan", "Selected physical", "Backend f")
+    err = "\n".join(ln for ln in r.stderr.splitlines() if not ln.startswith(noise))
+    return r.returncode, err
+
+
+_RENDER_STAGES = """
+import json, sys
+from gmmgp_app.viz.gui_model import ViewerModel, STAGES
+from gmmgp_app.viz.gui_screenshot import render_png
+from gmmgp_app.config import MappingConfig
+out = sys.argv[2]
+m = ViewerModel.open(sys.argv[1], MappingConfig().replace("gp.d_m", 0.05), voxel_size=0.2)
+m.results = m.compute("prepare", m.results.config, 0.2)
+for s in STAGES:
+    render_png(m, f"{out}/{s}.png", size=(320, 240), stage=s)
+render_png(m, f"{out}/hgmm_level2.png", size=(320, 240), stage="hgmm", level=2)
+render_png(m, f"{out}/gp_points_only.png", size=(320, 240), stage="gp", layers=["gp_points"])
+print(json.dumps({**m.results.counts(), "gp_n": len(m.results.gp_points)}))
+"""
+
+
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, raises=(AssertionError, subprocess.TimeoutExpired),
-                   reason="known: under Xvfb with Mesa's CPU Vulkan driver (llvmpipe) one "
-                   "frame sometimes takes 30 s to over 3 min (one llvmpipe rasterizer thread "
-                   "busy while the GUI thread waits in FilamentRenderer::BeginFrame); the same "
-                   "steps otherwise take ~1 s per frame. Cause not found (load or content).")
+def test_every_stage_is_drawn_and_differs_in_an_offscreen_render(tmp_path, box_scan):
+    """What the 3D view draws, checked through one offscreen frame per stage (no window)."""
+    # 320x240: on Mesa's CPU renderer a frame's cost grows with the lit triangles in view
+    # and is ~7x lower at this size than at 640x480 (measured); the timeout only guards
+    # against a hang, a busy machine must not fail this test.
+    code, err = _run_quiet([sys.executable, "-c", _RENDER_STAGES, str(box_scan), str(tmp_path)],
+                           timeout=900)
+    assert code == 0, err[-3000:]
+    names = list(STAGES) + ["hgmm_level2", "gp_points_only"]
+    imgs = {n: _png(tmp_path / f"{n}.png") for n in names}
+    for name, im in imgs.items():
+        assert im.shape == (240, 320, 3), name
+        assert im.std() > 3, f"{name}.png is blank"
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            frac = np.mean(np.any(imgs[a] != imgs[b], axis=2))
+            assert frac > 0.005, f"{a}.png and {b}.png are (almost) the same"
+    # GP points are drawn in red (0.85, 0.05, 0.05) on white, nothing else in that picture
+    gp = imgs["gp_points_only"]
+    red = (gp[..., 0] > 150) & (gp[..., 1] < 80) & (gp[..., 2] < 80)
+    drawn = np.any(gp < 250, axis=2)
+    assert red.sum() > 20 and red.sum() > 0.5 * drawn.sum()
+    # (the surface coloured by std is not rendered here: that frame took over 3 min at
+    # 320x240 on the busy machine, the grey one 4 s; see the report of issue 18)
+
+
+@pytest.mark.slow
+def test_view_screenshot_writes_a_png_and_exits(tmp_path, box_scan):
+    """``gmmgp view SCAN --screenshot PNG``: maps the scan up to the stage, renders once."""
+    xvfb, display = _start_xvfb(tmp_path)
+    env = dict(os.environ, DISPLAY=display)
+    env.pop("WAYLAND_DISPLAY", None)
+    png = tmp_path / "shot" / "hgmm.png"
+    try:
+        code, err = _run_quiet([sys.executable, "-m", "gmmgp_app.viz.gui", str(box_scan),
+                                "--stage", "hgmm", "--level", "1", "--size", "480x320",
+                                "--screenshot", str(png)], env=env, timeout=900)
+    finally:
+        _stop_xvfb(xvfb)
+    assert code == 0, err[-3000:]
+    assert "wrote" in err and "computing from prepare to hgmm" in err
+    im = _png(png)
+    assert im.shape == (320, 480, 3) and im.std() > 3
+    assert not list(png.parent.glob("*.part*"))  # nothing half-written left
+    # without a display: the one-line error, exit code 2, no PNG
+    env.pop("DISPLAY")
+    png2 = tmp_path / "shot" / "none.png"
+    r = subprocess.run([sys.executable, "-m", "gmmgp_app.cli", "view", str(box_scan),
+                        "--screenshot", str(png2)], env=env, capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 2 and "No display found" in r.stderr
+    assert "Traceback" not in r.stderr and not png2.exists()
+
+
+@pytest.mark.slow
 def test_app_steps_through_stages_and_reruns_under_xvfb(tmp_path, box_scan):
-    """Open the box scan, show every stage, step HGMM levels, retune and re-run."""
+    """Open the box scan, show every stage, step HGMM levels, retune and re-run.
+
+    Without 3D geometry (``--no-3d``): on Mesa's CPU renderer a frame of the scene
+    sometimes takes minutes on a busy machine, and every step waits for the GUI main
+    thread, which waits for the frame in flight. What the 3D view draws is checked
+    offscreen (test above); here the controller and the panel, and which geometry the
+    view would hold (``drawn``).
+    """
     xvfb, display = _start_xvfb(tmp_path)
     out = tmp_path
     steps = [{"state": str(out / "s0.json")}]
     for s in STAGES:  # the HGMM stage opens on level 0
-        steps += [{"stage": s}, {"screenshot": str(out / f"{s}.png")}]
+        steps += [{"stage": s}, {"state": str(out / f"stage_{s}.json")}]
     steps += [
-        {"stage": "hgmm"}, {"level": 3}, {"screenshot": str(out / "level3.png"), "window": True},
+        {"stage": "hgmm"}, {"level": 3}, {"state": str(out / "level3.json")},
         {"stage": "surface"}, {"colour_by_variance": True},
         {"probe": "center"}, {"state": str(out / "s1.json")},
         # c of the box's nodes is either ~0 or ~0.08: 0.1 stops the split at level 0
         {"threshold": 0.1}, {"d_m": 0.2}, {"run": True}, {"state": str(out / "s2.json")},
         # a run superseded at once: its results must be dropped, the newer one shown
-        {"d_m": 0.05, "run": True, "wait": False}, {"voxel": 0.2, "run": True},
+        {"d_m": 0.05, "run": True, "wait": False}, {"voxel": 0.25, "run": True},
         {"state": str(out / "s3.json")}, {"save": str(out / "saved" / "map")}, {"quit": True},
     ]
     (out / "steps.json").write_text(json.dumps(steps))
     env = dict(os.environ, DISPLAY=display)
     env.pop("WAYLAND_DISPLAY", None)
     try:
-        r = subprocess.run([sys.executable, "-m", "gmmgp_app.viz.gui", str(box_scan),
-                            "--size", "1200x800", "--voxel-size", "0.15", "--set", "gp.d_m=0.05",
-                            "--script", str(out / "steps.json")],
-                           env=env, capture_output=True, text=True, timeout=240)
+        code, err = _run_quiet([sys.executable, "-m", "gmmgp_app.viz.gui", str(box_scan),
+                                "--size", "1200x800", "--voxel-size", "0.2", "--set",
+                                "gp.d_m=0.05", "--no-3d", "--script", str(out / "steps.json")],
+                               env=env, timeout=900)
     finally:
-        xvfb.kill()
-        xvfb.wait()
-    assert r.returncode == 0, r.stderr[-3000:]
+        _stop_xvfb(xvfb)
+    assert code == 0, err[-3000:]
     s0, s1, s2, s3 = (json.loads((out / f"s{i}.json").read_text()) for i in range(4))
     assert s0["errors"] == [] and s3["errors"] == []
 
-    # every stage screenshot is non-blank and differs from the others
-    imgs = {s: _png(out / f"{s}.png") for s in STAGES}
-    h, w = imgs["hgmm"].shape[:2]
-    imgs["level3"] = _png(out / "level3.png")[:h, :w]  # the window: compare its 3D view
-    for name, im in imgs.items():
-        assert im.std() > 3, f"{name}.png is blank"
-    names = list(imgs)
-    for i, a in enumerate(names):
-        for b in names[i + 1:]:
-            frac = np.mean(np.any(imgs[a] != imgs[b], axis=2))
-            assert frac > 0.005, f"{a}.png and {b}.png are (almost) the same"
-    win = _png(out / "level3.png")
-    assert win.shape[:2] == (800, 1200)  # the whole window, panel included
-    panel = win[:, -200:]
-    assert np.mean(panel < 80) > 0.3  # the dark side panel is in the picture
+    # each stage shows its own layers and legend
+    for s in STAGES:
+        st = json.loads((out / f"stage_{s}.json").read_text())
+        assert st["stage"] == s and st["layers"] == sorted(STAGE_LAYERS[s])
+        assert set(st["drawn"]) >= set(STAGE_LAYERS[s]) - {"blocks", "gp_points"}
+        # the colour bar (its last cell) fits the panel
+        assert st["legend_bar_right"] <= st["panel_right"], (st["legend_bar_right"],
+                                                             st["panel_right"])
+    legends = {s: json.loads((out / f"stage_{s}.json").read_text())["legend"] for s in STAGES}
+    assert legends["scan"].startswith("height") and legends["gmr"].startswith("GMR error")
+    assert legends["hgmm"].startswith("complexity")
 
     # the panel shows the counts of the results it holds
     lv = s0["counts"]["levels"]
     assert f"leaves {s0['counts']['leaves']}" in s0["counts_label"]
-    assert s1["level_label"].startswith(f"level {min(3, lv - 1)} of {lv - 1}")
+    lv3 = json.loads((out / "level3.json").read_text())
+    assert lv3["level_label"].startswith(f"level {min(3, lv - 1)} of {lv - 1}")
     assert "SDF" in s1["probe"] and "+-" in s1["probe"]
     assert s1["legend"] == "predicted std (m)"
     assert s2["threshold"] == 0.1 and s2["counts"]["leaves"] != s0["counts"]["leaves"]
+    assert s2["threshold_shown"] == pytest.approx(0.1)  # the value itself, not its log10
     assert f"leaves {s2['counts']['leaves']}" in s2["counts_label"]
-    assert s3["dropped_results"] >= 1
+    # one record per finished run: the first without a change, the re-run with one
+    assert len(s0["runs"]) == 1 and s0["runs"][0]["field_change_rms"] is None
+    assert len(s2["runs"]) == 2 and s2["runs"][1]["leaves"] == s2["counts"]["leaves"]
+    assert s2["runs"][1]["field_change_rms"] > 0 and "run 2: c* 0.1" in s2["runs_label"]
+    # the newer run's results are shown (whether the superseded run had a stage result
+    # left to drop depends on timing: not asserted)
     assert s3["d_m"] == 0.05 and s3["generation"] == s2["generation"] + 2
+    assert s3["counts"]["faces"] != s2["counts"]["faces"]
     assert (out / "saved" / "map" / "map.json").is_file()

@@ -16,14 +16,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from .options import add_command, add_reader_options, read_scan_args
+from .options import add_command, check_writable, add_reader_options, read_scan_args
 
 __all__ = ["add_parser", "run", "load_any_map", "write_points_ply", "write_z_histogram",
            "output_files", "PLY_FIELDS"]
@@ -170,15 +169,9 @@ def run(args) -> int:
     t0 = time.perf_counter()
     quiet = getattr(args, "quiet", False)
     out = Path(args.out)
-    for target, flag in ((out, "--out"), (Path(args.rrd).parent if args.rrd else None, "--rrd")):
-        if target is None:
-            continue
-        probe = target
-        while not probe.exists():
-            probe = probe.parent
-        if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
-            raise PermissionError(f"Cannot write to '{target}' ('{probe}' is not a writable "
-                                  f"folder); choose another {flag}.")
+    check_writable(out, "--out", what="")
+    if args.rrd:
+        check_writable(Path(args.rrd).parent, "--rrd", what="")
     init = load_transform(args.init) if args.init else None
     smap = load_any_map(args.map)
     t1 = time.perf_counter()

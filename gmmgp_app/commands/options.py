@@ -5,6 +5,8 @@ configuration options and loading, the surface voxel, the method list."""
 from __future__ import annotations
 
 import argparse
+import os
+from pathlib import Path
 
 from ..config import METHODS
 
@@ -123,3 +125,16 @@ def print_config_help() -> int:
     for name, default, doc in MappingConfig.describe():
         print(f"{name:32s} {default!s:>10s}  {doc}")
     return EXIT_OK
+
+
+# --------------------------------------------------------------------------- output
+def check_writable(target, flag: str = "--out", what: str = "output folder ") -> None:
+    """Refuse, before any work, an output path whose nearest existing ancestor is not a
+    writable folder (``what`` names the target in the one-line error, ``flag`` the fix)."""
+    target = Path(target)
+    probe = target
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
+        raise PermissionError(f"Cannot write to {what}'{target}' ('{probe}' is not a "
+                              f"writable folder); choose another {flag}.")

@@ -4,7 +4,6 @@ with ``--tile-size`` tile by tile (:mod:`gmmgp_app.tiling`)."""
 from __future__ import annotations
 
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -12,8 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from .options import (EXIT_OK, METHODS, add_command, add_config_options, add_reader_options,
-                      add_voxel_option, load_config, print_config_help, reader_kwargs,
-                      read_scan_args)
+                      add_voxel_option, check_writable, load_config, print_config_help,
+                      reader_kwargs, read_scan_args)
 
 EXAMPLES = """examples:
   gmmgp run assets/demo_street.npz --out out/demo
@@ -82,7 +81,7 @@ def run(args) -> int:
     out = Path(args.out)
     # before the compute modules load: their numba caches need a writable place, and an
     # unwritable --out is the error to report first
-    _check_writable(out)
+    check_writable(out)
 
     from .._atomic import atomic_write_text
     from .._json import jsonable
@@ -120,6 +119,10 @@ def run(args) -> int:
                          executor=executor, progress=bar)
         bar.close()
     smap.summary["seconds"] = {"read": read_s, **smap.summary["seconds"]}
+    if smap.summary.get("auto") and not args.quiet:
+        from ..pipeline import format_auto
+
+        print(format_auto(smap.summary["auto"]))
     if args.stage == "hgmm" and smap.hgmm is not None:
         from ..pipeline import format_level_history
 
@@ -135,7 +138,11 @@ def run(args) -> int:
                                      prior_mesh=args.prior_mesh)
         if recorder is not None:
             recorder.close()  # writes the recording's footer now, not at interpreter exit
-        atomic_write_text(out / "config.toml", cfg.to_toml())
+        # the values the map was built with; those chosen from the scan say why
+        from ..pipeline import auto_reasons
+
+        atomic_write_text(out / "config.toml",
+                          smap.config.to_toml(auto_reasons(smap.summary.get("auto"))))
         smap.summary["seconds"]["total"] = time.perf_counter() - t0
         atomic_write_text(out / "summary.json", json.dumps(jsonable(smap.summary), indent=2))
         written += [out / "config.toml", out / "summary.json"]
@@ -328,12 +335,3 @@ class _TaskBar:
     def close(self):
         if self.bar is not None:
             self.bar.close()
-
-
-def _check_writable(out: Path) -> None:
-    probe = out
-    while not probe.exists():
-        probe = probe.parent
-    if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
-        raise PermissionError(f"Cannot write to output folder '{out}' ('{probe}' is not a "
-                              "writable folder); choose another --out.")

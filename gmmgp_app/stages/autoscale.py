@@ -13,7 +13,7 @@ from four measurements of the scan (:func:`measure_scan`):
 Every rule below is a length proportional to ``h`` (or a noise from ``sigma``), so a
 scan scaled by ``a`` gets every length scaled by ``a`` and the field at scaled queries
 equals ``a`` times the field (tests/test_autoscale.py). The factors were chosen on
-the synthetic ``street`` (scripts/bench_field.py; ``street2``, ``courtyard`` and
+the synthetic ``street`` (scripts/bench_accuracy.py; ``street2``, ``courtyard`` and
 ``pipes`` are held out):
 
 ===========================  =======================================================

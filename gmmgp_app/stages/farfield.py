@@ -3,7 +3,7 @@
 Beyond a few length scales from the GP points the paper's field is the HGMM prior,
 whose mean was fitted to rows within ``+-s`` of the surface; 0.1-2 m away it is
 1.5-3x worse than the signed distance to the tangent plane of the nearest point
-(issue 15, scripts/bench_field.py). Away from the data the signed distance is the
+(issue 15, scripts/bench_accuracy.py). Away from the data the signed distance is the
 distance to the nearest surface, and the located surface (the training hit points
 with their oriented normals) says where that is. This module reads it with an
 implicit moving least squares (IMLS) distance (Kolluri 2008; Oeztireli et al. 2009):
@@ -39,7 +39,7 @@ and ``m_gp - m_far`` the disagreement of the two fields. The coefficients
 :data:`VARIANCE_COEF` were fitted on the synthetic ``street`` only (least squares
 on ``log (y - mu)^2``, plus 1.27 = -E log chi^2_1 so that the median |z| is about
 0.67), and are checked on ``street2``, ``courtyard`` and ``pipes``
-(scripts/bench_field.py, docs/field.md). The errors are heavy-tailed (a few queries
+(scripts/bench_accuracy.py, docs/field.md). The errors are heavy-tailed (a few queries
 near surfaces the scan never saw), so a Gaussian with this variance covers about
 65-74 % within 1 sigma but only 91-95 % within 2 sigma on the street.
 """

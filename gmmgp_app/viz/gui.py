@@ -26,7 +26,7 @@ its public methods).
 
 from __future__ import annotations
 
-import math
+import dataclasses
 import os
 import sys
 import threading
@@ -38,19 +38,18 @@ import numpy as np
 from .gui_model import (STAGE_LABELS, STAGES, Cancelled, StageResults, ViewerError,
                         ViewerModel, first_affected_stage)
 from .gui_script import ScriptRunner, load_script
+from .gui_layers import LAYERS, STAGE_LAYERS, layer_geometry, materials
+from .gui_tuning import run_record
 
 __all__ = ["add_view_arguments", "open_view", "ViewerApp", "ViewerError", "run_app"]
 
-LAYERS = ("points", "ellipsoids", "gp_points", "blocks", "mesh")
+
 LAYER_LABELS = {"points": "Points", "ellipsoids": "Ellipsoids (HGMM level)",
                 "gp_points": "GP points", "blocks": "Octree blocks", "mesh": "Surface mesh"}
-#: Layers switched on when a stage is selected (the user may change them after).
-STAGE_LAYERS = {"scan": {"points"}, "prepare": {"points"}, "hgmm": {"points", "ellipsoids"},
-                "gmr": {"points"}, "gp": {"points", "gp_points", "blocks"},
-                "surface": {"mesh"}}
 #: Most points drawn at once (a fixed-seed subsample beyond); the CPU renderer slows.
 MAX_DRAWN_POINTS = 300_000
 THRESHOLD_RANGE = (1e-3, 0.25)
+THRESHOLD_STEP = 10 ** 0.125  # 8 steps per decade
 DM_RANGE = (0.0, 0.2)
 VOXEL_RANGE = (0.02, 1.0)
 LEGEND_CELLS = 24
@@ -59,6 +58,8 @@ LEGEND_CELLS = 24
 # --------------------------------------------------------------------------- options
 def add_view_arguments(parser) -> None:
     """The app's options (``gmmgp view`` adds the shared configuration options)."""
+    import argparse
+
     parser.add_argument("target", help="scan file, saved map folder (map/) or a "
                         "'gmmgp run' output folder")
     parser.add_argument("--voxel-size", type=float, default=0.1, metavar="M",
@@ -68,9 +69,15 @@ def add_view_arguments(parser) -> None:
                         help="window size in pixels (default 1600x1000)")
     parser.add_argument("--stage", default=None, choices=STAGES,
                         help="stage shown first (default: the last one computed)")
+    parser.add_argument("--screenshot", metavar="PNG",
+                        help="render the stage once to this PNG and exit, no window (default "
+                             "stage: the last; a scan is mapped first)")
+    parser.add_argument("--level", type=int, default=0,
+                        help="HGMM level of the ellipsoids shown (with --stage hgmm)")
     parser.add_argument("--script", metavar="JSON",
                         help="run these steps after the first computation (automation and "
                              "screenshots; see gmmgp_app.viz.gui_script)")
+    parser.add_argument("--no-3d", action="store_true", help=argparse.SUPPRESS)  # tests
 
 
 def open_view(args, cfg) -> int:
@@ -87,7 +94,15 @@ def open_view(args, cfg) -> int:
                           "surfaces interactively.")
     steps = load_script(args.script) if args.script else None
     model = ViewerModel.open(args.target, cfg, voxel_size=args.voxel_size)
-    return run_app(model, size=size, first_stage=args.stage, script=steps)
+    if getattr(args, "screenshot", None):
+        from .gui_screenshot import screenshot_target
+
+        screenshot_target(model, args.screenshot, size=size, stage=args.stage,
+                          level=getattr(args, "level", 0),
+                          log=lambda m: print(f"[gmmgp view] {m}", file=sys.stderr))
+        return 0
+    return run_app(model, size=size, first_stage=args.stage, script=steps,
+                   draw_scene=not getattr(args, "no_3d", False))
 
 
 def check_display() -> None:
@@ -110,7 +125,7 @@ def _parse_size(text: str) -> tuple[int, int]:
 
 
 def run_app(model: ViewerModel, size=(1600, 1000), first_stage=None, script=None,
-            hard_exit: bool = True) -> int:
+            hard_exit: bool = True, draw_scene: bool = True) -> int:
     """Create the window, start the first computation and run the event loop.
 
     With ``hard_exit`` (the CLI), closing the window ends the process at once (see
@@ -120,7 +135,8 @@ def run_app(model: ViewerModel, size=(1600, 1000), first_stage=None, script=None
 
     app = gui.Application.instance
     app.initialize()
-    viewer = ViewerApp(model, size=size, first_stage=first_stage, hard_exit=hard_exit)
+    viewer = ViewerApp(model, size=size, first_stage=first_stage, hard_exit=hard_exit,
+                       draw_scene=draw_scene)
     viewer.start_initial_run()
     if script is not None:
         ScriptRunner(viewer, script).start()
@@ -137,7 +153,7 @@ class ViewerApp:
     """
 
     def __init__(self, model: ViewerModel, size=(1600, 1000), first_stage=None,
-                 hard_exit: bool = False):
+                 hard_exit: bool = False, draw_scene: bool = True):
         import open3d.visualization.gui as gui
         import open3d.visualization.rendering as rendering
 
@@ -146,7 +162,11 @@ class ViewerApp:
         self.app = gui.Application.instance
         self.exit_code = 0
         self.hard_exit = hard_exit
+        # False: build no 3D geometry (the panel and controller only; what the 3D view
+        # draws is checked offscreen, see gui_screenshot)
+        self.draw_scene = draw_scene
         self._savers: list[threading.Thread] = []
+        self.runs: list = []  # RunRecord of each finished run
         self.errors: list[str] = []
         self.generation = 0          # bumped by every run; older results are dropped
         self.dropped_results = 0
@@ -191,22 +211,7 @@ class ViewerApp:
 
     # ------------------------------------------------------------------ building
     def _materials(self, rendering):
-        def mat(shader, **kw):
-            m = rendering.MaterialRecord()
-            m.shader = shader
-            for k, v in kw.items():
-                setattr(m, k, v)
-            return m
-
-        self.mat = {
-            "points": mat("defaultUnlit", point_size=2.0 * self.window.scaling),
-            "gp_points": mat("defaultUnlit", point_size=5.0 * self.window.scaling),
-            "ellipsoids_leaf": mat("defaultLit"),
-            "ellipsoids_split": mat("unlitLine", line_width=1.5 * self.window.scaling),
-            "blocks": mat("unlitLine", line_width=1.0 * self.window.scaling),
-            "mesh": mat("defaultLit"),
-            "probe": mat("defaultLit", base_color=[1.0, 0.1, 0.1, 1.0]),
-        }
+        self.mat = materials(rendering, self.window.scaling)
 
     def _build_panel(self, gui, em):
         panel = gui.ScrollableVert(0.4 * em, gui.Margins(0.6 * em, 0.6 * em, 0.6 * em, 0.6 * em))
@@ -249,10 +254,11 @@ class ViewerApp:
         # textures through ImageWidget stalled the CPU renderer for minutes here.
         # Buttons, because a Label never paints its background colour.
         bar = gui.Horiz(0)
+        self._legend_bar = bar
         self.legend_cells = []
         for _ in range(LEGEND_CELLS):
             cell = gui.Button(" ")
-            cell.horizontal_padding_em = 0.35
+            cell.horizontal_padding_em = 0.0  # 24 cells of about 0.7 em: fits 22 em
             cell.vertical_padding_em = 0.1
             cell.enabled = False
             bar.add_child(cell)
@@ -267,14 +273,25 @@ class ViewerApp:
         cfg = self.model.results.config
         self.threshold_label = gui.Label("")
         sec.add_child(self.threshold_label)
-        self.threshold_slider = gui.Slider(gui.Slider.DOUBLE)
-        self.threshold_slider.set_limits(math.log10(THRESHOLD_RANGE[0]),
-                                         math.log10(THRESHOLD_RANGE[1]))
-        self.threshold_slider.double_value = math.log10(
-            min(max(cfg.hgmm.split_threshold, THRESHOLD_RANGE[0]), THRESHOLD_RANGE[1]))
-        self.threshold_slider.set_on_value_changed(
-            lambda v: self.set_threshold(10.0 ** v, from_slider=True))
-        sec.add_child(self.threshold_slider)
+        # The threshold itself, stepped on a log scale (Open3D's slider can only show
+        # the value it moves linearly: a log10 slider showed "-2.000").
+        row = gui.Horiz(0.3 * em)
+        down = gui.Button("/")
+        down.tooltip = f"divide by {THRESHOLD_STEP:.3g} (log-scale step)"
+        down.set_on_clicked(lambda: self.step_threshold(-1))
+        self.threshold_edit = gui.NumberEdit(gui.NumberEdit.DOUBLE)
+        self.threshold_edit.set_limits(*THRESHOLD_RANGE)
+        self.threshold_edit.decimal_precision = 4
+        self.threshold_edit.double_value = min(max(cfg.hgmm.split_threshold,
+                                                   THRESHOLD_RANGE[0]), THRESHOLD_RANGE[1])
+        self.threshold_edit.set_on_value_changed(lambda v: self.set_threshold(v, from_slider=True))
+        up = gui.Button("x")
+        up.tooltip = f"multiply by {THRESHOLD_STEP:.3g} (log-scale step)"
+        up.set_on_clicked(lambda: self.step_threshold(+1))
+        for w_ in (down, self.threshold_edit, up):
+            row.add_child(w_)
+        self.threshold_buttons = (down, up)
+        sec.add_child(row)
         self.dm_label = gui.Label("")
         sec.add_child(self.dm_label)
         self.dm_slider = gui.Slider(gui.Slider.DOUBLE)
@@ -298,6 +315,9 @@ class ViewerApp:
         sec.add_child(self.progress)
         self.status_label = gui.Label("")
         sec.add_child(self.status_label)
+        # one line per run: c*, d_m, leaves, GP points, RMS field change vs the run before
+        self.runs_label = gui.Label("")
+        sec.add_child(self.runs_label)
         panel.add_child(sec)
 
         # -- probe and export
@@ -381,8 +401,12 @@ class ViewerApp:
             return
         self.pending_cfg = self.pending_cfg.replace("hgmm.split_threshold", value)
         if not from_slider:
-            self.threshold_slider.double_value = math.log10(value)
+            self.threshold_edit.double_value = value
         self._refresh_panel()
+
+    def step_threshold(self, steps: int):
+        """Multiply the pending threshold by THRESHOLD_STEP ** steps (log-scale steps)."""
+        self.set_threshold(self.pending_cfg.hgmm.split_threshold * THRESHOLD_STEP ** steps)
 
     def set_d_m(self, value: float, from_slider=False):
         value = round(float(min(max(value, DM_RANGE[0]), DM_RANGE[1])), 4)  # 0.1 mm steps
@@ -442,8 +466,11 @@ class ViewerApp:
 
         def work():
             try:
-                self.model.compute(start, cfg, voxel, base=base, on_stage=on_stage,
-                                   cancelled=lambda: gen != self.generation, progress=progress)
+                r = self.model.compute(start, cfg, voxel, base=base, on_stage=on_stage,
+                                       cancelled=lambda: gen != self.generation,
+                                       progress=progress)
+                rec = run_record(base, r)  # the field's change: in the worker (predicts)
+                post(lambda: self._on_run_record(gen, rec))
             except Cancelled:
                 pass
             except Exception as e:  # shown in the panel; the app stays usable
@@ -473,13 +500,23 @@ class ViewerApp:
         self._run_info["done"] += 1
         self.progress.value = self._run_info["done"] / self._run_info["n"]
         secs = results.seconds.get(name, 0.0)
-        self.status_label.text = f"{STAGE_LABELS[name]} done ({secs:.1f} s)"
+        rest = STAGES[STAGES.index(name) + 1:]
+        self.status_label.text = f"{STAGE_LABELS[name]} done ({secs:.1f} s)" + (
+            f"\ncomputing {', '.join(STAGE_LABELS[s] for s in rest)} ..." if rest else "")
         if not self._user_stage:
             self.stage = name
             self.layers = set(STAGE_LAYERS[self.stage])
         if name == "hgmm":
             self.level = min(self.level, len(results.hgmm.levels) - 1)
         self._refresh()
+
+    def _on_run_record(self, gen, rec):
+        if gen != self.generation:
+            return
+        self.runs.append(rec)
+        self.runs_label.text = "\n".join(f"run {i + 1}: {r.label()}" for i, r in
+                                         list(enumerate(self.runs))[-4:])
+        self.window.set_needs_layout()
 
     def _on_progress(self, gen, stage, frac):
         if gen != self.generation:
@@ -599,88 +636,8 @@ class ViewerApp:
         return np.sort(np.random.default_rng(0).choice(len(pts), MAX_DRAWN_POINTS, replace=False))
 
     def _layer_geometry(self, name):
-        """(key, build, material, legend) of a layer for the current state.
-
-        ``key`` identifies what would be drawn, so an unchanged layer is not rebuilt;
-        ``build()`` makes the geometry (or a dict name -> geometry); ``material`` None
-        means "the material named like each part".
-        """
-        from . import gui_geometry as G
-
-        r = self.model.results
-        stage = self.stage or "scan"
-        if name == "points":
-            if stage == "prepare" and r.data is not None:
-                rows, s = r.data.rows, r.data.spacing
-                idx = self._display_points(rows)
-                return (("rows", id(r.data)),
-                        lambda: G.point_cloud(rows[idx, :3], G.row_colors(rows[idx, 3], s)[0]),
-                        "points", ("d", -s, s))
-            if stage == "gmr" and r.gmr_error is not None:
-                col, lo, hi = G.error_colors(r.gmr_error, r.config.gp.d_m)
-                return (("gmr", id(r.gmr_error)), lambda: G.point_cloud(r.data.points, col),
-                        "points", ("error", lo, hi))
-            if r.scan is None:
-                return None, None, "points", None
-            pts = r.scan.points
-            idx = self._display_points(pts)
-            if self.colour_by_variance and (r.smap is not None or r.prior is not None):
-                key = ("std", id(r))
-                var = self._std_cache.get(key)
-                if var is not None:
-                    col, lo, hi = G.std_colors(var)
-                    return key, lambda: G.point_cloud(pts[idx], col), "points", ("std", lo, hi)
-                self._predict_std_async(key, r, pts[idx])  # grey until it arrives
-            if stage in ("hgmm", "gp", "surface"):
-                return (("grey", id(r.scan)),
-                        lambda: G.point_cloud(pts[idx], np.full((len(idx), 3), 0.72)),
-                        "points", None)
-            col, lo, hi = G.scan_colors(pts[idx])
-            return (("height", id(r.scan)), lambda: G.point_cloud(pts[idx], col), "points",
-                    ("height", lo, hi))
-        if name == "ellipsoids":
-            if r.hgmm is None:
-                return None, None, None, None
-            level = min(self.level, len(r.hgmm.levels) - 1)
-            lv = r.hgmm.levels[level]
-
-            def build():
-                col = G.complexity_colors(lv.complexity)[0]
-                split = np.asarray(lv.split, bool)
-                m, g = lv.mixture, {}
-                if (~split).any():
-                    g["ellipsoids_leaf"] = G.ellipsoid_mesh(
-                        m.means[~split], m.covariances[~split], col[~split])
-                if split.any():
-                    g["ellipsoids_split"] = G.ellipsoid_wireframe(
-                        m.means[split], m.covariances[split], col[split])
-                return g
-            return ("ell", id(r.hgmm), level), build, None, ("c", 0.0, None)
-        if name == "gp_points":
-            if r.gp_points is None or len(r.gp_points) == 0:
-                return None, None, "gp_points", None
-            gp = r.gp_points
-            return (("gp", id(gp)),
-                    lambda: G.point_cloud(gp, np.tile([0.85, 0.05, 0.05], (len(gp), 1))),
-                    "gp_points", None)
-        if name == "blocks":
-            if r.gp is None:
-                return None, None, "blocks", None
-            grid = r.gp.grid
-            return (("blocks", id(r.gp)),
-                    lambda: G.block_boxes(grid.centres, grid.block_size / 2), "blocks", None)
-        if name == "mesh":
-            if r.mesh is None or len(r.mesh.faces) == 0:
-                return None, None, "mesh", None
-            by_var = self.colour_by_variance
-            col, lo, hi = G.std_colors(r.mesh.vertex_variance)
-            if not by_var:
-                col = np.full((len(r.mesh.vertices), 3), 0.75)
-            mesh = r.mesh
-            return (("mesh", id(mesh), by_var),
-                    lambda: G.triangle_mesh(mesh.vertices, mesh.faces, col), "mesh",
-                    ("std", lo, hi) if by_var else None)
-        raise ViewerError(f"Unknown layer {name!r}; expected one of {', '.join(LAYERS)}.")
+        """(key, build, material, legend) of a layer (:func:`gui_layers.layer_geometry`)."""
+        return layer_geometry(self, name)
 
     def _predict_std_async(self, key, results, pts):
         """Predict the std at the drawn points in a worker (seconds on large scans)."""
@@ -722,7 +679,9 @@ class ViewerApp:
                         sc.remove_geometry(g)
                 self._geom_keys.pop(name, None)
                 continue
-            if self._geom_keys.get(name) != key:
+            if self._geom_keys.get(name) != key and not self.draw_scene:
+                self._geom_keys[name] = key  # what would be drawn (tests without frames)
+            elif self._geom_keys.get(name) != key:
                 for g in self._names_of(name):
                     if sc.has_geometry(g):
                         sc.remove_geometry(g)
@@ -825,7 +784,9 @@ class ViewerApp:
         changed = " *" if dm != r.config.gp.d_m else ""
         self.dm_label.text = f"d_m {dm:.3f} m{changed}"
         refit = self.model.can_refit
-        self.threshold_slider.enabled = refit
+        self.threshold_edit.enabled = refit
+        for b in self.threshold_buttons:
+            b.enabled = refit
         self.dm_slider.enabled = refit
         # Multi-line labels change height: lay the panel out again.
         self.window.set_needs_layout()
@@ -906,8 +867,14 @@ class ViewerApp:
                 "status": self.status_label.text, "probe": self.probe_text,
                 "legend": self.legend_title.text, "legend_range": self.legend_range.text,
                 "threshold": self.model.results.config.hgmm.split_threshold,
+                "threshold_shown": self.threshold_edit.double_value,
+                "runs": [dataclasses.asdict(r) for r in self.runs],
+                "runs_label": self.runs_label.text,
                 "d_m": self.model.results.config.gp.d_m,
                 "generation": self.generation, "dropped_results": self.dropped_results,
+                "drawn": {k: list(map(str, v)) for k, v in self._geom_keys.items()},
+                "legend_bar_right": self.legend_cells[-1].frame.get_right(),
+                "panel_right": self.panel.frame.get_right(),
                 "seconds": self.model.results.seconds, "errors": list(self.errors)}
 
     # ------------------------------------------------------------------ automation API
