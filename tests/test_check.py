@@ -288,8 +288,17 @@ def test_cli_check_writes_json_ply_png_and_rrd(drives, tmp_path):
         assert key in js
     pc = o3d.t.io.read_point_cloud(str(out / "points.ply"))
     np.testing.assert_allclose(pc.point.positions.numpy(), drives["moved"], atol=1e-9)
-    for name in ("distance", "std", "z_score", "known", "changed"):
+    for name in ("distance", "std", "z_score", "known", "changed", "segment"):
         assert pc.point[name].numpy().shape == (len(drives["moved"]), 1)
+    # what a viewer needs: segment ids matching the per-point field, boxes, frames
+    seg = pc.point["segment"].numpy().ravel()
+    assert js["segments"] and [s["id"] for s in js["segments"]] == list(range(len(js["segments"])))
+    for s in js["segments"]:
+        assert (seg == s["id"]).sum() == s["size"]
+        assert np.all(np.array(s["bbox_min"]) <= np.array(s["bbox_max"]))
+        assert s["mean_abs_z"] > js["z_threshold"]
+    assert set(js["files"]) >= {"points.ply", "aligned.ply", "z_hist.png", "rrd"}
+    assert set(js["files"]["points.ply"]["fields"]) == {n for n in pc.point if n != "positions"}
     al = o3d.t.io.read_point_cloud(str(out / "aligned.ply"))
     p_true = drives["second"].points
     assert np.median(np.linalg.norm(al.point.positions.numpy() - p_true, axis=1)) < 5e-3

@@ -1,7 +1,9 @@
 """``gmmgp check SCAN --map DIR --out OUT``: a new scan against a saved map.
 
-Writes ``OUT/check.json`` (summary; with ``--align`` the 4x4 "matrix" mapping the
-scan into the map's frame and its 6x6 "covariance"), ``OUT/points.ply`` (the
+Writes ``OUT/check.json`` (summary; the 4x4 "matrix" mapping the scan into the map's
+frame (the guess or identity without ``--align``), with ``--align`` its 6x6
+"covariance"; "segments" with id, size, centroid and bounding box in the map frame;
+"files": each output's frame and fields, see docs/check.md), ``OUT/points.ply`` (the
 scan's points in input order with the float fields distance, std, std_surface,
 z_score, known, changed, segment; z is named z_score because a PLY property
 "z" is the third coordinate to every reader), ``OUT/aligned.ply`` (with ``--align``: the same in
@@ -22,7 +24,8 @@ import numpy as np
 
 from .options import add_command, check_writable, add_reader_options, read_scan_args
 
-__all__ = ["add_parser", "run", "load_any_map", "write_points_ply", "write_z_histogram"]
+__all__ = ["add_parser", "run", "load_any_map", "write_points_ply", "write_z_histogram",
+           "output_files", "PLY_FIELDS"]
 
 EXAMPLES = """examples:
   gmmgp check second_drive.npz --map out/street/map --out out/check
@@ -127,6 +130,38 @@ def write_z_histogram(path, z, known, z_threshold: float) -> Path:
     return Path(path)
 
 
+#: Scalar fields of points.ply / aligned.ply (float32, one row per input point, input
+#: order; rows whose coordinates were not finite carry NaN / 0).
+PLY_FIELDS = {
+    "distance": "map signed distance mean d at the point, m (free space > 0)",
+    "std": "map standard deviation at the point, m",
+    "std_surface": "std of the map's surface the point is compared with, m",
+    "z_score": "z = d / sqrt(std_surface^2 + noise^2) (named z_score: 'z' is a coordinate)",
+    "known": "1 where the map knows the surface (std_surface < known_std), else 0",
+    "changed": "1 where known and |z| > z_threshold, else 0",
+    "segment": "id of the changed point's segment in check.json 'segments', -1 if none",
+}
+
+
+def output_files(align: bool, rrd) -> dict:
+    """What each output file holds and in which frame (written into check.json so a
+    viewer given OUT, or the map DIR plus OUT, knows how to show them)."""
+    files = {
+        "points.ply": {"frame": "scan (its input coordinates, input order)",
+                       "to_map_frame": "apply 'matrix'", "fields": PLY_FIELDS},
+        "z_hist.png": {"what": "histogram of z over the known points"},
+    }
+    if align:
+        files["aligned.ply"] = {"frame": "map (original coordinates)",
+                                "fields": "as points.ply"}
+    if rrd:
+        files["rrd"] = {"path": str(Path(rrd).resolve()),
+                        "what": "rerun recording, points coloured by z"}
+    files["colouring"] = ("z_score on a diverging scale clipped at +-z_threshold (changed "
+                          "beyond it); unknown points (known = 0) grey")
+    return files
+
+
 def run(args) -> int:
     """Run ``gmmgp check``; errors are raised (cli.py turns them into exit code 2)."""
     from ..check import check_scan, load_transform
@@ -153,6 +188,7 @@ def run(args) -> int:
     fields = {"distance": res.distance, "std": res.std, "std_surface": res.std_surface,
               "z_score": res.z, "known": res.known, "changed": res.changed,
               "segment": res.segment}
+    summary["files"] = output_files(args.align, args.rrd)
     written = []
     if args.rrd:  # first: a recording that cannot be written leaves OUT untouched
         from ..viz.check_rrd import write_check_rrd
