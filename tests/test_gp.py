@@ -144,6 +144,31 @@ def test_save_load_round_trip(tmp_path, sphere_scene):
     arrays["gp_alpha"] = arrays["gp_alpha"][:-1]
     with pytest.raises(GPError, match="inconsistent"):
         LocalGPField.from_arrays(arrays, prior, cfg)
+    arrays = field.to_arrays()
+    arrays["gp_L"] = arrays["gp_L"][:-1]
+    with pytest.raises(GPError, match="inconsistent"):
+        LocalGPField.from_arrays(arrays, prior, cfg)
+
+
+def test_factors_are_stored_packed_and_square_factors_still_load(sphere_scene):
+    """The saved factors are the lower triangles packed by rows (half the memory of
+    square ones); a map saved with square factors (before packing) loads and predicts
+    bitwise the same."""
+    pts, nrm, prior = sphere_scene
+    cfg = concrete(GPConfig(block_size=0.4))
+    field = fit_local_gps(pts[:300], nrm[:300], prior, cfg)
+    arrays = field.to_arrays()
+    m = 4 * np.diff(arrays["gp_point_ptr"])
+    assert len(arrays["gp_L"]) == np.sum(m * (m + 1) // 2)
+    assert field.info["cholesky_bytes"] == 8 * len(arrays["gp_L"])
+    square = np.concatenate([f.L.ravel() for f in field.blocks])
+    for f in field.blocks:                             # unpacked: lower-triangular
+        assert np.all(np.triu(f.L, 1) == 0) and np.all(np.diag(f.L) > 0)
+    old = LocalGPField.from_arrays(dict(arrays, gp_L=square), prior, cfg)
+    np.testing.assert_array_equal(old.to_arrays()["gp_L"], arrays["gp_L"])
+    q = np.random.default_rng(1).uniform(-1.2, 1.2, size=(800, 3))
+    for a, b in zip(field.predict(q, return_grad=True), old.predict(q, return_grad=True)):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_block_cap_is_seeded_and_reported():
@@ -240,10 +265,10 @@ def test_compiled_pair_predictor_matches_numpy_block_predictor():
     bi = np.tile(np.arange(3), 7)
     n = np.array([len(f.X) for f in fits])
     ptr = np.r_[0, np.cumsum(n)]
-    loff = np.r_[0, np.cumsum((4 * n) ** 2)]
+    loff = np.r_[0, np.cumsum(4 * n * (4 * n + 1) // 2)]     # packed lower triangles
     X = np.concatenate([f.X for f in fits])
     sp = np.concatenate([f.sigma_p for f in fits])
-    L = np.concatenate([f.L.ravel() for f in fits])
+    L = np.concatenate([f.L[np.tril_indices(4 * len(f.X))] for f in fits])
     al = np.concatenate([f.alpha for f in fits])
     a = np.sqrt(3.0) / 0.08
     dm, red, dg = _predict_pairs(xs, sig, qi, bi, ptr, X, sp, L, loff, al, a, True)

@@ -131,18 +131,22 @@ def test_node_grouping_by_block_matches_a_brute_force_box_lookup():
     keys = np.sort(pack(nodes))
     np.testing.assert_array_equal(pack.unpack(keys), nodes[np.argsort(pack(nodes))])
     values = rng.normal(size=len(keys))
-    blocks = S._unique_rows(np.floor_divide(pack.unpack(keys), B))
-    bpack, blk, loc, val = S._nodes_by_block(keys, values, pack, blocks, B)
-    got = {(int(k), int(l)): v for k, l, v in zip(blk, loc, val)}
-    want = {}
-    nb = B + 1
     ijk = pack.unpack(keys)
-    lo_b, hi_b = np.floor_divide(ijk, B).min(0) - 1, np.floor_divide(ijk, B).max(0)
-    for b in np.stack(np.meshgrid(*[np.arange(lo_b[a], hi_b[a] + 1) for a in range(3)],
-                                  indexing="ij"), -1).reshape(-1, 3).tolist():
-        q = ijk - np.array(b) * B
-        inside = np.all((q >= 0) & (q <= B), axis=1)
-        for i in np.flatnonzero(inside):
-            want[(int(bpack(np.array([b]))[0]), int((q[i, 0] * nb + q[i, 1]) * nb + q[i, 2]))] = values[i]
-    assert got == want
-    assert np.all(np.diff(blk) >= 0)
+    # the blocks of the nodes, plus their lower neighbours (which hold face nodes only),
+    # in a shuffled order: the result follows the order given
+    blocks = S._unique_rows(np.concatenate([np.floor_divide(ijk, B),
+                                            np.floor_divide(ijk, B) - 1]))
+    blocks = blocks[rng.permutation(len(blocks))]
+    ptr, loc, val = S._block_nodes(keys, values, pack, blocks, B)
+    assert len(ptr) == len(blocks) + 1 and ptr[-1] == len(loc) == len(val)
+    nb = B + 1
+    n_shared = 0
+    for t, b in enumerate(blocks):
+        got = dict(zip(loc[ptr[t]:ptr[t + 1]].tolist(), val[ptr[t]:ptr[t + 1]].tolist()))
+        assert len(got) == ptr[t + 1] - ptr[t]                  # no node twice
+        q = ijk - b * B
+        inside = np.flatnonzero(np.all((q >= 0) & (q <= B), axis=1))
+        want = {int((q[i, 0] * nb + q[i, 1]) * nb + q[i, 2]): values[i] for i in inside}
+        assert got == want
+        n_shared += len(want)
+    assert n_shared > len(keys)          # face, edge and corner nodes in several blocks

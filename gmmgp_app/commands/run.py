@@ -85,7 +85,10 @@ def run(args) -> int:
 
     from .._atomic import atomic_write_text
     from .._json import jsonable
+    from .._memory import fix_mmap_threshold
     from ..pipeline import FanoutObserver, build_map
+
+    fix_mmap_threshold()  # freed temporaries leave the resident set (gmmgp_app/_memory.py)
     from ..progress import ConsoleObserver
 
     console = ConsoleObserver(enabled=not args.quiet)
@@ -118,6 +121,7 @@ def run(args) -> int:
         smap = build_map(scan, cfg, method=args.method, observer=observer, stop_after=stop,
                          executor=executor, progress=bar)
         bar.close()
+    del scan  # the map keeps what it needs (seeds, GP points): free the scan before meshing
     smap.summary["seconds"] = {"read": read_s, **smap.summary["seconds"]}
     if smap.summary.get("auto") and not args.quiet:
         from ..pipeline import format_auto

@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import math
 
+import numba as nb
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -122,24 +123,69 @@ class FarField:
             return dict(mean=z, var=z, r=z, spread2=z, n_eff=z, grad=np.zeros((0, 3)))
         d, i = self.tree.query(x, k=self.k, workers=-1)
         d, i = d.reshape(K, self.k), i.reshape(K, self.k)
-        r = d[:, 0]
-        rho = np.maximum(self.rho0, self.growth * r)
-        # relative weights: shift by the nearest so that far queries do not underflow
-        w = np.exp(-(d ** 2 - r[:, None] ** 2) / rho[:, None] ** 2)
-        wsum = w.sum(axis=1)
-        nrm = self.normals[i]                                        # (K, k, 3)
-        a = np.einsum("qki,qki->qk", x[:, None, :] - self.points[i], nrm)
-        mean = (w * a).sum(axis=1) / wsum
-        spread2 = (w * (a - mean[:, None]) ** 2).sum(axis=1) / wsum
-        n_eff = wsum ** 2 / (w ** 2).sum(axis=1)
-        var = self.noise ** 2 / n_eff + self.spread_weight * spread2 + (self.beta * r) ** 2
-        g = (w[..., None] * nrm).sum(axis=1) / wsum[:, None] if return_grad else None
-        return dict(mean=mean, var=var, r=r, spread2=spread2, n_eff=n_eff, grad=g)
+        mean, var, spread2, n_eff, g = _imls(x, d, i, self.points, self.normals, self.rho0,
+                                             self.growth, self.noise, self.spread_weight,
+                                             self.beta, bool(return_grad))
+        return dict(mean=mean, var=var, r=np.ascontiguousarray(d[:, 0]), spread2=spread2,
+                    n_eff=n_eff, grad=g if return_grad else None)
 
     def distance_to_data(self, xyz) -> np.ndarray:
         """(K,) distance of each query to the nearest hit point."""
         return self.tree.query(np.asarray(xyz, dtype=np.float64).reshape(-1, 3),
                                workers=-1)[0]
+
+
+@nb.njit(parallel=True, cache=True)
+def _imls(x, d, nbr, points, normals, rho0, growth, noise, spread_weight, beta, with_grad):
+    """Eqs. imls and far_var per query from its ``k`` nearest hit points (distances ``d``
+    ascending, indices ``nbr``): mean, variance, weighted plane-distance spread, effective
+    neighbour count and (``with_grad``) the weighted normal; one pass per query, no
+    (K, k, 3) temporaries. Weights are relative to the nearest neighbour (shifted by
+    ``r^2``) so far queries do not underflow."""
+    K, k = d.shape
+    mean = np.empty(K)
+    var = np.empty(K)
+    spread2 = np.empty(K)
+    n_eff = np.empty(K)
+    grad = np.zeros((K, 3)) if with_grad else np.zeros((0, 3))
+    for q in nb.prange(K):
+        r = d[q, 0]
+        rho = max(rho0, growth * r)
+        rho2 = rho * rho
+        r2 = r * r
+        w = np.empty(k)
+        a = np.empty(k)
+        wsum = 0.0
+        w2sum = 0.0
+        wa = 0.0
+        for j in range(k):
+            wj = math.exp(-(d[q, j] * d[q, j] - r2) / rho2)
+            p = nbr[q, j]
+            aj = ((x[q, 0] - points[p, 0]) * normals[p, 0]
+                  + (x[q, 1] - points[p, 1]) * normals[p, 1]) \
+                + (x[q, 2] - points[p, 2]) * normals[p, 2]
+            w[j] = wj
+            a[j] = aj
+            wsum += wj
+            w2sum += wj * wj
+            wa += wj * aj
+        m = wa / wsum
+        s2 = 0.0
+        for j in range(k):
+            s2 += w[j] * (a[j] - m) ** 2
+        s2 /= wsum
+        ne = wsum * wsum / w2sum
+        mean[q] = m
+        spread2[q] = s2
+        n_eff[q] = ne
+        var[q] = noise * noise / ne + spread_weight * s2 + (beta * r) ** 2
+        if with_grad:
+            for c in range(3):
+                gc = 0.0
+                for j in range(k):
+                    gc += w[j] * normals[nbr[q, j], c]
+                grad[q, c] = gc / wsum
+    return mean, var, spread2, n_eff, grad
 
 
 def blend_fields(m1, v1, m2, v2, g1=None, g2=None):

@@ -127,7 +127,9 @@ class BlockFit:
     ----------
     X : (n, 3) training points
     sigma_p : (n,) prior standard deviation at ``X``
-    L : (4n, 4n) lower Cholesky factor of ``S K S + noise + jitter``
+    L_packed : (4n (4n + 1) / 2,) lower Cholesky factor of ``S K S + noise + jitter``,
+        its lower triangle packed row by row (row ``r`` holds ``L[r, :r + 1]`` from
+        ``r (r + 1) / 2``): half the memory of the square factor; :attr:`L` unpacks it
     alpha : (4n,) ``K^-1`` times the residual targets (interleaved per point)
     jitter : float
         Absolute jitter added to the diagonal (m^2).
@@ -137,10 +139,35 @@ class BlockFit:
 
     X: np.ndarray
     sigma_p: np.ndarray
-    L: np.ndarray
+    L_packed: np.ndarray
     alpha: np.ndarray
     jitter: float
     jitter_raised: int = 0
+
+    @property
+    def L(self) -> np.ndarray:
+        """The (4n, 4n) lower Cholesky factor (a new array, zeros above the diagonal)."""
+        return unpack_lower(self.L_packed, 4 * len(self.X))
+
+
+def packed_size(m) -> np.ndarray:
+    """Entries of the packed lower triangle of an (m, m) matrix: ``m (m + 1) / 2``."""
+    m = np.asarray(m, dtype=np.int64)
+    return m * (m + 1) // 2
+
+
+def pack_lower(L: np.ndarray) -> np.ndarray:
+    """The lower triangle of a square matrix, row by row (the layout of
+    :attr:`BlockFit.L_packed`)."""
+    return np.ascontiguousarray(L[np.tril_indices(len(L))])
+
+
+def unpack_lower(Lp: np.ndarray, m: int) -> np.ndarray:
+    """(m, m) lower-triangular matrix from its packed rows (inverse of
+    :func:`pack_lower`)."""
+    L = np.zeros((m, m))
+    L[np.tril_indices(m)] = Lp
+    return L
 
 
 def fit_block(X, sigma_p, targets, length_scale: float, value_noise: float,
@@ -179,7 +206,8 @@ def _fit_many(X, sigma_p, targets, counts, length_scale, value_noise, gradient_n
 
     Returns the BlockFits (views into shared flat arrays) and those flat arrays
     (``ptr``, ``Loff``, ``X``, ``sp``, ``L``, ``alpha``: the layout the compiled
-    predictor reads, so prediction needs no copy of the factors).
+    predictor reads, so prediction needs no copy of the factors; ``L`` holds the packed
+    lower triangles, block ``b`` at ``Loff[b]``).
     """
     X = np.ascontiguousarray(X, dtype=np.float64).reshape(-1, 3)
     sp = np.ascontiguousarray(sigma_p, dtype=np.float64).reshape(-1)
@@ -190,7 +218,7 @@ def _fit_many(X, sigma_p, targets, counts, length_scale, value_noise, gradient_n
     ptr = np.zeros(nb_ + 1, dtype=np.int64)
     np.cumsum(counts, out=ptr[1:])
     loff = np.zeros(nb_ + 1, dtype=np.int64)
-    np.cumsum((4 * counts) ** 2, out=loff[1:])
+    np.cumsum(packed_size(4 * counts), out=loff[1:])
     L = np.empty(int(loff[-1]))
     alpha = np.empty(4 * int(ptr[-1]))
     eps = np.zeros(nb_)
@@ -216,9 +244,8 @@ def _fit_many(X, sigma_p, targets, counts, length_scale, value_noise, gradient_n
             "points or raise GPConfig.value_noise.")
     blocks = []
     for b in range(nb_):
-        s, e, n4 = ptr[b], ptr[b + 1], 4 * int(counts[b])
-        blocks.append(BlockFit(X=X[s:e], sigma_p=sp[s:e],
-                               L=L[loff[b]:loff[b + 1]].reshape(n4, n4),
+        s, e = ptr[b], ptr[b + 1]
+        blocks.append(BlockFit(X=X[s:e], sigma_p=sp[s:e], L_packed=L[loff[b]:loff[b + 1]],
                                alpha=alpha[4 * s:4 * e], jitter=float(eps[b]),
                                jitter_raised=int(raised[b])))
     return blocks, dict(ptr=ptr, Loff=loff, X=X, sp=sp, L=L, alpha=alpha)
@@ -229,9 +256,9 @@ def _fit_blocks(X, sp, T, ptr, loff, a, value_noise, gradient_noise, jitter, max
                 b0, b1, L, alpha, eps_out, raised_out, failed):
     """Blocks ``b0 .. b1-1``: joint kernel (eq. kernel_j) scaled by the prior (eq.
     kernel2) plus noise, its Cholesky factor (jitter raised x10 on failure, as
-    :func:`fit_block` documents) into ``L`` (row-major, upper part zero) and
-    ``alpha = K^-1 targets`` into ``alpha``; ``failed[b]`` when even ``max_rel``
-    jitter does not make the block positive definite."""
+    :func:`fit_block` documents) into ``L`` (lower triangle packed row by row at
+    ``loff[b]``) and ``alpha = K^-1 targets`` into ``alpha``; ``failed[b]`` when even
+    ``max_rel`` jitter does not make the block positive definite."""
     for b in nb.prange(b0, b1):
         s0 = ptr[b]
         n = ptr[b + 1] - s0
@@ -266,7 +293,7 @@ def _fit_blocks(X, sp, T, ptr, loff, a, value_noise, gradient_noise, jitter, max
             K[d, d] += value_noise if d % 4 == 0 else gradient_noise
             diag += K[d, d]
         scale = diag / m
-        Lb = L[loff[b]:loff[b + 1]].reshape((m, m))
+        Lb = np.empty((m, m))                       # this block's factor, lower part
         rel = jitter
         raised = 0
         while True:
@@ -297,9 +324,11 @@ def _fit_blocks(X, sp, T, ptr, loff, a, value_noise, gradient_noise, jitter, max
         raised_out[b] = raised
         if failed[b]:
             continue
+        base = loff[b]
         for r_ in range(m):
-            for c in range(r_ + 1, m):
-                Lb[r_, c] = 0.0
+            row = base + r_ * (r_ + 1) // 2
+            for c in range(r_ + 1):
+                L[row + c] = Lb[r_, c]
         # alpha = L^-T L^-1 y, y interleaved per point (value, gradient)
         z = np.empty(m)
         for r_ in range(m):
@@ -475,12 +504,12 @@ class LocalGPField:
             ptr = np.zeros(len(n) + 1, dtype=np.int64)
             np.cumsum(n, out=ptr[1:])
             loff = np.zeros(len(n) + 1, dtype=np.int64)
-            np.cumsum((4 * n) ** 2, out=loff[1:])
+            np.cumsum(packed_size(4 * n), out=loff[1:])
             self._flat_cache = dict(
                 ptr=ptr, Loff=loff,
                 X=np.ascontiguousarray(np.concatenate([b.X for b in self.blocks])),
                 sp=np.concatenate([b.sigma_p for b in self.blocks]),
-                L=np.concatenate([b.L.reshape(-1) for b in self.blocks]),
+                L=np.concatenate([b.L_packed for b in self.blocks]),
                 alpha=np.concatenate([b.alpha for b in self.blocks]))
         return self._flat_cache
 
@@ -504,7 +533,7 @@ class LocalGPField:
             gp_X=cat(lambda b: b.X, (0, 3)),
             gp_sigma_p=cat(lambda b: b.sigma_p, (0,)),
             gp_alpha=cat(lambda b: b.alpha, (0,)),
-            gp_L=cat(lambda b: b.L.reshape(-1), (0,)),
+            gp_L=cat(lambda b: b.L_packed, (0,)),
             gp_jitter=np.array([b.jitter for b in self.blocks], dtype=np.float64),
             gp_hyper=np.array([self.hyper[k] for k in _HYPER], dtype=np.float64),
         )
@@ -514,6 +543,9 @@ class LocalGPField:
         """Rebuild a field saved with :meth:`to_arrays`; it predicts identically.
 
         ``cfg`` (GPConfig) must carry the hyper-parameters the field was fitted with.
+        ``gp_L`` holds the packed lower triangles of the factors; maps saved before
+        they were packed (square factors, told apart by the array's length) are packed
+        on loading.
         """
         from gmmgp_app.config import concrete
 
@@ -542,21 +574,22 @@ class LocalGPField:
         al = np.asarray(arrays["gp_alpha"], dtype=np.float64)
         Lf = np.asarray(arrays["gp_L"], dtype=np.float64)
         jit = np.asarray(arrays["gp_jitter"], dtype=np.float64)
+        m = 4 * np.diff(ptr) if len(ptr) == len(keys) + 1 else np.zeros(0, np.int64)
+        n_packed, n_square = int(np.sum(packed_size(m))), int(np.sum(m ** 2))
         if len(ptr) != len(keys) + 1 or ptr[-1] != len(X) or len(sp) != len(X) \
-                or len(al) != 4 * len(X) or len(Lf) != int(np.sum((4 * np.diff(ptr)) ** 2)):
+                or len(al) != 4 * len(X) or len(Lf) not in (n_packed, n_square):
             raise GPError(f"Saved GP arrays are inconsistent ({len(keys)} blocks, "
                           f"{len(X)} points); the map directory may be corrupted.")
-        blocks, lo = [], 0
-        for b in range(len(keys)):
-            s, e = ptr[b], ptr[b + 1]
-            n4 = 4 * (e - s)
-            blocks.append(BlockFit(X=X[s:e], sigma_p=sp[s:e], L=Lf[lo:lo + n4 * n4].reshape(
-                n4, n4), alpha=al[4 * s:4 * e], jitter=float(jit[b])))
-            lo += n4 * n4
+        loff = np.zeros(len(keys) + 1, dtype=np.int64)
+        np.cumsum(packed_size(m), out=loff[1:])
+        if len(Lf) != n_packed:          # square factors of an older map: pack them
+            Lf = _pack_square_factors(Lf, m, loff)
+        blocks = [BlockFit(X=X[ptr[b]:ptr[b + 1]], sigma_p=sp[ptr[b]:ptr[b + 1]],
+                           L_packed=Lf[loff[b]:loff[b + 1]],
+                           alpha=al[4 * ptr[b]:4 * ptr[b + 1]], jitter=float(jit[b]))
+                  for b in range(len(keys))]
         info = dict(n_blocks=len(blocks), loaded=True)
         field_ = cls(prior, grid, blocks, hyper, info)
-        loff = np.zeros(len(keys) + 1, dtype=np.int64)
-        np.cumsum((4 * np.diff(ptr)) ** 2, out=loff[1:])
         field_._flat_cache = dict(ptr=ptr, Loff=loff, X=np.ascontiguousarray(X), sp=sp,
                                   L=Lf, alpha=al)
         return field_
@@ -649,7 +682,7 @@ def fit_local_gps(points, normals, prior, cfg, *, rng=None, executor=None,
         max_block_points=int(cfg.max_block_points),
         jitter_relative=float(cfg.jitter), max_jitter=float(jit.max()),
         n_jitter_raised=int(sum(b.jitter_raised > 0 for b in blocks)),
-        cholesky_bytes=int(np.sum((4 * n_used) ** 2) * 8),
+        cholesky_bytes=int(np.sum(packed_size(4 * n_used)) * 8),
     )
     hyper = {k: float(getattr(cfg, k)) for k in _HYPER}
     field_ = LocalGPField(prior, grid, blocks, hyper, info)
@@ -664,19 +697,34 @@ def _pack_blocks(blocks):
     ptr = np.zeros(len(n) + 1, dtype=np.int64)
     np.cumsum(n, out=ptr[1:])
     loff = np.zeros(len(n) + 1, dtype=np.int64)
-    np.cumsum((4 * n) ** 2, out=loff[1:])
+    np.cumsum(packed_size(4 * n), out=loff[1:])
     flat = dict(ptr=ptr, Loff=loff,
                 X=np.ascontiguousarray(np.concatenate([b.X for b in blocks]).reshape(-1, 3)),
                 sp=np.concatenate([b.sigma_p for b in blocks]),
-                L=np.concatenate([b.L.reshape(-1) for b in blocks]),
+                L=np.concatenate([b.L_packed for b in blocks]),
                 alpha=np.concatenate([b.alpha for b in blocks]))
     out = []
     for i, b in enumerate(blocks):
-        s, e, n4 = ptr[i], ptr[i + 1], 4 * int(n[i])
+        s, e = ptr[i], ptr[i + 1]
         out.append(replace(b, X=flat["X"][s:e], sigma_p=flat["sp"][s:e],
-                           L=flat["L"][loff[i]:loff[i + 1]].reshape(n4, n4),
+                           L_packed=flat["L"][loff[i]:loff[i + 1]],
                            alpha=flat["alpha"][4 * s:4 * e]))
     return out, flat
+
+
+@nb.njit(cache=True)
+def _pack_square_factors(Lsq, m, loff):
+    """Square row-major factors (an older map's ``gp_L``) -> packed lower triangles."""
+    out = np.empty(loff[-1])
+    sq = 0
+    for b in range(len(m)):
+        mb = m[b]
+        for r in range(mb):
+            row = loff[b] + r * (r + 1) // 2
+            for c in range(r + 1):
+                out[row + c] = Lsq[sq + r * mb + c]
+        sq += mb * mb
+    return out
 
 
 def _runs(keys):
@@ -876,7 +924,7 @@ def _value_blocks(x, sig, qi, bi, starts, ends, ptr, X, sp, L, Loff, alpha, a, d
         base = Loff[b]
         acc = np.zeros(nq)
         for r_ in range(n4):
-            row = base + r_ * n4
+            row = base + r_ * (r_ + 1) // 2         # packed lower triangle, row r_
             for c_ in range(r_):
                 l = L[row + c_]
                 for j in range(nq):
@@ -936,13 +984,13 @@ def _predict_pairs(x, sig, qi, bi, ptr, X, sp, L, Loff, alpha, a, with_grad):
         for k in range(n4):
             mu += kv[k] * alpha[4 * s + k]
         dm[p] = mu
-        # forward substitution L v = kv, L row-major (n4, n4) at Loff[b]
+        # forward substitution L v = kv, L's lower triangle packed by rows at Loff[b]
         v = np.empty(n4)
         base = Loff[b]
         acc = 0.0
         for r_ in range(n4):
             t = kv[r_]
-            row = base + r_ * n4
+            row = base + r_ * (r_ + 1) // 2
             for c_ in range(r_):
                 t -= L[row + c_] * v[c_]
             v[r_] = t / L[row + r_]

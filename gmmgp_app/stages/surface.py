@@ -13,6 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable, Optional
 
+import numba as nb
 import numpy as np
 
 from .._atomic import atomic_path
@@ -113,7 +114,7 @@ def mesh_field(predict: Callable, seeds: np.ndarray, cfg, voxel_size: Optional[f
 
 def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.05, *,
                     max_std: Optional[float] = None, block_cells: int = 32,
-                    dilate: Optional[int] = None, batch: int = 200_000,
+                    dilate: Optional[int] = None, batch: int = 65_536,
                     progress=None) -> SurfaceMesh:
     """Zero level set of a field as a triangle mesh with per-vertex variance.
 
@@ -170,7 +171,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     frontier = cells
     bar = progress(dilate + 1, "surface field") if progress else None
     for _ in range(dilate):
-        vals = lattice(frontier[:, None, :] + _CORNERS[None]).reshape(len(frontier), 8)
+        vals = lattice.corners(frontier)
         grown = []
         for step, face in _FACES:
             fv = vals[:, face]
@@ -188,22 +189,23 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
         cell_keys = np.sort(np.concatenate([cell_keys, pack(new)]))
         cells = np.concatenate([cells, new])
         frontier = new
-    lattice(frontier[:, None, :] + _CORNERS[None])  # the last cells' corners
+    lattice.corners(frontier)  # the last cells' corners
     bar and bar.close()
     node_keys, values = lattice.keys, lattice.values
+    # memory: only the node values go on
+    del tree, cell_keys, frontier, lattice
+    vals = grown = keys = new = None
 
     # 2. Marching cubes per block on its (B+1)^3 nodes, looked up by key.
     blocks = _unique_rows(np.floor_divide(cells, block_cells))
+    del cells
     nb = block_cells + 1
     keys_all, verts_all, faces_all = [], [], []
     n_verts = 0
     bar = progress(len(blocks), "marching cubes") if progress else None
-    bpack, node_block, node_local, node_value = _nodes_by_block(node_keys, values, pack,
-                                                                blocks, block_cells)
-    block_keys = bpack(blocks)
-    starts = np.searchsorted(node_block, block_keys, side="left")
-    ends = np.searchsorted(node_block, block_keys, side="right")
-    for b, s0, s1 in zip(blocks, starts, ends):
+    bptr, node_local, node_value = _block_nodes(node_keys, values, pack, blocks, block_cells)
+    del node_keys, values
+    for b, s0, s1 in zip(blocks, bptr[:-1], bptr[1:]):
         bar and bar.update(1)
         if s1 - s0 < 8:
             continue
@@ -224,24 +226,27 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
         if len(f) == 0:
             continue
         lo, axis, v = _refine_on_edges(v, vol_filled)
-        keys_all.append(np.column_stack([lo + b * block_cells, axis]))
+        # (lower lattice node, axis) of each vertex's edge packed into one int64 in the
+        # order of the rows (axis -1..2: a vertex on a node has axis -1)
+        keys_all.append(pack(lo + b * block_cells) * 4 + (axis + 1))
         verts_all.append(v + b * block_cells)           # lattice coordinates
-        faces_all.append(f + n_verts)
+        faces_all.append((f + n_verts).astype(np.int32 if n_verts + len(v) < 2**31
+                                              else np.int64))
         n_verts += len(v)
     bar and bar.close()
 
     if not verts_all:
         return SurfaceMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros(0))
-    keys = np.concatenate(keys_all)  # (lower lattice node, axis) of each vertex's edge
-    verts = np.concatenate(verts_all)
-    faces = np.concatenate(faces_all).astype(np.int64)
+    del bptr, node_local, node_value
+    keys = np.concatenate(keys_all)  # packed (lower lattice node, axis) of each vertex's edge
+    del keys_all
     # Stitch: one vertex per lattice-edge key.
-    # (node, axis) packed into one int64 in the same order as the rows (axis -1..2:
-    # a vertex on a node has axis -1)
-    _, first, inverse = np.unique(pack(keys[:, :3]) * 4 + (keys[:, 3] + 1),
-                                  return_index=True, return_inverse=True)
-    verts = verts[first] * h
-    faces = inverse.reshape(-1)[faces]
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    del keys
+    verts = np.concatenate(verts_all)[first] * h
+    del verts_all, first
+    faces = inverse.reshape(-1)[np.concatenate(faces_all)]
+    del faces_all, inverse
     faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
                   & (faces[:, 0] != faces[:, 2])]
     var = np.empty(len(verts))
@@ -289,33 +294,92 @@ def _unique_rows(cells: np.ndarray, pack=None) -> np.ndarray:
     return cells[first]
 
 
-def _nodes_by_block(node_keys, values, pack, blocks, block_cells: int):
-    """Lattice nodes grouped by the marching-cubes blocks whose (B+1)^3 node boxes hold
-    them (a node on a block face belongs to both blocks, on an edge or corner to 4 or
-    8): the block key packer, then (packed block key, sorted), flat local index
-    ``(i nb + j) nb + k`` and value of every (block, node) pair.
+def _block_nodes(node_keys, values, pack, blocks, block_cells: int):
+    """Lattice nodes grouped by the marching-cubes blocks ``blocks`` whose (B+1)^3 node
+    boxes hold them (a node on a block face belongs to both blocks, on an edge or
+    corner to 4 or 8): CSR ``ptr`` (len(blocks) + 1) over the flat local indices
+    ``(i nb + j) nb + k`` (int32) and values of each block's nodes.
 
-    One pass over the nodes instead of a lookup of every (B+1)^3 box slot per block.
+    One compiled counting pass over the nodes (no per-block box lookups, no sort of
+    (block, node) pairs: the grouping needs ~12 bytes per pair).
     """
-    ijk = pack.unpack(node_keys)
-    B, nb = int(block_cells), int(block_cells) + 1
-    base = np.floor_divide(ijk, B)
-    bpack = _Packer(np.minimum(blocks.min(0), base.min(0) - 1),
-                    np.maximum(blocks.max(0), base.max(0)))
-    on_face = ijk - base * B == 0
-    blk, loc, val = [], [], []
-    for o in ((0, 0, 0), (0, 0, 1), (0, 1, 0), (0, 1, 1),
-              (1, 0, 0), (1, 0, 1), (1, 1, 0), (1, 1, 1)):
-        o = np.array(o)
-        sel = np.all(on_face | (o == 0), axis=1)  # shifted axes need the node on a face
-        b = base[sel] - o
-        q = ijk[sel] - b * B
-        blk.append(bpack(b))
-        loc.append((q[:, 0] * nb + q[:, 1]) * nb + q[:, 2])
-        val.append(values[sel])
-    blk = np.concatenate(blk)
-    order = np.argsort(blk, kind="stable")
-    return bpack, blk[order], np.concatenate(loc)[order], np.concatenate(val)[order]
+    blocks = np.asarray(blocks, dtype=np.int64).reshape(-1, 3)
+    bpack = _Packer(blocks.min(0) - 1, blocks.max(0) + 1) if len(blocks) else None
+    if bpack is None or len(node_keys) == 0:
+        return np.zeros(len(blocks) + 1, np.int64), np.zeros(0, np.int32), np.zeros(0)
+    bkeys = bpack(blocks)
+    order = np.argsort(bkeys, kind="stable")
+    return _block_nodes_kernel(np.asarray(node_keys, np.int64), np.asarray(values, np.float64),
+                               pack.lo, pack.dims, int(block_cells), bkeys[order],
+                               order.astype(np.int64), bpack.lo, bpack.dims)
+
+
+@nb.njit(cache=True)
+def _block_nodes_kernel(keys, values, lo, dims, B, bkeys_sorted, bindex, blo, bdims):
+    """:func:`_block_nodes`: per node its <= 8 blocks (shifted by one along the axes where
+    it lies on a block face), counted, then written in node order per block."""
+    nblk = len(bkeys_sorted)
+    nb_ = B + 1
+    plane = dims[1] * dims[2]
+    counts = np.zeros(nblk + 1, np.int64)
+    ptr = np.zeros(nblk + 1, np.int64)
+    fill = np.zeros(nblk, np.int64)
+    loc = np.empty(0, np.int32)
+    val = np.empty(0)
+    for sweep in range(2):
+        if sweep == 1:
+            ptr = np.zeros(nblk + 1, np.int64)
+            for i in range(nblk):
+                ptr[i + 1] = ptr[i] + counts[i]
+            fill = ptr[:-1].copy()
+            loc = np.empty(ptr[-1], np.int32)
+            val = np.empty(ptr[-1])
+        for n in range(len(keys)):
+            kq = keys[n]
+            ijk = np.empty(3, np.int64)
+            ijk[0] = kq // plane + lo[0]
+            ijk[1] = (kq % plane) // dims[2] + lo[1]
+            ijk[2] = kq % dims[2] + lo[2]
+            base = np.empty(3, np.int64)
+            face = np.empty(3, np.bool_)
+            for a in range(3):
+                base[a] = ijk[a] // B            # floor division, as np.floor_divide
+                face[a] = ijk[a] - base[a] * B == 0
+            for o in range(8):
+                ok = True
+                bk = 0
+                q = np.empty(3, np.int64)
+                for a in range(3):
+                    oa = (o >> (2 - a)) & 1
+                    if oa == 1 and not face[a]:
+                        ok = False
+                        break
+                    b = base[a] - oa
+                    if b < blo[a] or b >= blo[a] + bdims[a]:
+                        ok = False
+                        break
+                    q[a] = ijk[a] - b * B
+                    bk = bk * bdims[a] + (b - blo[a])
+                if not ok:
+                    continue
+                # binary search of the block key
+                lo_, hi_ = 0, nblk
+                while lo_ < hi_:
+                    mid = (lo_ + hi_) // 2
+                    if bkeys_sorted[mid] < bk:
+                        lo_ = mid + 1
+                    else:
+                        hi_ = mid
+                if lo_ == nblk or bkeys_sorted[lo_] != bk:
+                    continue
+                bi = bindex[lo_]
+                if sweep == 0:
+                    counts[bi] += 1
+                else:
+                    loc[fill[bi]] = (q[0] * nb_ + q[1]) * nb_ + q[2]
+                    val[fill[bi]] = values[n]
+                    fill[bi] += 1
+    return ptr, loc, val
 
 
 class _LatticeValues:
@@ -325,6 +389,15 @@ class _LatticeValues:
         self.predict, self.h, self.pack, self.batch = predict, h, pack, batch
         self.keys = np.zeros(0, dtype=np.int64)       # sorted
         self.values = np.zeros(0)
+
+    def corners(self, cells: np.ndarray, chunk: int = 65536) -> np.ndarray:
+        """(n, 8) values at the corners of ``cells`` (lower corners, (n, 3)), a chunk of
+        cells at a time (the (n, 8, 3) corner arrays of a million cells are ~200 MB)."""
+        out = np.empty((len(cells), 8))
+        for s in range(0, len(cells), chunk):
+            c = cells[s:s + chunk]
+            out[s:s + chunk] = self(c[:, None, :] + _CORNERS[None]).reshape(len(c), 8)
+        return out
 
     def __call__(self, ijk: np.ndarray) -> np.ndarray:
         """Values at integer nodes ``ijk`` (..., 3), evaluating the missing ones."""
@@ -337,10 +410,10 @@ class _LatticeValues:
             vals = np.empty(len(nodes))
             for s in range(0, len(nodes), self.batch):
                 vals[s:s + self.batch] = self.predict(nodes[s:s + self.batch] * self.h)[0]
-            keys_all = np.concatenate([self.keys, new_keys])
-            order = np.argsort(keys_all, kind="stable")
-            self.keys = keys_all[order]
-            self.values = np.concatenate([self.values, vals])[order]
+            # merge the sorted new keys into the sorted keys (none is in both)
+            at = np.searchsorted(self.keys, new_keys)
+            self.keys = np.insert(self.keys, at, new_keys)
+            self.values = np.insert(self.values, at, vals)
         pos = np.searchsorted(self.keys, keys)
         return self.values[pos].reshape(ijk.shape[:-1])
 
@@ -411,7 +484,7 @@ def _drop_unused(verts, faces, var):
     used = np.zeros(len(verts), bool)
     used[faces.reshape(-1)] = True
     remap = np.cumsum(used) - 1
-    return verts[used], remap[faces].astype(np.int64), var[used]
+    return verts[used], remap[faces].astype(np.int64, copy=False), var[used]
 
 
 # --------------------------------------------------------------------------- export

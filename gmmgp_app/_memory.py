@@ -1,0 +1,32 @@
+"""Process memory settings for long runs (glibc's allocator).
+
+glibc serves blocks above ``M_MMAP_THRESHOLD`` (128 KiB at start) with their own
+``mmap`` and unmaps them on ``free``, but raises the threshold to the size of each
+such block freed (up to 32 MiB): after the first large temporary array is freed,
+arrays of up to that size come from the heap, whose freed pages stay resident when
+a smaller block above them is still in use. A mapping run frees thousands of
+1-30 MB temporaries (field batches, lattice chunks), so the resident set grew
+~100 MB above the arrays actually alive (docs/speed.md). Fixing the threshold keeps
+every large array in its own mapping, returned to the system when it is freed.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import sys
+
+#: glibc's mallopt parameter number for the mmap threshold (malloc.h: M_MMAP_THRESHOLD).
+_M_MMAP_THRESHOLD = -3
+
+
+def fix_mmap_threshold(nbytes: int = 128 * 1024) -> bool:
+    """Serve blocks of at least ``nbytes`` by their own mapping, always (glibc only;
+    elsewhere nothing happens). Returns whether the setting was applied."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return bool(libc.mallopt(_M_MMAP_THRESHOLD, int(nbytes)))
+    except (OSError, AttributeError):   # not glibc (musl has no mallopt)
+        return False
