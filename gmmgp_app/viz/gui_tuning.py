@@ -16,7 +16,7 @@ import numpy as np
 
 from .gui_model import StageResults
 
-__all__ = ["RunRecord", "field_change", "run_record", "FIELD_CHANGE_POINTS"]
+__all__ = ["RunRecord", "field_change", "run_record", "compare_shift", "FIELD_CHANGE_POINTS"]
 
 #: Most scan points the field change is evaluated at (fixed-seed subsample beyond).
 FIELD_CHANGE_POINTS = 5000
@@ -86,3 +86,23 @@ def run_record(prev: Optional[StageResults], new: StageResults) -> RunRecord:
     return RunRecord(threshold=float(new.config.hgmm.split_threshold),
                      d_m=float(new.config.gp.d_m), leaves=c.get("leaves"),
                      gp_points=c.get("gp_points"), field_change_rms=change)
+
+
+def compare_shift(points: np.ndarray, gap: float = 0.15) -> np.ndarray:
+    """(3,) translation placing the previous run's geometry beside the new one.
+
+    Along the horizontal axis (x or y) in which the scene is narrower (a street is
+    long in x: the copy goes beside it in y), by that extent (its 1-99 % range) plus
+    ``gap`` of it, so the two copies never overlap.
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(pts) == 0:
+        return np.zeros(3)
+    lo, hi = np.percentile(pts, 1, axis=0), np.percentile(pts, 99, axis=0)
+    ext = np.maximum(hi - lo, 1e-6)
+    axis = 0 if ext[0] < ext[1] else 1
+    # the full range, not 1-99 %: no point of one copy inside the other's box
+    full = float(np.ptp(pts[:, axis]))
+    out = np.zeros(3)
+    out[axis] = (1.0 + gap) * max(full, ext[axis])
+    return out
