@@ -252,3 +252,107 @@ def test_open_errors_name_the_fix(tmp_path):
                                  scan=_plane_scan(50)), "x")
     with pytest.raises(ViewerError, match="is not a tiled map"):
         m.load_tiles()
+
+
+# --------------------------------------------------------------------------- frames
+_RENDER_TARGETS = """
+import sys
+from gmmgp_app.viz.gui_model import ViewerModel
+from gmmgp_app.viz.gui_screenshot import screenshot_target
+check, tiled, scan, out = sys.argv[1:5]
+S = (320, 240)
+screenshot_target(ViewerModel.open(check), f"{out}/check.png", size=S)
+screenshot_target(ViewerModel.open(check), f"{out}/check_seg.png", size=S, segment=0)
+screenshot_target(ViewerModel.open(tiled, voxel_size=0.2), f"{out}/tiled.png", size=S)
+from gmmgp_app.config import MappingConfig
+cfg = MappingConfig().replace({"prepare.subsample_rate": 0.5, "gp.d_m": 0.0})
+m = ViewerModel.open(scan, cfg, voxel_size=0.2)
+screenshot_target(m, f"{out}/hgmm.png", size=S, stage="hgmm", level=1)
+m = ViewerModel.open(scan, cfg, voxel_size=0.2)
+screenshot_target(m, f"{out}/compare.png", size=S, stage="hgmm", level=1,
+                  compare={"hgmm.split_threshold": 0.2}, log=print)
+"""
+
+
+@pytest.mark.slow
+def test_results_render_offscreen(check_dir, tiled, tmp_path):
+    """Check result (z colours, a selected segment), tiled map surface and the compare
+    view, each through one offscreen frame (as ``gmmgp view --screenshot``)."""
+    import subprocess
+    import sys
+
+    from PIL import Image
+
+    from gmmgp_app.synth.io import save_scan_npz
+
+    scan = _plane_scan()
+    save_scan_npz(tmp_path / "plane.npz", scan.points, scan.origins)
+    r = subprocess.run([sys.executable, "-c", _RENDER_TARGETS, str(check_dir[0]),
+                        str(tiled[1]), str(tmp_path / "plane.npz"), str(tmp_path)],
+                       capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stderr[-3000:]
+    im = {n: np.asarray(Image.open(tmp_path / f"{n}.png").convert("RGB")).astype(int)
+          for n in ("check", "check_seg", "tiled", "hgmm", "compare")}
+    for n, a in im.items():
+        assert a.shape == (240, 320, 3) and a.std() > 3, n
+    # the check picture: points coloured by z (red in front of the map, blue behind)
+    c = im["check"]
+    assert np.sum((c[..., 0] > 150) & (c[..., 2] < 120)) > 20
+    # the selected segment is framed red; the compare picture holds a second copy
+    s = im["check_seg"]
+    assert np.sum((s[..., 0] > 200) & (s[..., 1] < 60) & (s[..., 2] < 60)) > 50
+    assert np.mean(np.any(im["compare"] != im["hgmm"], axis=2)) > 0.02
+    assert "run 1: c* 0.01" in r.stdout and "run 2: c* 0.2" in r.stdout
+
+
+@pytest.mark.slow
+def test_app_opens_a_check_result_and_a_tiled_map_under_xvfb(check_dir, tiled, tmp_path):
+    """The window (without 3D geometry, as the window test of test_gui.py) on a check
+    result (segments listed, one selected) and a tiled map (tiles loaded around the
+    view, then all)."""
+    import os
+    import subprocess
+    import sys
+
+    from test_gui import _run_quiet, _start_xvfb, _stop_xvfb
+
+    out = tmp_path
+    ck_steps = [{"state": str(out / "c0.json")}, {"segment": 1},
+                {"state": str(out / "c1.json")}, {"segment": 0},
+                {"state": str(out / "c2.json")}, {"quit": True}]
+    tl_steps = [{"state": str(out / "t0.json")}, {"load_tiles": "all"},
+                {"state": str(out / "t1.json")}, {"probe": [0.9, 1.1, 0.15]},
+                {"state": str(out / "t2.json")}, {"quit": True}]
+    (out / "ck.json").write_text(json.dumps(ck_steps))
+    (out / "tl.json").write_text(json.dumps(tl_steps))
+    xvfb, display = _start_xvfb(tmp_path)
+    env = dict(os.environ, DISPLAY=display)
+    env.pop("WAYLAND_DISPLAY", None)
+    try:
+        runs = [_run_quiet([sys.executable, "-m", "gmmgp_app.viz.gui", str(target),
+                            "--size", "1200x800", "--voxel-size", "0.2", "--no-3d",
+                            "--script", str(script)], env=env, timeout=900)
+                for target, script in ((check_dir[0], out / "ck.json"),
+                                       (tiled[1], out / "tl.json"))]
+    finally:
+        _stop_xvfb(xvfb)
+    for code, err in runs:
+        assert code == 0, err[-3000:]
+    c0, c1, c2 = (json.loads((out / f"c{i}.json").read_text()) for i in range(3))
+    assert c0["kind"] == "check" and c0["stage"] == "scan" and c0["errors"] == []
+    assert c0["legend"].startswith("check z") and c0["drawn"]["points"][0] == "z"
+    n = c0["counts"]["segments"]
+    assert c0["segment_items"] == n + 1 and f"{n} segments" in c0["segments_label"]
+    assert c0["selected_segment"] is None and c1["selected_segment"] == 0
+    assert c1["drawn"]["segments"] != c0["drawn"]["segments"]  # the selected one red
+    assert c2["selected_segment"] is None
+    t0, t1, t2 = (json.loads((out / f"t{i}.json").read_text()) for i in range(3))
+    assert t0["kind"] == "tiled" and t0["errors"] == [] and t2["errors"] == []
+    tiles = len(tiled[0].keys)
+    # opened around the map's centre: the tiles within one tile size of it
+    assert 0 < t0["counts"]["tiles_loaded"] <= tiles
+    assert t1["counts"]["tiles_loaded"] == tiles and f"{tiles} of {tiles} tiles" in \
+        t1["tiles_label"]
+    assert t1["counts"]["faces"] > 0 and t1["stage"] == "surface"
+    mean = tiled[0].predict(np.array([[0.9, 1.1, 0.15]]))[0][0]
+    assert f"SDF {mean:+.4f}" in t2["probe"] and "|grad|" in t2["probe"]
