@@ -217,6 +217,11 @@ class ViewerApp:
         self.pending_voxel = model.results.voxel_size
         self.probe_text = ""
         self.previous = None  # results before the last run (the compare layer)
+        # seconds from Run to each stage's result in the scene (geometry added), and to
+        # the first frame drawn after it (with GMMGP_GUI_FRAME_TIMES=1: a read-back)
+        self.latency: dict = {}
+        self.frame_latency: dict = {}
+        self._measure_frames = bool(os.environ.get("GMMGP_GUI_FRAME_TIMES"))
         self.selected_segment = None  # a check result's segment shown red
         self.legend_key = "unpainted"
         self._std_cache: dict = {}
@@ -611,6 +616,7 @@ class ViewerApp:
             self.previous = base
         n_stages = len(STAGES) - STAGES.index(start)
         self._run_info = {"start": start, "done": 0, "n": n_stages, "t0": time.perf_counter()}
+        self.latency, self.frame_latency = {}, {}
         self.progress.value = 0.0
         self.status_label.text = f"running from {STAGE_LABELS[start]} ..."
         self._refresh_panel()
@@ -669,6 +675,12 @@ class ViewerApp:
         if name == "hgmm":
             self.level = min(self.level, len(results.hgmm.levels) - 1)
         self._refresh()
+        t_run = self._run_info["t0"]
+        self.latency[name] = time.perf_counter() - t_run
+        if self._measure_frames and self.draw_scene:
+            def drawn(_img, name=name):
+                self.frame_latency.setdefault(name, time.perf_counter() - t_run)
+            self.scene.scene.scene.render_to_image(drawn)
 
     def _on_run_record(self, gen, rec):
         if gen != self.generation:
@@ -1045,6 +1057,7 @@ class ViewerApp:
                 "panel_right": self.panel.frame.get_right(),
                 "seconds": self.model.results.seconds, "errors": list(self.errors),
                 "kind": self.model.kind, "summary_label": self.summary_label.text,
+                "latency": dict(self.latency), "frame_latency": dict(self.frame_latency),
                 "previous": (None if self.previous is None else self.previous.counts()),
                 "selected_segment": self.selected_segment,
                 "segments_label": self.segments_label.text,

@@ -227,8 +227,9 @@ def screenshot_target(model: ViewerModel, path, size=(1600, 1000), stage: Option
         model.results = model.load_tiles(voxel_size=r.voxel_size)
         r = model.results
     previous = None
-    if not r.has(stage):
-        needed = stage
+    # with --compare, at least up to the GMR: the runs' records then hold the field's change
+    needed = stage if not compare or STAGES.index(stage) >= STAGES.index("gmr") else "gmr"
+    if not r.has(needed):
         if needed != "scan":
             start = "prepare" if model.can_refit else "surface"
             if STAGES.index(needed) < STAGES.index(start):
@@ -241,10 +242,10 @@ def screenshot_target(model: ViewerModel, path, size=(1600, 1000), stage: Option
         previous = model.results
         cfg = previous.config.replace(compare)
         start = first_affected_stage(previous, cfg, previous.voxel_size) or "surface"
-        if STAGES.index(start) <= STAGES.index(stage):
+        if STAGES.index(start) <= STAGES.index(needed):
             if log:
-                log(f"computing again with {compare} from {start} to {stage} ...")
-            model.results = _compute_until(model, start, stage, cfg=cfg)
+                log(f"computing again with {compare} from {start} to {needed} ...")
+            model.results = _compute_until(model, start, needed, cfg=cfg)
         if log:
             for i, (a, b) in enumerate(((None, previous), (previous, model.results))):
                 log(f"run {i + 1}: {run_record(a, b).label()}")
