@@ -103,11 +103,14 @@ def test_compare_layer_draws_the_previous_run_beside_the_current(plane):
     shift = compare_shift(new.scan.points)
     # the plane spans 2 m in x and y: shifted by (1 + gap) * its extent along one axis
     assert np.count_nonzero(shift) == 1 and 2.0 < np.abs(shift).max() < 2.6
-    pts = np.asarray(geom["compare_points"].points)
+    assert "compare_points" not in geom  # the nodes alone (see _compare_geometry)
+    state.stage = "scan"  # other stages: the previous run's points
+    pts = np.asarray(state.layer_geometry("compare")[1]()["compare_points"].points)
     np.testing.assert_allclose(pts, base.scan.points + shift)
     cur_hi = new.scan.points.max(axis=0)
     ax = int(np.flatnonzero(shift)[0])
     assert pts[:, ax].min() > cur_hi[ax]  # beside, never overlapping
+    state.stage = "hgmm"
     # the previous run's level-0 nodes: each ellipsoid centred on its node's mean + shift
     lv = base.hgmm.levels[0]
     split = np.asarray(lv.split, bool)
@@ -258,7 +261,7 @@ def test_open_errors_name_the_fix(tmp_path):
 _RENDER_TARGETS = """
 import sys
 from gmmgp_app.viz.gui_model import ViewerModel
-from gmmgp_app.viz.gui_screenshot import screenshot_target
+from gmmgp_app.viz.gui_screenshot import render_png, screenshot_target
 check, tiled, scan, out = sys.argv[1:5]
 S = (320, 240)
 screenshot_target(ViewerModel.open(check), f"{out}/check.png", size=S)
@@ -267,10 +270,9 @@ screenshot_target(ViewerModel.open(tiled, voxel_size=0.2), f"{out}/tiled.png", s
 from gmmgp_app.config import MappingConfig
 cfg = MappingConfig().replace({"prepare.subsample_rate": 0.5, "gp.d_m": 0.0})
 m = ViewerModel.open(scan, cfg, voxel_size=0.2)
-screenshot_target(m, f"{out}/hgmm.png", size=S, stage="hgmm", level=1)
-m = ViewerModel.open(scan, cfg, voxel_size=0.2)
 screenshot_target(m, f"{out}/compare.png", size=S, stage="hgmm", level=1,
                   compare={"hgmm.split_threshold": 0.2}, log=print)
+render_png(m, f"{out}/hgmm.png", size=S, stage="hgmm", level=1)  # the second run alone
 """
 
 
