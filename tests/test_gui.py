@@ -190,7 +190,7 @@ def test_run_record_counts_and_the_fields_change_at_the_scan_points(plane_model)
 
 
 def test_model_errors_name_the_problem_and_the_fix(tmp_path):
-    with pytest.raises(ViewerError, match="does not exist; give a scan file or a map folder"):
+    with pytest.raises(ViewerError, match="does not exist; give a scan file, a map or run folder"):
         ViewerModel.open(tmp_path / "nope.ply")
     m = ViewerModel(_results(scan=_plane_scan(50)), "x")
     with pytest.raises(ViewerError, match="Cannot start a run at stage 'scan'"):
