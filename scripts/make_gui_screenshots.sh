@@ -29,7 +29,7 @@ view "$work/demo" --stage hgmm --level 2 --screenshot "$OUT/gui_hgmm_level2.png"
 view "$work/demo" --stage hgmm --level 3 --screenshot "$OUT/gui_hgmm_level3.png"
 view "$work/demo" --stage gp --screenshot "$OUT/gui_gp_points.png"
 view "$work/demo" --stage surface --screenshot "$OUT/gui_surface.png"
-view assets/demo_street.npz --stage hgmm --level 3 --compare hgmm.split_threshold=0.03 \
+view assets/demo_street.npz --stage hgmm --level 2 --compare hgmm.split_threshold=0.03 \
   --screenshot "$OUT/gui_compare_threshold.png"
 view "$work/tiled" --stage surface --screenshot "$OUT/gui_tiled_surface.png"
 # 256-colour palette PNGs: a quarter of the bytes, no visible change for flat renders.
