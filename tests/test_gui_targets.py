@@ -270,9 +270,11 @@ screenshot_target(ViewerModel.open(tiled, voxel_size=0.2), f"{out}/tiled.png", s
 from gmmgp_app.config import MappingConfig
 cfg = MappingConfig().replace({"prepare.subsample_rate": 0.5, "gp.d_m": 0.0})
 m = ViewerModel.open(scan, cfg, voxel_size=0.2)
-screenshot_target(m, f"{out}/compare.png", size=S, stage="hgmm", level=1,
-                  compare={"hgmm.split_threshold": 0.2}, log=print)
-render_png(m, f"{out}/hgmm.png", size=S, stage="hgmm", level=1)  # the second run alone
+# the GP stage (unlit points): frames of lit ellipsoids side by side stalled the CPU
+# renderer for over 8 min here (a plane, 320x240, load 14); see the report of issue 18
+screenshot_target(m, f"{out}/compare.png", size=S, stage="gp",
+                  compare={"gp.d_m": 0.004}, log=print)
+render_png(m, f"{out}/gp.png", size=S, stage="gp")  # the second run alone
 """
 
 
@@ -294,7 +296,7 @@ def test_results_render_offscreen(check_dir, tiled, tmp_path):
                        capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stderr[-3000:]
     im = {n: np.asarray(Image.open(tmp_path / f"{n}.png").convert("RGB")).astype(int)
-          for n in ("check", "check_seg", "tiled", "hgmm", "compare")}
+          for n in ("check", "check_seg", "tiled", "gp", "compare")}
     for n, a in im.items():
         assert a.shape == (240, 320, 3) and a.std() > 3, n
     # the check picture: points coloured by z (red in front of the map, blue behind)
@@ -303,8 +305,12 @@ def test_results_render_offscreen(check_dir, tiled, tmp_path):
     # the selected segment is framed red; the compare picture holds a second copy
     s = im["check_seg"]
     assert np.sum((s[..., 0] > 200) & (s[..., 1] < 60) & (s[..., 2] < 60)) > 50
-    assert np.mean(np.any(im["compare"] != im["hgmm"], axis=2)) > 0.02
-    assert "run 1: c* 0.01" in r.stdout and "run 2: c* 0.2" in r.stdout
+    assert np.mean(np.any(im["compare"] != im["gp"], axis=2)) > 0.02
+    # both copies hold GP points (red): the previous run's beside the current one's
+    cmp_red = (im["compare"][..., 0] > 150) & (im["compare"][..., 1] < 80)
+    assert cmp_red.sum() > 20
+    assert "run 1: c* 0.01, d_m 0" in r.stdout and "run 2: c* 0.01, d_m 0.004" in r.stdout
+    assert "mm rms" in r.stdout  # the field's change against the first run
 
 
 @pytest.mark.slow
