@@ -100,14 +100,14 @@ def _compare_geometry(view, r, stage):
     grey = lambda: G.point_cloud(sp[idx] + shift, np.full((len(idx), 3), 0.72))  # noqa: E731
     if stage == "hgmm" and prev.hgmm is not None:
         level = view.level
-        # the nodes alone, without the scan's points: a second grey point cloud made a
-        # frame of the CPU renderer stall for minutes (measured on the demo, 1280x800)
+        # the nodes alone (two sets of lit ellipsoids side by side already stalled the
+        # CPU renderer for minutes on the demo at 1280x800, grey points or not)
         return (("cmp_hgmm", id(prev.hgmm), level, tuple(shift)),
                 lambda: _hgmm_level_geometry(prev.hgmm, level, shift, "compare"), None, None)
     if stage == "gp" and prev.gp_points is not None:
         gp = prev.gp_points + shift
         return (("cmp_gp", id(prev.gp_points), tuple(shift)),
-                lambda: {"compare_gp": G.point_cloud(
+                lambda: {"compare_points": grey(), "compare_gp": G.point_cloud(
                     gp, np.tile([0.85, 0.05, 0.05], (len(gp), 1)))}, None, None)
     if stage == "surface" and prev.mesh is not None and len(prev.mesh.faces):
         mesh = prev.mesh

@@ -91,18 +91,14 @@ def run_record(prev: Optional[StageResults], new: StageResults) -> RunRecord:
 def compare_shift(points: np.ndarray, gap: float = 0.15) -> np.ndarray:
     """(3,) translation placing the previous run's geometry beside the new one.
 
-    Along the horizontal axis (x or y) in which the scene is narrower (a street is
-    long in x: the copy goes beside it in y), by that extent (its 1-99 % range) plus
-    ``gap`` of it, so the two copies never overlap.
+    Along x, the axis across the default view (the camera looks from -y, see
+    ``gui_screenshot.camera_pose``), by the points' x range plus ``gap`` of it, so the
+    two copies stand side by side in the picture and never overlap. (Along y, the
+    narrower axis of a street, the copy stood behind the facades and read as floating
+    above them.)
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    if len(pts) == 0:
-        return np.zeros(3)
-    lo, hi = np.percentile(pts, 1, axis=0), np.percentile(pts, 99, axis=0)
-    ext = np.maximum(hi - lo, 1e-6)
-    axis = 0 if ext[0] < ext[1] else 1
-    # the full range, not 1-99 %: no point of one copy inside the other's box
-    full = float(np.ptp(pts[:, axis]))
     out = np.zeros(3)
-    out[axis] = (1.0 + gap) * max(full, ext[axis])
+    if len(pts):
+        out[0] = (1.0 + gap) * max(float(np.ptp(pts[:, 0])), 1e-6)
     return out
