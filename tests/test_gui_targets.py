@@ -328,7 +328,8 @@ def test_app_opens_a_check_result_and_a_tiled_map_under_xvfb(check_dir, tiled, t
     ck_steps = [{"state": str(out / "c0.json")}, {"segment": 1},
                 {"state": str(out / "c1.json")}, {"segment": 0},
                 {"state": str(out / "c2.json")}, {"quit": True}]
-    tl_steps = [{"state": str(out / "t0.json")}, {"load_tiles": "all"},
+    tl_steps = [{"state": str(out / "t0.json")}, {"load_tiles": "view"},
+                {"state": str(out / "tv.json")}, {"load_tiles": "all"},
                 {"state": str(out / "t1.json")}, {"probe": [0.9, 1.1, 0.15]},
                 {"state": str(out / "t2.json")}, {"quit": True}]
     (out / "ck.json").write_text(json.dumps(ck_steps))
@@ -359,6 +360,8 @@ def test_app_opens_a_check_result_and_a_tiled_map_under_xvfb(check_dir, tiled, t
     tiles = len(tiled[0].keys)
     # opened around the map's centre: the tiles within one tile size of it
     assert 0 < t0["counts"]["tiles_loaded"] <= tiles
+    tv = json.loads((out / "tv.json").read_text())  # around the camera's centre of view
+    assert tv["errors"] == [] and tv["counts"]["tiles_loaded"] >= t0["counts"]["tiles_loaded"]
     assert t1["counts"]["tiles_loaded"] == tiles and f"{tiles} of {tiles} tiles" in \
         t1["tiles_label"]
     assert t1["counts"]["faces"] > 0 and t1["stage"] == "surface"
