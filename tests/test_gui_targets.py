@@ -367,3 +367,45 @@ def test_app_opens_a_check_result_and_a_tiled_map_under_xvfb(check_dir, tiled, t
     assert t1["counts"]["faces"] > 0 and t1["stage"] == "surface"
     mean = tiled[0].predict(np.array([[0.9, 1.1, 0.15]]))[0][0]
     assert f"SDF {mean:+.4f}" in t2["probe"] and "|grad|" in t2["probe"]
+
+
+def test_screenshot_options_fail_in_one_line(tmp_path, monkeypatch):
+    import argparse
+
+    from gmmgp_app.config import ConfigError
+    from gmmgp_app.viz import gui
+
+    assert gui._parse_compare(["hgmm.split_threshold=0.03", "gp.d_m=0.01"]) == {
+        "hgmm.split_threshold": 0.03, "gp.d_m": 0.01}
+    with pytest.raises(ViewerError, match="Expected --compare like hgmm.split_threshold=0.03"):
+        gui._parse_compare(["x"])
+    with pytest.raises(ConfigError, match="Unknown config field 'hgmm.nope'"):
+        gui._parse_compare(["hgmm.nope=1"])
+    monkeypatch.setenv("DISPLAY", ":12345")
+    p = argparse.ArgumentParser()
+    gui.add_view_arguments(p)
+    scan = tmp_path / "s.npz"
+    with pytest.raises(ViewerError, match="--compare and --segment apply to --screenshot"):
+        gui.open_view(p.parse_args([str(scan), "--segment", "1"]), MappingConfig())
+    with pytest.raises(ViewerError, match="Expected --segment >= 1"):
+        gui.open_view(p.parse_args([str(scan), "--segment", "0", "--screenshot", "x.png"]),
+                      MappingConfig())
+
+
+def test_screenshot_refuses_what_a_target_cannot_show(check_dir, tiled, tmp_path):
+    from gmmgp_app.viz.gui_screenshot import screenshot_target
+
+    m = ViewerModel.open(check_dir[0])
+    n = len(m.results.check.segments)
+    with pytest.raises(ViewerError, match=f"Expected --segment between 1 and {n}"):
+        screenshot_target(m, tmp_path / "a.png", segment=n)
+    with pytest.raises(ViewerError, match="is a check result: it shows the scan's points"):
+        screenshot_target(m, tmp_path / "a.png", stage="hgmm")
+    with pytest.raises(ViewerError, match="--compare needs a scan to map twice"):
+        screenshot_target(m, tmp_path / "a.png", compare={"gp.d_m": 0.01})
+    t = ViewerModel.open(tiled[1])
+    with pytest.raises(ViewerError, match="is a tiled map: show 'hgmm', 'gp' or 'surface'"):
+        screenshot_target(t, tmp_path / "a.png", stage="scan")
+    with pytest.raises(ViewerError, match="--segment selects a change segment of a check"):
+        screenshot_target(t, tmp_path / "a.png", segment=0)
+    assert not list(tmp_path.iterdir())  # nothing written
