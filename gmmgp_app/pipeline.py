@@ -248,8 +248,8 @@ def load_map(directory) -> SurfaceMap:
     if (directory / "tiled.json").is_file():
         raise MapFormatError(
             f"'{directory}' holds a tiled map (tiled.json), not a single map; open it with "
-            "gmmgp_app.tiling.load_tiled_map ('gmmgp eval' reads tiled runs, 'gmmgp view' "
-            "does not yet: map without --tile-size to view)."
+            "gmmgp_app.tiling.load_tiled_map ('gmmgp eval' and 'gmmgp view' read tiled "
+            "runs)."
         )
     if not meta_path.is_file() or not arr_path.is_file():
         raise MapFormatError(

@@ -190,7 +190,7 @@ def test_run_record_counts_and_the_fields_change_at_the_scan_points(plane_model)
 
 
 def test_model_errors_name_the_problem_and_the_fix(tmp_path):
-    with pytest.raises(ViewerError, match="does not exist; give a scan file or a map folder"):
+    with pytest.raises(ViewerError, match="does not exist; give a scan file, a map or run folder"):
         ViewerModel.open(tmp_path / "nope.ply")
     m = ViewerModel(_results(scan=_plane_scan(50)), "x")
     with pytest.raises(ViewerError, match="Cannot start a run at stage 'scan'"):
@@ -404,6 +404,9 @@ def test_app_steps_through_stages_and_reruns_under_xvfb(tmp_path, box_scan):
         {"probe": "center"}, {"state": str(out / "s1.json")},
         # c of the box's nodes is either ~0 or ~0.08: 0.1 stops the split at level 0
         {"threshold": 0.1}, {"d_m": 0.2}, {"run": True}, {"state": str(out / "s2.json")},
+        # compare: the previous run's surface beside the new one
+        {"layer": "compare", "on": True}, {"state": str(out / "cmp.json")},
+        {"layer": "compare", "on": False},
         # a run superseded at once: its results must be dropped, the newer one shown
         {"d_m": 0.05, "run": True, "wait": False}, {"voxel": 0.25, "run": True},
         {"state": str(out / "s3.json")}, {"save": str(out / "saved" / "map")}, {"quit": True},
@@ -426,7 +429,7 @@ def test_app_steps_through_stages_and_reruns_under_xvfb(tmp_path, box_scan):
     for s in STAGES:
         st = json.loads((out / f"stage_{s}.json").read_text())
         assert st["stage"] == s and st["layers"] == sorted(STAGE_LAYERS[s])
-        assert set(st["drawn"]) >= set(STAGE_LAYERS[s]) - {"blocks", "gp_points"}
+        assert set(st["drawn"]) >= set(STAGE_LAYERS[s]) - {"blocks", "gp_points", "segments"}
         # the colour bar (its last cell) fits the panel
         assert st["legend_bar_right"] <= st["panel_right"], (st["legend_bar_right"],
                                                              st["panel_right"])
@@ -439,7 +442,7 @@ def test_app_steps_through_stages_and_reruns_under_xvfb(tmp_path, box_scan):
     assert f"leaves {s0['counts']['leaves']}" in s0["counts_label"]
     lv3 = json.loads((out / "level3.json").read_text())
     assert lv3["level_label"].startswith(f"level {min(3, lv - 1)} of {lv - 1}")
-    assert "SDF" in s1["probe"] and "+-" in s1["probe"]
+    assert "SDF" in s1["probe"] and "+-" in s1["probe"] and "|grad|" in s1["probe"]
     assert s1["legend"] == "predicted std (m)"
     assert s2["threshold"] == 0.1 and s2["counts"]["leaves"] != s0["counts"]["leaves"]
     assert s2["threshold_shown"] == pytest.approx(0.1)  # the value itself, not its log10
@@ -448,6 +451,10 @@ def test_app_steps_through_stages_and_reruns_under_xvfb(tmp_path, box_scan):
     assert len(s0["runs"]) == 1 and s0["runs"][0]["field_change_rms"] is None
     assert len(s2["runs"]) == 2 and s2["runs"][1]["leaves"] == s2["counts"]["leaves"]
     assert s2["runs"][1]["field_change_rms"] > 0 and "run 2: c* 0.1" in s2["runs_label"]
+    cmp = json.loads((out / "cmp.json").read_text())
+    assert "compare" in cmp["layers"] and "compare" in cmp["drawn"]
+    assert cmp["drawn"]["compare"][0] == "cmp_mesh"  # the surface stage: the previous mesh
+    assert cmp["previous"]["leaves"] == s0["counts"]["leaves"] != s2["counts"]["leaves"]
     # the newer run's results are shown (whether the superseded run had a stage result
     # left to drop depends on timing: not asserted)
     assert s3["d_m"] == 0.05 and s3["generation"] == s2["generation"] + 2

@@ -7,6 +7,12 @@ from .options import add_command, add_config_options, load_config
 EXAMPLES = """examples:
   gmmgp view assets/demo_street.npz
   gmmgp view out/demo/map
+  gmmgp view out/demo                      # a run folder: map, its mesh and summary
+  gmmgp view out/city                      # a tiled run: tiles loaded around the view
+  gmmgp view out/check                     # a 'gmmgp check' result: points by z, segments
+  gmmgp view out/demo --stage hgmm --level 2 --screenshot hgmm2.png --size 1280x800
+  gmmgp view scan.npz --stage hgmm --compare hgmm.split_threshold=0.03 --screenshot cmp.png
+  gmmgp view out/check --segment 1 --screenshot seg1.png
   xvfb-run -s "-screen 0 1600x1000x24" gmmgp view scan.ply     # on a machine without a display"""
 
 

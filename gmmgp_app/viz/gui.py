@@ -38,14 +38,19 @@ import numpy as np
 from .gui_model import (STAGE_LABELS, STAGES, Cancelled, StageResults, ViewerError,
                         ViewerModel, first_affected_stage)
 from .gui_script import ScriptRunner, load_script
-from .gui_layers import LAYERS, STAGE_LAYERS, layer_geometry, materials
+from .gui_layers import (LAYERS, STAGE_LAYERS, compare_scene_points, layer_geometry,
+                         layer_parts, materials)
 from .gui_tuning import run_record
 
 __all__ = ["add_view_arguments", "open_view", "ViewerApp", "ViewerError", "run_app"]
 
 
 LAYER_LABELS = {"points": "Points", "ellipsoids": "Ellipsoids (HGMM level)",
-                "gp_points": "GP points", "blocks": "Octree blocks", "mesh": "Surface mesh"}
+                "gp_points": "GP points", "blocks": "Octree blocks", "mesh": "Surface mesh",
+                "segments": "Changed segments (check)",
+                "compare": "Compare: previous run beside"}
+#: Tiles loaded around the view within this many tile sizes of its centre.
+TILE_RADIUS = 1.0
 #: Most points drawn at once (a fixed-seed subsample beyond); the CPU renderer slows.
 MAX_DRAWN_POINTS = 300_000
 THRESHOLD_RANGE = (1e-3, 0.25)
@@ -60,8 +65,9 @@ def add_view_arguments(parser) -> None:
     """The app's options (``gmmgp view`` adds the shared configuration options)."""
     import argparse
 
-    parser.add_argument("target", help="scan file, saved map folder (map/) or a "
-                        "'gmmgp run' output folder")
+    parser.add_argument("target", help="scan file, saved map folder (map/), a 'gmmgp run' "
+                        "output folder (single or tiled map) or a 'gmmgp check' output "
+                        "folder")
     parser.add_argument("--voxel-size", type=float, default=0.1, metavar="M",
                         help="marching-cubes voxel of the surface in metres (default 0.1; "
                              "the map's 0.05 is sharper but about 4x slower)")
@@ -74,6 +80,13 @@ def add_view_arguments(parser) -> None:
                              "stage: the last; a scan is mapped first)")
     parser.add_argument("--level", type=int, default=0,
                         help="HGMM level of the ellipsoids shown (with --stage hgmm)")
+    parser.add_argument("--compare", action="append", default=[], metavar="KEY=VALUE",
+                        help="with --screenshot: map again with this setting (repeatable, "
+                             "e.g. hgmm.split_threshold=0.03) and draw the first run beside "
+                             "the second")
+    parser.add_argument("--segment", type=int, default=None, metavar="N",
+                        help="with --screenshot of a check result: frame change segment N "
+                             "(1 = the largest), drawn red")
     parser.add_argument("--script", metavar="JSON",
                         help="run these steps after the first computation (automation and "
                              "screenshots; see gmmgp_app.viz.gui_script)")
@@ -93,12 +106,20 @@ def open_view(args, cfg) -> int:
                           f"{VOXEL_RANGE[1]} m, found {args.voxel_size}; the app extracts "
                           "surfaces interactively.")
     steps = load_script(args.script) if args.script else None
+    compare = _parse_compare(getattr(args, "compare", None) or [])
+    segment = getattr(args, "segment", None)
+    if not getattr(args, "screenshot", None) and (compare or segment is not None):
+        raise ViewerError("--compare and --segment apply to --screenshot; in the window use "
+                          "the Compare layer and the segment list.")
+    if segment is not None and segment < 1:
+        raise ViewerError(f"Expected --segment >= 1 (1 = the largest segment), found {segment}.")
     model = ViewerModel.open(args.target, cfg, voxel_size=args.voxel_size)
     if getattr(args, "screenshot", None):
         from .gui_screenshot import screenshot_target
 
         screenshot_target(model, args.screenshot, size=size, stage=args.stage,
-                          level=getattr(args, "level", 0),
+                          level=getattr(args, "level", 0), compare=compare,
+                          segment=None if segment is None else segment - 1,
                           log=lambda m: print(f"[gmmgp view] {m}", file=sys.stderr))
         return 0
     return run_app(model, size=size, first_stage=args.stage, script=steps,
@@ -112,6 +133,21 @@ def check_display() -> None:
         raise ViewerError("No display found (DISPLAY and WAYLAND_DISPLAY are unset); run in a "
                           "desktop session, or headless with 'xvfb-run -s \"-screen 0 "
                           "1600x1000x24\" gmmgp view ...'.")
+
+
+def _parse_compare(items) -> dict:
+    """``--compare KEY=VALUE`` items as a settings dict (values parsed as TOML)."""
+    from ..config import MappingConfig, parse_value
+
+    out = {}
+    for a in items:
+        if "=" not in a:
+            raise ViewerError(f"Expected --compare like hgmm.split_threshold=0.03, found {a!r}.")
+        k, v = a.split("=", 1)
+        out[k.strip()] = parse_value(v.strip())
+    if out:
+        MappingConfig().replace(out)  # unknown keys fail here, before any work
+    return out
 
 
 def _parse_size(text: str) -> tuple[int, int]:
@@ -180,6 +216,13 @@ class ViewerApp:
         self.pending_cfg = model.results.config
         self.pending_voxel = model.results.voxel_size
         self.probe_text = ""
+        self.previous = None  # results before the last run (the compare layer)
+        # seconds from Run to each stage's result in the scene (geometry added), and to
+        # the first frame drawn after it (with GMMGP_GUI_FRAME_TIMES=1: a read-back)
+        self.latency: dict = {}
+        self.frame_latency: dict = {}
+        self._measure_frames = bool(os.environ.get("GMMGP_GUI_FRAME_TIMES"))
+        self.selected_segment = None  # a check result's segment shown red
         self.legend_key = "unpainted"
         self._std_cache: dict = {}
         self._camera_set = False
@@ -219,6 +262,8 @@ class ViewerApp:
         panel.add_child(self.title_label)
         self.counts_label = gui.Label("")
         panel.add_child(self.counts_label)
+        self.summary_label = gui.Label("")
+        panel.add_child(self.summary_label)
 
         # -- stage and level
         sec = gui.CollapsableVert("Stage", 0.3 * em, gui.Margins(0.3 * em, 0, 0, 0))
@@ -320,9 +365,23 @@ class ViewerApp:
         sec.add_child(self.runs_label)
         panel.add_child(sec)
 
+        # -- a check result's change segments, a tiled map's tiles
+        sec = gui.CollapsableVert("Check and tiles", 0.3 * em, gui.Margins(0.3 * em, 0, 0, 0))
+        self.segments_label = gui.Label("(not a check result)")
+        sec.add_child(self.segments_label)
+        self.segment_combo = gui.Combobox()
+        self.segment_combo.set_on_selection_changed(lambda text, i: self.select_segment(i - 1))
+        sec.add_child(self.segment_combo)
+        self.tiles_label = gui.Label("(not a tiled map)")
+        sec.add_child(self.tiles_label)
+        self.tiles_button = gui.Button("Load tiles around the view")
+        self.tiles_button.set_on_clicked(lambda: self.load_tiles_around(None))
+        sec.add_child(self.tiles_button)
+        panel.add_child(sec)
+
         # -- probe and export
         sec = gui.CollapsableVert("Probe and export", 0.3 * em, gui.Margins(0.3 * em, 0, 0, 0))
-        sec.add_child(gui.Label("Ctrl+click the scene: SDF mean +- std"))
+        sec.add_child(gui.Label("Ctrl+click the scene: SDF mean +- std\nand its gradient"))
         self.probe_label = gui.Label("(no probe yet)")
         sec.add_child(self.probe_label)
         row = gui.Horiz(0.3 * em)
@@ -387,6 +446,8 @@ class ViewerApp:
         if name not in LAYERS:
             raise ViewerError(f"Unknown layer {name!r}; expected one of {', '.join(LAYERS)}.")
         (self.layers.add if on else self.layers.discard)(name)
+        if name == "compare":
+            self._camera_set = False  # frame both copies (or the current one again)
         self._refresh()
 
     def set_colour_by_variance(self, on: bool):
@@ -425,8 +486,110 @@ class ViewerApp:
 
     def start_initial_run(self):
         r = self.model.results
+        if r.check is not None or (r.mesh is not None and not self.model.can_refit):
+            # a check result, or a run folder with its mesh: nothing to compute
+            self.stage = self.stage or ("scan" if r.check is not None else "surface")
+            self.layers = set(STAGE_LAYERS[self.stage])
+            if r.check is not None:
+                self._fill_segments()
+            self.status_label.text = f"opened {self.model.kind} {self.model.source}"
+            self._refresh()
+            return
+        if r.tiles is not None:
+            self.stage = self.stage or "surface"
+            self.layers = set(STAGE_LAYERS[self.stage])
+            self.load_tiles_around(r.tiles.centre())
+            return
         start = "prepare" if self.model.can_refit else "surface"
         self._start(start, r.config, r.voxel_size)
+
+    # ------------------------------------------------------------------ check / tiles
+    def _fill_segments(self):
+        ck = self.model.results.check
+        self.segment_combo.clear_items()
+        self.segment_combo.add_item("(no segment selected)")
+        for i in range(len(ck.segments)):
+            self.segment_combo.add_item(ck.segment_label(i))
+        s = ck.summary
+        self.segments_label.text = (
+            f"{int(ck.changed.sum()):,} changed points, {len(ck.segments)} segments"
+            + (f"\nknown {s['fraction_known']:.1%}" if "fraction_known" in s else ""))
+
+    def select_segment(self, i):
+        """Select change segment ``i`` (0 = the largest; None or < 0: none): drawn red,
+        the camera turned to it."""
+        ck = self.model.results.check
+        if ck is None:
+            raise ViewerError("No check result is open; open a 'gmmgp check' output folder.")
+        if i is None or i < 0:
+            self.selected_segment = None
+        else:
+            if i >= len(ck.segments):
+                raise ViewerError(f"Expected a segment between 1 and {len(ck.segments)}, "
+                                  f"found {i + 1}.")
+            self.selected_segment = int(i)
+            sg = ck.segments[i]
+            centre = 0.5 * (sg["bbox_min"] + sg["bbox_max"])
+            ext = max(float(np.linalg.norm(sg["bbox_max"] - sg["bbox_min"])), 1.0)
+            self.set_camera(centre, centre + 2.0 * ext * np.array([0.25, -0.75, 0.55]))
+        self.segment_combo.selected_index = 0 if self.selected_segment is None \
+            else self.selected_segment + 1
+        self._refresh()
+
+    def view_centre_xy(self):
+        """(x, y) where the camera's line of sight meets the scene's median height."""
+        r = self.model.results
+        z0 = float(np.median(r.scan.points[:, 2])) if r.scan is not None and len(r.scan) \
+            else 0.0
+        cam = self.scene.scene.camera
+        m = np.asarray(cam.get_model_matrix())
+        eye, fwd = m[:3, 3], -m[:3, 2]
+        if abs(fwd[2]) < 1e-6:
+            return eye[:2]
+        t = (z0 - eye[2]) / fwd[2]
+        return (eye + max(t, 0.0) * fwd)[:2]
+
+    def load_tiles_around(self, xy=None, all_tiles: bool = False, on_done=None):
+        """Load the tiled map's tiles within TILE_RADIUS tile sizes of ``xy`` (default:
+        the view's centre; ``all_tiles``: every tile) in a worker, then show them."""
+        tv = self.model.results.tiles
+        if tv is None:
+            self.status_label.text = "Not a tiled map: nothing to load."
+            return
+        if xy is None and not all_tiles:
+            xy = self.view_centre_xy() if self._camera_set else tv.centre()
+        radius = TILE_RADIUS * tv.size
+        self.generation += 1
+        gen = self.generation
+        self.idle.clear()
+        self.status_label.text = "loading tiles ..."
+        t0 = time.perf_counter()
+
+        def post(fn):
+            self.app.post_to_main_thread(self.window, lambda: self._guarded(fn))
+
+        def work():
+            try:
+                res = self.model.load_tiles(None if all_tiles else xy,
+                                            None if all_tiles else radius,
+                                            voxel_size=self.pending_voxel)
+
+                def show():
+                    if gen == self.generation:
+                        self.model.results = res
+                        n = len(res.tiles.pieces)
+                        self.status_label.text = (f"{n} of {len(res.tiles.keys)} tiles loaded "
+                                                  f"({time.perf_counter() - t0:.1f} s)")
+                        self._refresh()
+                    if on_done is not None:
+                        on_done()
+                post(show)
+            except Exception as e:  # noqa: BLE001 - shown in the panel
+                msg = f"{type(e).__name__}: {e}"
+                post(lambda: self._on_run_error(gen, msg))
+            post(lambda: self.idle.set() if gen == self.generation else None)
+
+        threading.Thread(target=work, name=f"gmmgp-tiles-{gen}", daemon=True).start()
 
     def run(self):
         """Re-run the stages the pending settings affect (the Run button)."""
@@ -449,8 +612,11 @@ class ViewerApp:
         gen = self.generation
         self.idle.clear()
         base = self.model.results
+        if base.hgmm is not None:  # what the compare layer shows beside the new run
+            self.previous = base
         n_stages = len(STAGES) - STAGES.index(start)
         self._run_info = {"start": start, "done": 0, "n": n_stages, "t0": time.perf_counter()}
+        self.latency, self.frame_latency = {}, {}
         self.progress.value = 0.0
         self.status_label.text = f"running from {STAGE_LABELS[start]} ..."
         self._refresh_panel()
@@ -509,6 +675,12 @@ class ViewerApp:
         if name == "hgmm":
             self.level = min(self.level, len(results.hgmm.levels) - 1)
         self._refresh()
+        t_run = self._run_info["t0"]
+        self.latency[name] = time.perf_counter() - t_run
+        if self._measure_frames and self.draw_scene:
+            def drawn(_img, name=name):
+                self.frame_latency.setdefault(name, time.perf_counter() - t_run)
+            self.scene.scene.scene.render_to_image(drawn)
 
     def _on_run_record(self, gen, rec):
         if gen != self.generation:
@@ -571,12 +743,14 @@ class ViewerApp:
         """Show the SDF mean +- std at ``xyz`` (local frame) and mark the point."""
         xyz = np.asarray(xyz, dtype=np.float64).reshape(3)
         try:
-            mean, std = self.model.probe(xyz)
+            mean, std, grad = self.model.probe(xyz, return_grad=True)
         except ViewerError as e:
             self._set_probe(str(e))
             return None
         self._set_probe(f"({xyz[0]:.2f}, {xyz[1]:.2f}, {xyz[2]:.2f}):\n"
-                        f"SDF {mean:+.4f} +- {std:.4f} m")
+                        f"SDF {mean:+.4f} +- {std:.4f} m\n"
+                        f"grad ({grad[0]:+.2f}, {grad[1]:+.2f}, {grad[2]:+.2f}), "
+                        f"|grad| {np.linalg.norm(grad):.2f}")
         import open3d as o3d
 
         r = 0.01 * self._extent()
@@ -588,7 +762,7 @@ class ViewerApp:
             sc.remove_geometry("probe")
         sc.add_geometry("probe", s, self.mat["probe"])
         self.window.post_redraw()
-        return mean, std
+        return mean, std, grad
 
     def _set_probe(self, text):
         self.probe_text = text
@@ -603,12 +777,11 @@ class ViewerApp:
         return float(np.linalg.norm(np.ptp(s.points, axis=0))) or 1.0
 
     def reset_camera(self):
-        s = self.model.results.scan
-        if s is None or len(s) == 0:
+        pts = compare_scene_points(self)
+        if pts is None:
             return
         import open3d as o3d
 
-        pts = s.points
         lo, hi = np.percentile(pts, 1, axis=0), np.percentile(pts, 99, axis=0)
         bbox = o3d.geometry.AxisAlignedBoundingBox(lo, hi)
         centre = 0.5 * (lo + hi)
@@ -701,7 +874,7 @@ class ViewerApp:
 
     @staticmethod
     def _names_of(layer):
-        return ("ellipsoids_leaf", "ellipsoids_split") if layer == "ellipsoids" else (layer,)
+        return layer_parts(layer)
 
     def _set_legend(self, legend):
         from .gui_geometry import LEGENDS
@@ -759,6 +932,13 @@ class ViewerApp:
             line = f"{line} | {p}" if line else p
         lines.append(line)
         self.counts_label.text = "\n".join(lines)
+        from .gui_targets import summary_lines
+
+        self.summary_label.text = "\n".join(summary_lines(r.summary, width=38))
+        if r.tiles is not None:
+            self.tiles_label.text = (f"{len(r.tiles.pieces)} of {len(r.tiles.keys)} tiles "
+                                     f"loaded ({r.tiles.size:g} m)")
+        self.tiles_button.enabled = r.tiles is not None
         stage = self.stage or "scan"
         self.stage_combo.selected_index = STAGES.index(stage)
         for name, cb in self.layer_boxes.items():
@@ -875,7 +1055,14 @@ class ViewerApp:
                 "drawn": {k: list(map(str, v)) for k, v in self._geom_keys.items()},
                 "legend_bar_right": self.legend_cells[-1].frame.get_right(),
                 "panel_right": self.panel.frame.get_right(),
-                "seconds": self.model.results.seconds, "errors": list(self.errors)}
+                "seconds": self.model.results.seconds, "errors": list(self.errors),
+                "kind": self.model.kind, "summary_label": self.summary_label.text,
+                "latency": dict(self.latency), "frame_latency": dict(self.frame_latency),
+                "previous": (None if self.previous is None else self.previous.counts()),
+                "selected_segment": self.selected_segment,
+                "segments_label": self.segments_label.text,
+                "segment_items": self.segment_combo.number_of_items,
+                "tiles_label": self.tiles_label.text}
 
     # ------------------------------------------------------------------ automation API
     def post(self, fn) -> None:

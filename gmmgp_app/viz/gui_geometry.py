@@ -16,7 +16,7 @@ from .rerun_observer import C_MAX, ERROR_SATURATION_DM, ellipsoid_params
 
 __all__ = ["colormap", "colorbar_rgb", "point_cloud", "ellipsoid_mesh", "ellipsoid_wireframe",
            "block_boxes", "triangle_mesh", "scan_colors", "row_colors", "error_colors",
-           "complexity_colors", "std_colors", "LEGENDS"]
+           "complexity_colors", "std_colors", "z_colors", "aabb_boxes", "LEGENDS"]
 
 #: Colour map and value range of each colouring: (title, colour map, lo, hi, scale note).
 LEGENDS = {
@@ -25,6 +25,7 @@ LEGENDS = {
     "error": ("GMR error |m(x)| at hits (m)", "RdYlGn_r"),
     "c": ("complexity c (sqrt scale)", "plasma"),
     "std": ("predicted std (m)", "viridis"),
+    "z": ("check z = d / sqrt(s^2 + noise^2)", "coolwarm"),
 }
 
 
@@ -73,6 +74,16 @@ def std_colors(variance: np.ndarray, vmax=None):
         vmax = float(np.quantile(std, 0.98)) if len(std) else 1.0
     vmax = max(vmax, 1e-12)
     return colormap(std / vmax, "viridis"), 0.0, vmax
+
+
+def z_colors(z: np.ndarray, known: np.ndarray, z_threshold: float):
+    """Check points by z on coolwarm from -2 to +2 thresholds (blue: behind the map's
+    surface, red: in front); points where the map knows no surface are grey.
+    Returns (colours, lo, hi)."""
+    hi = 2.0 * max(float(z_threshold), 1e-6)
+    col = colormap(0.5 + 0.5 * np.nan_to_num(np.asarray(z, float)) / hi, "coolwarm")
+    col[~np.asarray(known, bool)] = 0.8
+    return col, -hi, hi
 
 
 # --------------------------------------------------------------------------- geometry
@@ -162,6 +173,22 @@ def block_boxes(centres: np.ndarray, half_edge: float, color=(0.35, 0.35, 0.35))
     ls = o3d.geometry.LineSet(o3d.utility.Vector3dVector(pts),
                               o3d.utility.Vector2iVector(lines.astype(np.int32)))
     ls.paint_uniform_color(color)
+    return ls
+
+
+def aabb_boxes(lo, hi, colors):
+    """Axis-aligned boxes from corners ``lo``, ``hi`` (K, 3) as one ``LineSet``, one
+    colour (K, 3) per box."""
+    import open3d as o3d
+
+    lo, hi = np.asarray(lo, float).reshape(-1, 3), np.asarray(hi, float).reshape(-1, 3)
+    c, h = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    pts = (c[:, None, :] + h[:, None, :] * _BOX_CORNERS[None]).reshape(-1, 3)
+    lines = (_BOX_EDGES[None] + (np.arange(len(c)) * 8)[:, None, None]).reshape(-1, 2)
+    ls = o3d.geometry.LineSet(o3d.utility.Vector3dVector(pts),
+                              o3d.utility.Vector2iVector(lines.astype(np.int32)))
+    ls.colors = o3d.utility.Vector3dVector(np.repeat(np.asarray(colors, float).reshape(-1, 3),
+                                                     len(_BOX_EDGES), 0))
     return ls
 
 

@@ -8,10 +8,22 @@ import numpy as np
 
 from .gui_model import ViewerError
 
-STAGE_LAYERS = {"scan": {"points"}, "prepare": {"points"}, "hgmm": {"points", "ellipsoids"},
+STAGE_LAYERS = {"scan": {"points", "segments"}, "prepare": {"points"},
+                "hgmm": {"points", "ellipsoids"},
                 "gmr": {"points"}, "gp": {"points", "gp_points", "blocks"},
                 "surface": {"mesh"}}
-LAYERS = ("points", "ellipsoids", "gp_points", "blocks", "mesh")
+#: "segments": a check result's change segments (boxes; the selected one red);
+#: "compare": the previous run's leaves / GP points / surface beside the current ones.
+LAYERS = ("points", "ellipsoids", "gp_points", "blocks", "mesh", "segments", "compare")
+#: geometry names of each layer (a layer may be drawn as several geometries)
+LAYER_PARTS = {"ellipsoids": ("ellipsoids_leaf", "ellipsoids_split"),
+               "compare": ("compare_leaf", "compare_split", "compare_points", "compare_gp",
+                           "compare_mesh")}
+
+
+def layer_parts(layer) -> tuple:
+    """The geometry names a layer may be drawn as."""
+    return LAYER_PARTS.get(layer, (layer,))
 
 
 def materials(rendering, scaling: float = 1.0) -> dict:
@@ -31,7 +43,82 @@ def materials(rendering, scaling: float = 1.0) -> dict:
         "blocks": mat("unlitLine", line_width=1.0 * scaling),
         "mesh": mat("defaultLit"),
         "probe": mat("defaultLit", base_color=[1.0, 0.1, 0.1, 1.0]),
+        "segments": mat("unlitLine", line_width=2.5 * scaling),
+        "compare_leaf": mat("defaultLit"),
+        "compare_split": mat("unlitLine", line_width=1.5 * scaling),
+        "compare_points": mat("defaultUnlit", point_size=2.0 * scaling),
+        "compare_gp": mat("defaultUnlit", point_size=5.0 * scaling),
+        "compare_mesh": mat("defaultLit"),
     }
+
+
+def _hgmm_level_geometry(hgmm, level, shift=0.0, prefix="ellipsoids"):
+    from . import gui_geometry as G
+
+    lv = hgmm.levels[min(level, len(hgmm.levels) - 1)]
+    col = G.complexity_colors(lv.complexity)[0]
+    split = np.asarray(lv.split, bool)
+    m, g = lv.mixture, {}
+    means = m.means.copy()
+    means[:, :3] += shift
+    if (~split).any():
+        g[f"{prefix}_leaf"] = G.ellipsoid_mesh(means[~split], m.covariances[~split],
+                                               col[~split])
+    if split.any():
+        g[f"{prefix}_split"] = G.ellipsoid_wireframe(means[split], m.covariances[split],
+                                                     col[split])
+    return g
+
+
+def compare_scene_points(view):
+    """The points the camera frames: the scan's, and their shifted copy when the
+    previous run is drawn beside (None without a scan)."""
+    r = view.model.results
+    if r.scan is None or len(r.scan) == 0:
+        return None
+    pts = r.scan.points
+    prev = getattr(view, "previous", None)
+    if prev is None or "compare" not in getattr(view, "layers", ()):
+        return pts
+    from .gui_tuning import compare_shift
+
+    return np.vstack([pts, pts + compare_shift(pts)])
+
+
+def _compare_geometry(view, r, stage):
+    """The previous run (``view.previous``) beside the current one: its HGMM level,
+    GP points or surface, shifted by :func:`gui_tuning.compare_shift`."""
+    from . import gui_geometry as G
+    from .gui_tuning import compare_shift
+
+    prev = getattr(view, "previous", None)
+    if prev is None or r.scan is None or len(r.scan) == 0:
+        return None, None, None, None
+    shift = compare_shift(r.scan.points)
+    sp = prev.scan.points if prev.scan is not None else np.zeros((0, 3))
+    idx = view._display_points(sp)
+    grey = lambda: G.point_cloud(sp[idx] + shift, np.full((len(idx), 3), 0.72))  # noqa: E731
+    if stage == "hgmm" and prev.hgmm is not None:
+        level = view.level
+        # the nodes alone (two sets of lit ellipsoids side by side already stalled the
+        # CPU renderer for minutes on the demo at 1280x800, grey points or not)
+        return (("cmp_hgmm", id(prev.hgmm), level, tuple(shift)),
+                lambda: _hgmm_level_geometry(prev.hgmm, level, shift, "compare"), None, None)
+    if stage == "gp" and prev.gp_points is not None:
+        gp = prev.gp_points + shift
+        return (("cmp_gp", id(prev.gp_points), tuple(shift)),
+                lambda: {"compare_points": grey(), "compare_gp": G.point_cloud(
+                    gp, np.tile([0.85, 0.05, 0.05], (len(gp), 1)))}, None, None)
+    if stage == "surface" and prev.mesh is not None and len(prev.mesh.faces):
+        mesh = prev.mesh
+        return (("cmp_mesh", id(mesh), tuple(shift)),
+                lambda: {"compare_mesh": G.triangle_mesh(
+                    mesh.vertices + shift, mesh.faces,
+                    np.full((len(mesh.vertices), 3), 0.75))}, None, None)
+    if len(sp):
+        return (("cmp_scan", id(prev.scan), tuple(shift)),
+                lambda: {"compare_points": grey()}, None, None)
+    return None, None, None, None
 
 
 def layer_geometry(view, name):
@@ -48,6 +135,26 @@ def layer_geometry(view, name):
 
     r = view.model.results
     stage = view.stage or "scan"
+    if name == "points" and r.check is not None and r.scan is not None:
+        ck, pts = r.check, r.scan.points
+        idx = view._display_points(pts)
+        col, lo, hi = G.z_colors(ck.z[idx], ck.known[idx], ck.z_threshold)
+        return (("z", id(ck)), lambda: G.point_cloud(pts[idx], col), "points", ("z", lo, hi))
+    if name == "segments":
+        ck = r.check
+        if ck is None or not ck.segments:
+            return None, None, "segments", None
+        sel = getattr(view, "selected_segment", None)
+        lo = np.array([s["bbox_min"] for s in ck.segments])
+        hi = np.array([s["bbox_max"] for s in ck.segments])
+        col = np.tile([0.1, 0.1, 0.1], (len(lo), 1))
+        if sel is not None and 0 <= sel < len(lo):
+            col[sel] = [0.9, 0.0, 0.0]
+        pad = 0.02  # a box around the points, not through them
+        return (("segments", id(ck), sel), lambda: G.aabb_boxes(lo - pad, hi + pad, col),
+                "segments", None)
+    if name == "compare":
+        return _compare_geometry(view, r, stage)
     if name == "points":
         if stage == "prepare" and r.data is not None:
             rows, s = r.data.rows, r.data.spacing
@@ -81,20 +188,9 @@ def layer_geometry(view, name):
         if r.hgmm is None:
             return None, None, None, None
         level = min(view.level, len(r.hgmm.levels) - 1)
-        lv = r.hgmm.levels[level]
-
-        def build():
-            col = G.complexity_colors(lv.complexity)[0]
-            split = np.asarray(lv.split, bool)
-            m, g = lv.mixture, {}
-            if (~split).any():
-                g["ellipsoids_leaf"] = G.ellipsoid_mesh(
-                    m.means[~split], m.covariances[~split], col[~split])
-            if split.any():
-                g["ellipsoids_split"] = G.ellipsoid_wireframe(
-                    m.means[split], m.covariances[split], col[split])
-            return g
-        return ("ell", id(r.hgmm), level), build, None, ("c", 0.0, None)
+        hg = r.hgmm
+        return (("ell", id(hg), level), lambda: _hgmm_level_geometry(hg, level), None,
+                ("c", 0.0, None))
     if name == "gp_points":
         if r.gp_points is None or len(r.gp_points) == 0:
             return None, None, "gp_points", None

@@ -74,6 +74,15 @@ class StageResults:
     mesh : SurfaceMesh or None
     seconds : dict
         Wall time per stage.
+    tiles : TiledView or None
+        A tiled map's tiles loaded so far (:mod:`.gui_targets`); ``smap`` is the
+        TiledMap and the fields above hold the loaded tiles merged.
+    check : CheckView or None
+        A ``gmmgp check`` result: ``scan`` holds its points.
+    summary : dict
+        The run's summary (``summary.json`` of a run folder, or the pipeline's
+        summary of the app's last run); ``summary["auto"]`` when present lists
+        settings resolved from the scan (name -> {value, reason}).
     """
 
     config: MappingConfig
@@ -88,6 +97,9 @@ class StageResults:
     smap: object = None
     mesh: Optional[SurfaceMesh] = None
     seconds: dict = field(default_factory=dict)
+    tiles: object = None
+    check: object = None
+    summary: dict = field(default_factory=dict)
 
     def has(self, stage: str) -> bool:
         """Whether ``stage`` has a result to show."""
@@ -114,6 +126,12 @@ class StageResults:
         if self.mesh is not None:
             c["vertices"] = len(self.mesh.vertices)
             c["faces"] = len(self.mesh.faces)
+        if self.tiles is not None:
+            c["tiles_loaded"] = len(self.tiles.pieces)
+            c["tiles"] = len(self.tiles.keys)
+        if self.check is not None:
+            c["changed"] = int(self.check.changed.sum())
+            c["segments"] = len(self.check.segments)
         return c
 
 
@@ -152,45 +170,116 @@ class ViewerModel:
     def __init__(self, results: StageResults, source: str = ""):
         self.results = results
         self.source = source
+        #: "scan", "map", "run", "tiled" or "check": what was opened
+        self.kind = "scan" if results.smap is None else "map"
+        self.mesh_file: Optional[str] = None
 
     # ------------------------------------------------------------------ opening
     @classmethod
     def open(cls, target, cfg: Optional[MappingConfig] = None,
              voxel_size: float = 0.1) -> "ViewerModel":
-        """Open a scan file or a saved map folder (``map/`` or a ``gmmgp run`` output).
+        """Open a scan file, a saved map folder, a ``gmmgp run`` output folder (single
+        or tiled map), a tiled map folder or a ``gmmgp check`` output folder.
 
         A scan opens with no results beyond the scan itself; call :meth:`compute`
-        from "prepare". A map opens with its hierarchy, GP and field; only the
-        surface is left to compute.
+        from "prepare". A map opens with its hierarchy, GP and field, and a run
+        folder also with the mesh the run wrote (else only the surface is left to
+        compute). A tiled map opens with no tile loaded (:meth:`load_tiles`). A
+        check result opens with its points, their z and the change segments.
         """
-        from ..pipeline import load_map
+        from . import gui_targets as T
 
         path = Path(target)
         if not path.exists():
-            raise ViewerError(f"'{path}' does not exist; give a scan file or a map folder "
-                              "written by 'gmmgp run SCAN --out DIR'.")
+            raise ViewerError(f"'{path}' does not exist; give a scan file, a map or run "
+                              "folder ('gmmgp run SCAN --out DIR') or a check folder "
+                              "('gmmgp check ... --out DIR').")
         if path.is_dir():
-            mapdir = path / "map" if (path / "map" / "map.json").is_file() else path
-            smap = load_map(mapdir)
-            gp_pts = smap.gp_points if smap.gp is not None else None
-            res = StageResults(config=smap.config, voxel_size=voxel_size,
-                               scan=Scan(smap.seed_points, offset=smap.offset,
-                                         source=f"{mapdir} (surface seeds)"),
-                               hgmm=smap.hgmm, prior=smap.prior, gp_points=gp_pts,
-                               gp=smap.gp, smap=smap)
-            return cls(res, source=str(mapdir))
+            try:
+                return cls._open_folder(path, voxel_size)
+            except T.TargetError as e:
+                raise ViewerError(str(e)) from None
         from ..datasets import read_scan
 
         scan = read_scan(path)
         cfg = MappingConfig() if cfg is None else cfg
-        return cls(StageResults(config=cfg, voxel_size=voxel_size, scan=scan),
-                   source=str(path))
+        m = cls(StageResults(config=cfg, voxel_size=voxel_size, scan=scan),
+                source=str(path))
+        m.kind = "scan"
+        return m
+
+    @classmethod
+    def _open_folder(cls, path: Path, voxel_size: float) -> "ViewerModel":
+        from ..pipeline import load_map
+        from ..tiling import load_tiled_map
+        from . import gui_targets as T
+
+        if T.is_check_folder(path):
+            scan, check = T.read_check(path)
+            cfg = MappingConfig()
+            res = StageResults(config=cfg, voxel_size=voxel_size, scan=scan, check=check,
+                               summary=check.summary)
+            m = cls(res, source=str(path))
+            m.kind = "check"
+            return m
+        run_dir = path.parent if path.name == "map" else path
+        summary = T.read_summary(run_dir)
+        tdir = T.tiled_map_dir(path)
+        if tdir is not None:
+            tmap = load_tiled_map(tdir, cache_tiles=9, load_points=False)  # a 3x3 neighbourhood
+            summary = summary or dict(tmap.summary)
+            res = StageResults(config=tmap.config, voxel_size=voxel_size,
+                               smap=tmap, tiles=T.TiledView(tmap), summary=summary)
+            m = cls(res, source=str(tdir))
+            m.kind = "tiled"
+            return m
+        mapdir = path / "map" if (path / "map" / "map.json").is_file() else path
+        smap = load_map(mapdir)
+        gp_pts = smap.gp_points if smap.gp is not None else None
+        mesh = T.read_run_mesh(run_dir, smap.method, smap.offset)
+        res = StageResults(config=smap.config, voxel_size=voxel_size,
+                           scan=Scan(smap.seed_points, offset=smap.offset,
+                                     source=f"{mapdir} (surface seeds)"),
+                           hgmm=smap.hgmm, prior=smap.prior, gp_points=gp_pts,
+                           gp=smap.gp, smap=smap, mesh=mesh,
+                           summary=summary or dict(smap.summary))
+        m = cls(res, source=str(mapdir))
+        m.kind = "run" if mesh is not None or summary else "map"
+        m.mesh_file = str(run_dir / f"mesh_{smap.method}.ply") if mesh is not None else None
+        return m
+
+    # ------------------------------------------------------------------ tiled maps
+    def load_tiles(self, xy=None, radius: Optional[float] = None, voxel_size=None,
+                   progress=None) -> StageResults:
+        """Load the tiles of a tiled map within ``radius`` of ``xy`` (default: all),
+        and return the results with every loaded tile merged (not assigned: the caller
+        swaps them in, so a worker thread can call this).
+
+        Parameters
+        ----------
+        xy : (2,) local-frame x, y, optional
+        radius : float, optional (m)
+        voxel_size : float, optional
+            Marching-cubes voxel of the tiles' surface pieces (default: the results').
+        progress : callable(done, total), optional
+        """
+        r = self.results
+        tv = r.tiles
+        if tv is None:
+            raise ViewerError(f"'{self.source}' is not a tiled map; tiles load only in a "
+                              "map written with 'gmmgp run SCAN --out DIR --tile-size S'.")
+        keys = tv.keys if xy is None or radius is None else tv.keys_near(xy, radius)
+        tv.load(keys, r.voxel_size if voxel_size is None else voxel_size, progress=progress)
+        merged = tv.merged()
+        return dataclasses.replace(r, **merged, prior=None, gp=None)
 
     @property
     def can_refit(self) -> bool:
         """Whether the HGMM and GP can be re-fitted (needs the scan, not a loaded map)."""
-        return self.results.data is not None or (
-            self.results.smap is None and self.results.scan is not None)
+        r = self.results
+        if r.tiles is not None or r.check is not None:
+            return False
+        return r.data is not None or (r.smap is None and r.scan is not None)
 
     # ------------------------------------------------------------------ compute
     def compute(self, start: str, cfg: MappingConfig, voxel_size: float,
@@ -272,13 +361,21 @@ class ViewerModel:
         if cancelled():
             raise Cancelled(start)
         run_stages(names, state, ctx, summary=summary, on_stage=after)
-        return r
+        # keep what the pipeline reported beyond timings (e.g. "auto": settings
+        # resolved from the scan), over what the previous results held
+        extra = {k: v for k, v in summary.items() if k not in ("seconds", "counts")}
+        return dataclasses.replace(r, summary={**r.summary, **extra}) if extra else r
 
     # ------------------------------------------------------------------ queries
-    def probe(self, xyz) -> tuple[float, float]:
-        """SDF mean and standard deviation at one point (m).
+    def probe(self, xyz, return_grad: bool = False):
+        """SDF mean and standard deviation at one point (m)[, and the mean's gradient].
 
-        Uses the final field (GP over GMR) when there is one, else the GMR prior.
+        Uses the final field (GP over GMR, or a tiled map's stitched field) when there
+        is one, else the GMR prior.
+
+        Returns
+        -------
+        (mean, std) or, with ``return_grad``, (mean, std, grad (3,) ndarray)
         """
         r = self.results
         field_ = r.smap if r.smap is not None else r.prior
@@ -286,8 +383,11 @@ class ViewerModel:
             raise ViewerError("No field to probe yet (the HGMM has not been fitted); "
                               "wait for the run to reach the HGMM stage.")
         q = np.asarray(xyz, dtype=np.float64).reshape(1, 3)
-        mean, var = field_.predict(q)[:2]
-        return float(mean[0]), float(np.sqrt(max(var[0], 0.0)))
+        out = field_.predict(q, return_grad=return_grad)
+        mean, std = float(out[0][0]), float(np.sqrt(max(out[1][0], 0.0)))
+        if return_grad:
+            return mean, std, np.asarray(out[2][0], dtype=np.float64)
+        return mean, std
 
     def save(self, directory) -> Path:
         """Save the current map (``SurfaceMap.save``) to ``directory``."""

@@ -22,6 +22,13 @@ rasterizer CPU (90 s wall) in a later process, so the figures above are not a cl
 function of the content; the cause inside the renderer stack was not found. Hence the
 tests do not wait for the window's frames at all, and the offscreen frames they render
 are small (320x240) with time limits that only guard against a hang.
+
+Two more observations (2 cores, load 12-14): the compare view at the HGMM stage (two sets
+of lit ellipsoids side by side) did not finish a frame in 15 min at 1280x800 on the demo,
+nor in 8 min at 320x240 on a small plane, while one set alone took 3-5 s (so the tests and
+the README draw the comparison at the GP stage, unlit points); and flushing denormals
+(FTZ/DAZ set in the main thread before the renderer's threads start) changed nothing
+(grey lit sphere, 640x480: 9.3 vs 9.7 s of rasterizer CPU).
 """
 
 from __future__ import annotations
@@ -32,7 +39,8 @@ from typing import Optional
 
 import numpy as np
 
-from .gui_layers import LAYERS, STAGE_LAYERS, layer_geometry, materials  # noqa: F401
+from .gui_layers import (LAYERS, STAGE_LAYERS, compare_scene_points, layer_geometry,  # noqa: F401
+                         materials)
 from .gui_model import STAGES, ViewerError, ViewerModel
 
 __all__ = ["STAGE_LAYERS", "materials", "camera_pose", "SceneState", "render_png",
@@ -62,11 +70,15 @@ class SceneState:
     MAX_DRAWN_POINTS = 300_000
 
     def __init__(self, model: ViewerModel, stage: str, level: int = 0,
-                 colour_by_variance: bool = False):
+                 colour_by_variance: bool = False, layers=(), previous=None,
+                 selected_segment=None):
         self.model = model
         self.stage = stage
         self.level = level
         self.colour_by_variance = colour_by_variance
+        self.layers = set(layers)
+        self.previous = previous
+        self.selected_segment = selected_segment
         self._std_cache: dict = {}
 
     def _display_points(self, pts):
@@ -89,7 +101,8 @@ class SceneState:
 
 
 def render_png(model: ViewerModel, path, size=(1600, 1000), stage: Optional[str] = None,
-               level: int = 0, layers=None, colour_by_variance: bool = False) -> Path:
+               level: int = 0, layers=None, colour_by_variance: bool = False,
+               previous=None, segment: Optional[int] = None) -> Path:
     """Render one stage of ``model`` to a PNG at ``path`` (no window, no event loop).
 
     Parameters
@@ -105,6 +118,10 @@ def render_png(model: ViewerModel, path, size=(1600, 1000), stage: Optional[str]
     layers : iterable of str, optional
         Default: the stage's preset (:data:`STAGE_LAYERS`).
     colour_by_variance : bool
+    previous : StageResults, optional
+        A previous run drawn beside the current one (the "compare" layer, added).
+    segment : int, optional
+        A check result's change segment to select (drawn red, the camera on it).
 
     Returns
     -------
@@ -121,8 +138,16 @@ def render_png(model: ViewerModel, path, size=(1600, 1000), stage: Optional[str]
     if not r.has(stage):
         raise ViewerError(f"Nothing to show for stage {stage!r} yet; the results hold "
                           f"{', '.join(s for s in STAGES if r.has(s))}.")
-    state = SceneState(model, stage, level, colour_by_variance)
     layers = set(STAGE_LAYERS[stage] if layers is None else layers)
+    if previous is not None:
+        layers.add("compare")
+    if segment is not None:
+        ck = r.check
+        if ck is None or not (0 <= segment < len(ck.segments)):
+            n = 0 if ck is None else len(ck.segments)
+            raise ViewerError(f"Expected --segment between 1 and {n} (the check's change "
+                              f"segments), found {segment + 1}.")
+    state = SceneState(model, stage, level, colour_by_variance, layers, previous, segment)
     w, h = size
     ren = rendering.OffscreenRenderer(int(w), int(h))
     scene = ren.scene
@@ -142,7 +167,12 @@ def render_png(model: ViewerModel, path, size=(1600, 1000), stage: Optional[str]
         parts = geom if isinstance(geom, dict) else {name: geom}
         for gname, g in parts.items():
             scene.add_geometry(gname, g, mats[gname if mat is None else mat])
-    pts = r.scan.points if r.scan is not None and len(r.scan) else None
+    pts = compare_scene_points(state)
+    if segment is not None:
+        sg = r.check.segments[segment]
+        pts = np.vstack([sg["bbox_min"], sg["bbox_max"]])
+        pad = max(float(np.linalg.norm(pts[1] - pts[0])), 0.3)
+        pts = np.vstack([pts - pad, pts + pad])
     if pts is not None:
         lo, hi, centre, eye = camera_pose(pts)
         ext = float(np.linalg.norm(hi - lo)) or 1.0
@@ -162,14 +192,51 @@ def render_png(model: ViewerModel, path, size=(1600, 1000), stage: Optional[str]
 
 
 def screenshot_target(model: ViewerModel, path, size=(1600, 1000), stage: Optional[str] = None,
-                      level: int = 0, colour_by_variance: bool = False, log=None) -> Path:
-    """Compute what ``model`` still lacks (a scan: every stage; a map: the surface), then
-    render ``stage`` (default: the last one) to ``path``."""
+                      level: int = 0, colour_by_variance: bool = False, log=None,
+                      compare: Optional[dict] = None, segment: Optional[int] = None) -> Path:
+    """Compute what ``model`` still lacks (a scan: every stage; a map: the surface; a
+    tiled map: every tile), then render ``stage`` (default: the last one) to ``path``.
+
+    With ``compare`` (settings, e.g. ``{"hgmm.split_threshold": 0.03}``) the model
+    is computed twice, with its settings and then with these, and the first run is
+    drawn beside the second (the app's compare mode); both runs' records are logged.
+    """
+    from .gui_model import first_affected_stage
+    from .gui_tuning import run_record
+
     r = model.results
     t0 = time.perf_counter()
+    if r.check is not None:
+        stage = stage or "scan"
+        if stage != "scan":
+            raise ViewerError(f"'{model.source}' is a check result: it shows the scan's "
+                              f"points coloured by z (stage 'scan'), not {stage!r}.")
+        if compare:
+            raise ViewerError("--compare needs a scan to map twice; a check result has "
+                              "nothing to re-run.")
+        out = render_png(model, path, size=size, stage="scan", segment=segment)
+        if log:
+            log(f"wrote {out} ({time.perf_counter() - t0:.1f} s)")
+        return out
+    if segment is not None:
+        raise ViewerError("--segment selects a change segment of a check result "
+                          "('gmmgp check ... --out DIR'); this target is not one.")
     stage = stage or "surface"
-    if not r.has(stage):
-        needed = stage
+    if compare and not model.can_refit:
+        raise ViewerError(f"--compare re-runs the map with other settings, which needs the "
+                          f"scan; '{model.source}' is a saved map: open the scan.")
+    if r.tiles is not None:
+        if stage in ("scan", "prepare", "gmr"):
+            raise ViewerError(f"'{model.source}' is a tiled map: show 'hgmm', 'gp' or "
+                              "'surface' (its tiles hold no scan rows).")
+        if log:
+            log(f"loading {len(r.tiles.keys)} tiles ...")
+        model.results = model.load_tiles(voxel_size=r.voxel_size)
+        r = model.results
+    previous = None
+    # with --compare, at least up to the GMR: the runs' records then hold the field's change
+    needed = stage if not compare or STAGES.index(stage) >= STAGES.index("gmr") else "gmr"
+    if not r.has(needed):
         if needed != "scan":
             start = "prepare" if model.can_refit else "surface"
             if STAGES.index(needed) < STAGES.index(start):
@@ -178,14 +245,25 @@ def screenshot_target(model: ViewerModel, path, size=(1600, 1000), stage: Option
             if log:
                 log(f"computing from {start} to {needed} ...")
             model.results = _compute_until(model, start, needed)
+    if compare:
+        previous = model.results
+        cfg = previous.config.replace(compare)
+        start = first_affected_stage(previous, cfg, previous.voxel_size) or "surface"
+        if STAGES.index(start) <= STAGES.index(needed):
+            if log:
+                log(f"computing again with {compare} from {start} to {needed} ...")
+            model.results = _compute_until(model, start, needed, cfg=cfg)
+        if log:
+            for i, (a, b) in enumerate(((None, previous), (previous, model.results))):
+                log(f"run {i + 1}: {run_record(a, b).label()}")
     out = render_png(model, path, size=size, stage=stage, level=level,
-                     colour_by_variance=colour_by_variance)
+                     colour_by_variance=colour_by_variance, previous=previous)
     if log:
         log(f"wrote {out} ({time.perf_counter() - t0:.1f} s)")
     return out
 
 
-def _compute_until(model: ViewerModel, start: str, last: str):
+def _compute_until(model: ViewerModel, start: str, last: str, cfg=None):
     """Run the stages from ``start`` through ``last`` only (not the ones after it)."""
     from .gui_model import Cancelled
 
@@ -196,7 +274,8 @@ def _compute_until(model: ViewerModel, start: str, last: str):
 
     r = model.results
     try:
-        return model.compute(start, r.config, r.voxel_size, on_stage=on_stage,
+        return model.compute(start, r.config if cfg is None else cfg, r.voxel_size,
+                             on_stage=on_stage,
                              cancelled=lambda: got.get("name") == last)
     except Cancelled:
         return got["results"]

@@ -6,7 +6,9 @@ A script is a list of steps run after the first computation, e.g.::
      {"threshold": 0.03}, {"run": true}, {"state": "state.json"}, {"quit": true}]
 
 Step keys: stage, level, layer + on, colour_by_variance, threshold, d_m, voxel, run
-(waits unless ``"wait": false``), probe ([x, y, z] or "center"), screenshot (+ window:
+(waits unless ``"wait": false``), segment (a check result's change segment, 1 = the
+largest, 0 = none), load_tiles ("view" or "all": a tiled map's tiles; waits),
+probe ([x, y, z] or "center"), screenshot (+ window:
 whole window through the X server instead of the 3D view alone), save, state, camera
 (eye, center), sleep, quit.
 
@@ -114,6 +116,12 @@ class ScriptRunner:
             on_main(lambda: app.set_d_m(float(step["d_m"])))
         if "voxel" in step:
             on_main(lambda: app.set_voxel(float(step["voxel"])))
+        if "segment" in step:
+            on_main(lambda: app.select_segment(int(step["segment"]) - 1))
+        if "load_tiles" in step:
+            on_main(lambda: app.load_tiles_around(None, all_tiles=step["load_tiles"] == "all"))
+            self.wait_idle()
+            on_main(lambda: None)
         if "camera" in step:
             cam = step["camera"]
             on_main(lambda: app.set_camera(cam["center"], cam["eye"], cam.get("up", (0, 0, 1))))

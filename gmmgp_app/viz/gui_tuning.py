@@ -16,7 +16,7 @@ import numpy as np
 
 from .gui_model import StageResults
 
-__all__ = ["RunRecord", "field_change", "run_record", "FIELD_CHANGE_POINTS"]
+__all__ = ["RunRecord", "field_change", "run_record", "compare_shift", "FIELD_CHANGE_POINTS"]
 
 #: Most scan points the field change is evaluated at (fixed-seed subsample beyond).
 FIELD_CHANGE_POINTS = 5000
@@ -86,3 +86,19 @@ def run_record(prev: Optional[StageResults], new: StageResults) -> RunRecord:
     return RunRecord(threshold=float(new.config.hgmm.split_threshold),
                      d_m=float(new.config.gp.d_m), leaves=c.get("leaves"),
                      gp_points=c.get("gp_points"), field_change_rms=change)
+
+
+def compare_shift(points: np.ndarray, gap: float = 0.15) -> np.ndarray:
+    """(3,) translation placing the previous run's geometry beside the new one.
+
+    Along x, the axis across the default view (the camera looks from -y, see
+    ``gui_screenshot.camera_pose``), by the points' x range plus ``gap`` of it, so the
+    two copies stand side by side in the picture and never overlap. (Along y, the
+    narrower axis of a street, the copy stood behind the facades and read as floating
+    above them.)
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    out = np.zeros(3)
+    if len(pts):
+        out[0] = (1.0 + gap) * max(float(np.ptp(pts[:, 0])), 1e-6)
+    return out

@@ -1,0 +1,130 @@
+"""Tuning latency in the app's window: seconds from Run to the new HGMM levels (after a
+split-threshold change) and to the new GP points (after a d_m change) being in the 3D
+view's scene, and to the first frame drawn after them.
+
+    xvfb-run -a -s "-screen 0 1600x1000x24" python scripts/bench_tuning_latency.py \
+        [SCAN] [--repeat 3] [--out out/bench/tuning_latency.json]
+
+Runs ``gmmgp view SCAN`` with its 3D view (CPU renderer here) and a --script that, after
+the first full run, alternates the threshold between 0.01 and 0.03 and d_m between two
+values, each followed by Run; reads the per-stage latencies from the app's state
+(``latency``: result in the scene; ``frame_latency``: the next frame read back).
+
+    python scripts/bench_tuning_latency.py [SCAN] --model [--repeat 3]
+
+measures the same without the window: the model's re-run from the affected stage until
+the HGMM (threshold) or GP points (d_m) arrive, and the time to build their geometry.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("scan", nargs="?", default="assets/demo_street.npz")
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--size", default="1280x800")
+    ap.add_argument("--out", default=None)
+    ap.add_argument("--model", action="store_true",
+                    help="measure the model and the geometry builders, no window")
+    a = ap.parse_args(argv)
+    if a.model:
+        out = model_latency(a.scan, a.repeat)
+        text = json.dumps(out, indent=2)
+        print(text)
+        if a.out:
+            Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+            Path(a.out).write_text(text)
+        return 0
+    work = Path(tempfile.mkdtemp(prefix="tuning-"))
+    steps, names = [], []
+    for i in range(a.repeat):
+        t = 0.03 if i % 2 == 0 else 0.01
+        steps += [{"threshold": t}, {"run": True}, {"state": str(work / f"t{i}.json")}]
+        names.append(("threshold", f"t{i}.json"))
+        dm = 0.03 if i % 2 == 0 else 0.015
+        steps += [{"d_m": dm}, {"run": True}, {"state": str(work / f"d{i}.json")}]
+        names.append(("d_m", f"d{i}.json"))
+    steps.append({"quit": True})
+    (work / "steps.json").write_text(json.dumps(steps))
+    env = dict(os.environ, GMMGP_GUI_FRAME_TIMES="1")
+    r = subprocess.run([sys.executable, "-m", "gmmgp_app.viz.gui", a.scan, "--size", a.size,
+                        "--script", str(work / "steps.json")], env=env, text=True,
+                       capture_output=True)
+    if r.returncode != 0:
+        print(r.stderr[-3000:], file=sys.stderr)
+        return 1
+    res = {"threshold_to_hgmm": [], "threshold_to_hgmm_frame": [], "d_m_to_gp": [],
+           "d_m_to_gp_frame": []}
+    for kind, f in names:
+        st = json.loads((work / f).read_text())
+        stage = "hgmm" if kind == "threshold" else "gp"
+        key = "threshold_to_hgmm" if kind == "threshold" else "d_m_to_gp"
+        res[key].append(st["latency"].get(stage))
+        res[key + "_frame"].append(st["frame_latency"].get(stage))
+    out = {"scan": a.scan, "size": a.size, "load": os.getloadavg(),
+           "seconds": res,
+           "median": {k: statistics.median([x for x in v if x is not None])
+                      if any(x is not None for x in v) else None for k, v in res.items()}}
+    text = json.dumps(out, indent=2)
+    print(text)
+    if a.out:
+        Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.out).write_text(text)
+    return 0
+
+
+def model_latency(scan: str, repeat: int) -> dict:
+    """Seconds from a setting change to the stage's result (model.compute from the first
+    affected stage, stopped after it) and to its geometry (the layer's builder)."""
+    import time
+
+    from gmmgp_app.viz.gui_model import Cancelled, ViewerModel, first_affected_stage
+    from gmmgp_app.viz.gui_screenshot import SceneState
+
+    m = ViewerModel.open(scan, voxel_size=0.1)
+    t = time.perf_counter()
+    m.results = m.compute("prepare", m.results.config, 0.1)
+    full = time.perf_counter() - t
+
+    def until(stage, cfg):
+        t0, got = time.perf_counter(), {}
+
+        def on_stage(n, r):
+            if n == stage and "t" not in got:
+                got["t"], got["r"] = time.perf_counter() - t0, r
+        base = m.results
+        try:
+            m.compute(first_affected_stage(base, cfg, 0.1), cfg, 0.1, base=base,
+                      on_stage=on_stage, cancelled=lambda: "t" in got)
+        except Cancelled:
+            pass
+        st = SceneState(ViewerModel(got["r"], "x"), stage, level=2)
+        t1 = time.perf_counter()
+        st.layer_geometry("ellipsoids" if stage == "hgmm" else "gp_points")[1]()
+        return got["t"], time.perf_counter() - t1
+
+    res = {"threshold_to_hgmm": [], "hgmm_geometry": [], "d_m_to_gp": [], "gp_geometry": []}
+    for i in range(repeat):
+        c = m.results.config
+        a, b = until("hgmm", c.replace("hgmm.split_threshold", 0.03 if i % 2 == 0 else 0.005))
+        res["threshold_to_hgmm"].append(a)
+        res["hgmm_geometry"].append(b)
+        a, b = until("gp", c.replace("gp.d_m", 0.03 if i % 2 == 0 else 0.015))
+        res["d_m_to_gp"].append(a)
+        res["gp_geometry"].append(b)
+    return {"scan": scan, "full_run_s": full, "seconds": res, "load": os.getloadavg(),
+            "median": {k: statistics.median(v) for k, v in res.items()}}
+
+
+if __name__ == "__main__":
+    sys.exit(main())
