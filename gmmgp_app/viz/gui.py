@@ -41,6 +41,7 @@ from .gui_script import ScriptRunner, load_script
 from .gui_layers import (LAYERS, STAGE_LAYERS, compare_scene_points, layer_geometry,
                          layer_parts, materials)
 from .gui_tuning import run_record
+from ..config import concrete, is_auto
 
 __all__ = ["add_view_arguments", "open_view", "ViewerApp", "ViewerError", "run_app"]
 
@@ -341,7 +342,10 @@ class ViewerApp:
         sec.add_child(self.dm_label)
         self.dm_slider = gui.Slider(gui.Slider.DOUBLE)
         self.dm_slider.set_limits(*DM_RANGE)
-        self.dm_slider.double_value = min(cfg.gp.d_m, DM_RANGE[1])
+        # 'auto' (a target without a scan to resolve it from, e.g. a check result):
+        # the slider rests at the urban value until a run resolves it
+        dm0 = cfg.gp.d_m if not is_auto(cfg.gp.d_m) else concrete(cfg.gp).d_m
+        self.dm_slider.double_value = min(dm0, DM_RANGE[1])
         self.dm_slider.set_on_value_changed(lambda v: self.set_d_m(v, from_slider=True))
         sec.add_child(self.dm_slider)
         row = gui.Horiz(0.3 * em)
@@ -962,7 +966,8 @@ class ViewerApp:
         self.threshold_label.text = f"split threshold c* {t:.4f}{changed}"
         dm = self.pending_cfg.gp.d_m
         changed = " *" if dm != r.config.gp.d_m else ""
-        self.dm_label.text = f"d_m {dm:.3f} m{changed}"
+        self.dm_label.text = (f"d_m {dm} (from the scan){changed}" if is_auto(dm)
+                              else f"d_m {dm:.3f} m{changed}")
         refit = self.model.can_refit
         self.threshold_edit.enabled = refit
         for b in self.threshold_buttons:
