@@ -317,13 +317,14 @@ import json, sys
 from gmmgp_app.viz.gui_model import ViewerModel, STAGES
 from gmmgp_app.viz.gui_screenshot import render_png
 from gmmgp_app.config import MappingConfig
-out = sys.argv[2]
+out, todo = sys.argv[2], sys.argv[3:]
 m = ViewerModel.open(sys.argv[1], MappingConfig().replace("gp.d_m", 0.05), voxel_size=0.2)
 m.results = m.compute("prepare", m.results.config, 0.2)
-for s in STAGES:
-    render_png(m, f"{out}/{s}.png", size=(320, 240), stage=s)
-render_png(m, f"{out}/hgmm_level2.png", size=(320, 240), stage="hgmm", level=2)
-render_png(m, f"{out}/gp_points_only.png", size=(320, 240), stage="gp", layers=["gp_points"])
+pictures = {s: dict(stage=s) for s in STAGES}
+pictures["hgmm_level2"] = dict(stage="hgmm", level=2)
+pictures["gp_points_only"] = dict(stage="gp", layers=["gp_points"])
+for name in todo:
+    render_png(m, f"{out}/{name}.png", size=(320, 240), **pictures[name])
 print(json.dumps({**m.results.counts(), "gp_n": len(m.results.gp_points)}))
 """
 
@@ -332,12 +333,23 @@ print(json.dumps({**m.results.counts(), "gp_n": len(m.results.gp_points)}))
 def test_every_stage_is_drawn_and_differs_in_an_offscreen_render(tmp_path, box_scan):
     """What the 3D view draws, checked through one offscreen frame per stage (no window)."""
     # 320x240: on Mesa's CPU renderer a frame's cost grows with the lit triangles in view
-    # and is ~7x lower at this size than at 640x480 (measured); the timeout only guards
-    # against a hang, a busy machine must not fail this test.
-    code, err = _run_quiet([sys.executable, "-c", _RENDER_STAGES, str(box_scan), str(tmp_path)],
-                           timeout=900)
-    assert code == 0, err[-3000:]
+    # and is ~7x lower at this size than at 640x480 (measured). Each frame takes seconds,
+    # but now and then one rasterizer thread of llvmpipe spins on a frame for good: seen
+    # twice in full-suite runs on 2026-11-23, both at hgmm_level2 (10 ellipsoids), one
+    # of them 12 min at load 1 while the six frames before took 4 s (the cause inside
+    # the renderer stack is not known, see viz/gui_screenshot.py). Such a process is
+    # stopped after 240 s and the pictures it had not written are rendered by a fresh
+    # process once; a picture that hangs in two processes fails the test.
     names = list(STAGES) + ["hgmm_level2", "gp_points_only"]
+    for attempt in range(2):
+        todo = [n for n in names if not (tmp_path / f"{n}.png").is_file()]
+        try:
+            code, err = _run_quiet([sys.executable, "-c", _RENDER_STAGES, str(box_scan),
+                                    str(tmp_path), *todo], timeout=240)
+            break
+        except subprocess.TimeoutExpired:
+            code, err = -1, f"rendering {todo} hung for 240 s (attempt {attempt + 1})"
+    assert code == 0, err[-3000:]
     imgs = {n: _png(tmp_path / f"{n}.png") for n in names}
     for name, im in imgs.items():
         assert im.shape == (240, 320, 3), name
