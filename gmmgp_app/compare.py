@@ -155,6 +155,8 @@ def run_evaluation(scan, smap, reference, methods, *, bins, n_queries: int = 200
                "n_scan_points": int(len(scan)), "n_training_points": int(len(data.points)),
                "config_toml": cfg.to_toml(), "methods": {}}
     vs = cfg.surface.voxel_size if voxel_size is None else float(voxel_size)
+    if isinstance(vs, str) and hasattr(smap, "surface_voxel"):
+        vs = smap.surface_voxel()  # a tiled map's 'auto': the median of its tiles' voxels
     for method in methods:
         log(f"{method}: building")
         saved = {k: float(v) for k, v in (smap.summary.get("seconds", {}) if smap else {})
@@ -304,13 +306,23 @@ class _PriorOnly:
         return self.smap.prior_surface(voxel_size)
 
 
+def _model_voxel(model):
+    """The surface voxel the model's saved mesh was made with (a tiled map's 'auto':
+    the median of its tiles'), None when it cannot be known."""
+    v = model.config.surface.voxel_size
+    if not isinstance(v, str):
+        return float(v)
+    tmap = getattr(model, "tmap", None)
+    return tmap.surface_voxel() if hasattr(tmap, "surface_voxel") else None
+
+
 def _surface_metrics(model, method, reference, scan, voxel_size, run_dir, n, seed, log):
     from .evaluation import surface_distances
     from .pipeline import read_mesh_ply
 
     saved = Path(run_dir) / f"mesh_{method}.ply" if run_dir is not None else None
     if saved is not None and saved.is_file() \
-            and np.isclose(voxel_size, model.config.surface.voxel_size):
+            and _model_voxel(model) is not None and np.isclose(voxel_size, _model_voxel(model)):
         mesh = read_mesh_ply(saved)                       # original frame already
         verts, source = mesh.vertices, str(saved)
     else:

@@ -705,3 +705,20 @@ def test_cli_run_help_shows_the_tiled_example(capsys):
         main(["run", "--help"])
     text = capsys.readouterr().out
     assert "--tile-size 20" in text and "--min-tile-points" in text
+
+
+def test_tiled_surface_with_the_auto_voxel_uses_the_tiles_median():
+    """With the default config every tile resolves 'auto' from its own points; the
+    stitched mesh uses the median of their surface voxels (gmmgp run --tile-size with
+    defaults failed on 'auto' > 0 before)."""
+    from gmmgp_app.synth import scan_scene
+
+    scan, _ = scan_scene("box", density=0.08)
+    tm = build_tiled_map(scan, gm.MappingConfig(), TileSpec(size=1.5, overlap=0.4))
+    per_tile = [t.config.surface.voxel_size for _, t in tm.tiles.items()]
+    assert len(per_tile) > 1 and all(isinstance(v, float) for v in per_tile)
+    assert tm.surface_voxel() == pytest.approx(float(np.median(per_tile)), rel=1e-12)
+    mesh = tm.extract_surface()
+    ref = tm.extract_surface(voxel_size=tm.surface_voxel())
+    assert len(mesh.faces) > 100
+    np.testing.assert_array_equal(mesh.vertices, ref.vertices)

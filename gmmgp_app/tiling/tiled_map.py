@@ -162,8 +162,26 @@ class TiledMap:
                  if self.spec.blend == "smooth" else t.seed_points
                  for k, t in self.tiles.items()]
         seeds = np.unique(np.concatenate(seeds), axis=0) if seeds else np.zeros((0, 3))
+        if voxel_size is None:
+            voxel_size = self.surface_voxel()
         return mesh_field(self.predict, seeds, self.config.surface, voxel_size, max_std,
                           progress)
+
+    def surface_voxel(self) -> float:
+        """The surface voxel of the stitched mesh (m): the configured one, or with
+        ``"auto"`` (each tile resolved it from its own points) the median of the tiles'
+        values: one lattice needs one voxel."""
+        from ..config import is_auto
+
+        v = self.config.surface.voxel_size
+        if not is_auto(v):
+            return float(v)
+        voxels = [t.config.surface.voxel_size for _, t in self.tiles.items()]
+        voxels = [x for x in voxels if not is_auto(x)]
+        if not voxels:
+            raise TilingError("The tiled map has no mapped tile with a surface voxel; "
+                              "pass --voxel-size explicitly.")
+        return float(np.median(voxels))
 
     # ------------------------------------------------------------ save/load
     def save(self, directory) -> Path:
