@@ -360,6 +360,8 @@ class ViewerModel:
         names = [p for s in order for p in _PIPELINE_STAGES[s]]
         if cancelled():
             raise Cancelled(start)
+        if record:
+            summary["auto"] = record  # the values chosen from the scan, as build_map keeps them
         run_stages(names, state, ctx, summary=summary, on_stage=after)
         # keep what the pipeline reported beyond timings (e.g. "auto": settings
         # resolved from the scan), over what the previous results held

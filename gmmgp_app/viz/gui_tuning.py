@@ -79,12 +79,23 @@ def field_change(prev: StageResults, new: StageResults,
     return float(np.sqrt(np.mean((b - a) ** 2)))
 
 
+def _resolved(results: StageResults, dotted: str) -> float:
+    """A config value of a run: the number set, or for ``"auto"`` the value the run
+    resolved from the scan (its summary's "auto" table); NaN when neither is known."""
+    sec, _, name = dotted.partition(".")
+    v = getattr(getattr(results.config, sec), name)
+    if not isinstance(v, str):
+        return float(v)
+    rec = (results.summary or {}).get("auto", {}).get(dotted)
+    return float(rec["value"]) if isinstance(rec, dict) and "value" in rec else float("nan")
+
+
 def run_record(prev: Optional[StageResults], new: StageResults) -> RunRecord:
     """The :class:`RunRecord` of ``new``, its field compared with ``prev`` (may be None)."""
     c = new.counts()
     change = field_change(prev, new) if prev is not None else None
     return RunRecord(threshold=float(new.config.hgmm.split_threshold),
-                     d_m=float(new.config.gp.d_m), leaves=c.get("leaves"),
+                     d_m=_resolved(new, "gp.d_m"), leaves=c.get("leaves"),
                      gp_points=c.get("gp_points"), field_change_rms=change)
 
 
