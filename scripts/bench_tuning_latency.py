@@ -39,12 +39,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.model:
         out = model_latency(a.scan, a.repeat)
-        text = json.dumps(out, indent=2)
-        print(text)
-        if a.out:
-            Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-            Path(a.out).write_text(text)
-        return 0
+        return _emit(out, a.out)
     work = Path(tempfile.mkdtemp(prefix="tuning-"))
     steps, names = [], []
     for i in range(a.repeat):
@@ -75,11 +70,16 @@ def main(argv=None) -> int:
            "seconds": res,
            "median": {k: statistics.median([x for x in v if x is not None])
                       if any(x is not None for x in v) else None for k, v in res.items()}}
+    return _emit(out, a.out)
+
+
+def _emit(out: dict, path) -> int:
+    """Print the result as JSON and write it to ``path`` when given."""
     text = json.dumps(out, indent=2)
     print(text)
-    if a.out:
-        Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.out).write_text(text)
+    if path:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        Path(path).write_text(text)
     return 0
 
 
