@@ -176,7 +176,9 @@ class SurfaceMap:
                             self.config.far.gp_growth,
                             self.config.far.disagreement_weight,
                             None if is_auto(self.config.gp.length_scale)
-                            else self.config.gp.length_scale).predict(
+                            else self.config.gp.length_scale,
+                            self.config.far.unseen_weight, self.config.far.min_thickness,
+                            self.config.far.edge_gap).predict(
                                 xyz, return_grad=return_grad)
 
     @property

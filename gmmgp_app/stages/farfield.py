@@ -42,6 +42,42 @@ on ``log (y - mu)^2``, plus 1.27 = -E log chi^2_1 so that the median |z| is abou
 (scripts/bench_accuracy.py, docs/field.md). The errors are heavy-tailed (a few queries
 near surfaces the scan never saw), so a Gaussian with this variance covers about
 65-74 % within 1 sigma but only 91-95 % within 2 sigma on the street.
+
+**Unseen geometry** (issue 15, fix-15c). The log-linear model is fitted on the typical
+query; it does not know what the scan cannot know. The worst queries of the held-out
+courtyard (z of 100-360) lie behind surfaces seen from one side (inside an open-top
+kiosk behind its 0.1 m wall, in the shadow of a 0.1 m fence, truth +0.1..+0.6 m,
+mean -0.2..-0.7 m, std 2-4 mm) or beyond the end of the data (above a wall top or a
+facade whose top was not scanned: the located plane continues, the truth is the
+distance to the edge). Two bounds from the data itself say how wrong the mean may be
+there, with ``m`` the blended mean, ``r`` the distance to the nearest hit point and
+``h`` the kernel floor (training spacing):
+
+* behind the located surface (``m < 0``: normals are oriented to the sensor, so the
+  query is beyond the first return along the line of sight, where no ray looked). If
+  the hidden matter is a wall of thickness ``t >= t_min``, the truth at depth
+  ``d = -m`` is ``-min(d, t - d)`` (inside) or ``d - t`` (in the free space behind it),
+  so ``y - m`` lies in ``[0, 2 d - t_min]`` (eq. unseen_behind):
+
+      w_behind = max(0, 2 max(-m, 0) - t_min)
+
+* beyond the end of the data: the foot point of the query on the located surface lies
+  ``l = sqrt(r^2 - m^2)`` from the nearest hit point; sampling explains a gap of ``c h``,
+  and if the surface ends there the truth is ``sqrt(m^2 + L^2)``, ``L = max(0, l - c h)``,
+  instead of ``|m|`` (eq. unseen_extent):
+
+      w_extent = sqrt(m^2 + L^2) - |m|
+
+The error is 0 when the hidden matter is solid or the surface continues (prior
+probability ``p``) and roughly uniform over the interval otherwise; the Gaussian with
+that second moment has variance ``(1 - p) w^2 / 3``, so (eq. unseen_var)
+
+      v = v_calibrated + lambda^2 (w_behind^2 + w_extent^2),  lambda = sqrt((1 - p) / 3)
+
+with ``lambda = 0.25`` (p = 0.8, chosen on the tuned scenes), ``t_min = 2 h`` and
+``c = 1`` (``FarFieldConfig.unseen_weight``, ``min_thickness``, ``edge_gap``). Both
+widths are lengths of the scan's own geometry, so the term scales with the scan. The
+mean is left alone (the RMSE does not change).
 """
 
 from __future__ import annotations
@@ -53,7 +89,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 __all__ = ["FarField", "FarFieldError", "blend_fields", "BlendedField", "VARIANCE_COEF",
-           "calibrated_variance"]
+           "calibrated_variance", "behind_width", "extent_width", "unseen_variance"]
 
 #: (t0, ..., t4) of eq. calibrated_var, fitted on the synthetic street (10 % of a
 #: density-0.3 drive; the recipe is in docs/field.md).
@@ -244,15 +280,83 @@ def calibrated_variance(h, noise, r, spread2, disagreement2, v_gp, coef=VARIANCE
                                                                          dtype=np.float64)
 
 
+def behind_width(mean, min_thickness):
+    """Width of the interval ``[m, |m| - t_min]`` the true signed distance may lie in
+    behind the located surface (eq. unseen_behind).
+
+    A query with ``m < 0`` is beyond the first return along the sensor's line of sight
+    (normals point to the sensor), where the scan holds no evidence. Hidden matter of
+    thickness ``t >= t_min`` puts the truth at ``-min(d, t - d)`` (inside it) or
+    ``d - t`` (in free space behind it), ``d = -m``; so ``0 <= y - m <= 2 d - t_min``.
+
+    Parameters
+    ----------
+    mean : (K,) predicted signed distance m (m)
+    min_thickness : float, t_min (m)
+
+    Returns
+    -------
+    (K,) ``max(0, 2 max(-m, 0) - t_min)`` (m)
+    """
+    d = np.maximum(-np.asarray(mean, dtype=np.float64), 0.0)
+    return np.maximum(2.0 * d - float(min_thickness), 0.0)
+
+
+def extent_width(mean, r, gap):
+    """How much farther the surface may be if it ends at the data's edge
+    (eq. unseen_extent).
+
+    The located surface continues the tangent planes of the hit points; its foot point
+    for the query lies ``l = sqrt(r^2 - m^2)`` from the nearest hit point. A gap ``gap``
+    (about the spacing) is what sampling leaves; beyond it, ``L = max(0, l - gap)``, the
+    surface may end, and the truth is then ``sqrt(m^2 + L^2)`` in magnitude instead of
+    ``|m|`` (the nearest hit point always bounds ``|y| <= r``).
+
+    Parameters
+    ----------
+    mean : (K,) predicted signed distance m (m)
+    r : (K,) distance to the nearest hit point (m)
+    gap : float, c h (m)
+
+    Returns
+    -------
+    (K,) ``sqrt(m^2 + L^2) - |m|`` (m)
+    """
+    m = np.asarray(mean, dtype=np.float64)
+    lateral = np.sqrt(np.maximum(np.asarray(r, dtype=np.float64) ** 2 - m * m, 0.0))
+    L = np.maximum(lateral - float(gap), 0.0)
+    return np.hypot(m, L) - np.abs(m)
+
+
+def unseen_variance(w_behind, w_extent, weight):
+    """Variance of the error the scan cannot see (eq. unseen_var):
+    ``lambda^2 (w_behind^2 + w_extent^2)``.
+
+    The error is 0 with probability ``p`` (solid matter, continuing surface) and about
+    uniform over an interval of width ``w`` otherwise; its second moment is
+    ``(1 - p) w^2 / 3``, hence ``lambda = sqrt((1 - p) / 3)`` (0.25: p = 0.8).
+    """
+    lam2 = float(weight) ** 2
+    return lam2 * (np.asarray(w_behind, dtype=np.float64) ** 2
+                   + np.asarray(w_extent, dtype=np.float64) ** 2)
+
+
 class BlendedField:
     """The GP field and the far field mixed (eq. blend), variance from eq.
-    calibrated_var (``calibrated=False``: the mixture's own variance)."""
+    calibrated_var plus the unseen-geometry term (eq. unseen_var; ``calibrated=False``:
+    the mixture's own variance, no added terms)."""
 
     def __init__(self, base, far: FarField, calibrated: bool = True, gp_growth: float = 2.0,
-                 disagreement_weight: float = 1.0, length_scale: float | None = None):
+                 disagreement_weight: float = 1.0, length_scale: float | None = None,
+                 unseen_weight: float = 0.0, min_thickness: float = 2.0,
+                 edge_gap: float = 1.0):
         self.base, self.far, self.calibrated = base, far, bool(calibrated)
         self.gp_growth = float(gp_growth)
         self.disagreement_weight = float(disagreement_weight)
+        # eq. unseen_var: lambda, and t_min and the edge gap in units of h (rho0)
+        self.unseen_weight = float(unseen_weight)
+        self.min_thickness = float(min_thickness) * far.rho0
+        self.edge_gap = float(edge_gap) * far.rho0
         # the GP's length scale l (auto rule 1.75 h_t when not given)
         self.length_scale = float(length_scale) if length_scale else 1.75 * far.rho0
 
@@ -272,5 +376,9 @@ class BlendedField:
             kappa = self.disagreement_weight * np.exp(-(c["r"] / self.length_scale) ** 2)
             var = calibrated_variance(self.far.rho0, self.far.noise, c["r"], c["spread2"],
                                       d2, out[1], disagreement_weight=kappa)
+            if self.unseen_weight > 0:
+                var = var + unseen_variance(behind_width(res[0], self.min_thickness),
+                                            extent_width(res[0], c["r"], self.edge_gap),
+                                            self.unseen_weight)
             res = (res[0], var) + tuple(res[2:])
         return res
