@@ -225,9 +225,15 @@ def test_coverage_on_a_sphere_scene_is_near_calibrated():
     y = sphere_sdf(q, (0, 0, 0), 1.0)
     mean, var = smap.predict(q)
     z = np.abs(y - mean) / np.sqrt(var)
-    # calibrated: 0.68 / 0.95; the model was fitted on the street, not on spheres
-    assert 0.5 < np.mean(z <= 1) < 0.85
-    assert 0.8 < np.mean(z <= 2) <= 1.0
+    out = mean > 0
+    # outside (in front of the surface the sensors saw): calibrated 0.68 / 0.95; the
+    # model was fitted on the street, not on spheres
+    assert 0.5 < np.mean(z[out] <= 1) < 0.85
+    assert 0.8 < np.mean(z[out] <= 2) <= 1.0
+    # inside, behind every first return, the scan cannot tell a solid from a shell:
+    # the unseen-geometry term (eq. unseen_var) widens the std there by design, so the
+    # solid sphere's interior is over-covered (0.98 within 1 sigma; 0.85 without it)
+    assert np.mean(z[~out] <= 2) >= 0.95
 
 
 # ------------------------------------------------------------------ awkward scans
