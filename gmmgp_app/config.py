@@ -333,7 +333,7 @@ class FarFieldConfig:
         "surfaces may be closer than the located ones).", 0.0, 100.0, symbol="beta",
         source="chosen on the synthetic street")
     unseen_weight: float = _f(
-        0.25, "Weight lambda of the unseen-geometry variance lambda^2 (w_behind^2 + "
+        0.15, "Weight lambda of the unseen-geometry variance lambda^2 (w_behind^2 + "
         "w_extent^2) added to the calibrated variance: w_behind is the width of the "
         "interval the true distance may lie in behind the located surface (a wall of "
         "unknown thickness seen from one side), w_extent the one beyond the end of the "
@@ -341,20 +341,23 @@ class FarFieldConfig:
         "0 turns it off.", 0.0, 10.0, symbol="lambda",
         source="lambda = sqrt((1 - p) / 3): a Gaussian matching the second moment of an "
         "error that is 0 with probability p (solid, continuing surface) and uniform over "
-        "the interval otherwise; p = 0.8 chosen on the street and sphere (0.15 / 0.25 / "
-        "0.5 swept, docs/field.md)")
+        "the interval otherwise; 0.15 (p = 0.93) chosen on the street and sphere among "
+        "0 / 0.15 / 0.25 / 0.35 / 0.5 (scripts/sweep_unseen.py, docs/field.md); 0.5 "
+        "covers the whole interval at 2 sigma")
     min_thickness: float = _f(
         2.0, "Least thickness t_min of hidden matter behind a located surface, in units "
         "of the kernel floor h (the training spacing): behind the surface by more than "
         "t_min / 2 the true distance may lie anywhere in [m, |m| - t_min].", 0.0, 100.0,
         symbol="t_min / h",
-        source="two spacings: the map cannot tell apart two faces closer than that; "
-        "swept 2 / 3 / 4 (docs/field.md)")
+        source="two spacings, fixed a priori: the map cannot tell apart two faces closer "
+        "than that; 3-4 h suit the streets and fail the courtyard's 0.1 m walls "
+        "(scripts/sweep_unseen.py, docs/field.md)")
     edge_gap: float = _f(
         1.0, "Lateral gap, in units of h, between a query's foot point on the located "
         "surface and its nearest hit point that sampling alone explains; beyond it the "
         "surface may end (eq. unseen_extent).", 0.0, 100.0, symbol="c",
-        source="one spacing; swept 1 / 2 (docs/field.md)")
+        source="one spacing, fixed a priori; 2 h is worse on the pipes "
+        "(scripts/sweep_unseen.py, docs/field.md)")
 
 
 @dataclass(frozen=True)
