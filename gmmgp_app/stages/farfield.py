@@ -45,7 +45,7 @@ near surfaces the scan never saw), so a Gaussian with this variance covers about
 
 **Unseen geometry** (issue 15, fix-15c). The log-linear model is fitted on the typical
 query; it does not know what the scan cannot know. The worst queries of the held-out
-courtyard (z of 100-360) lie behind surfaces seen from one side (inside an open-top
+courtyard (z of 140-360) lie behind surfaces seen from one side (inside an open-top
 kiosk behind its 0.1 m wall, in the shadow of a 0.1 m fence, truth +0.1..+0.6 m,
 mean -0.2..-0.7 m, std 2-4 mm) or beyond the end of the data (above a wall top or a
 facade whose top was not scanned: the located plane continues, the truth is the
@@ -77,9 +77,9 @@ that second moment has variance ``(1 - p) w^2 / 3``, so (eq. unseen_var)
 with ``lambda = 0.15`` (p = 0.93, chosen on the tuned scenes), ``t_min = 2 h`` and
 ``c = 1`` (fixed a priori; ``FarFieldConfig.unseen_weight``, ``min_thickness``,
 ``edge_gap``). The worst case of the interval then lies at 1 / lambda = 6.7 sigma;
-``lambda = 0.5`` covers it at 2 sigma at the cost of the LL where hidden matter is solid. Both
-widths are lengths of the scan's own geometry, so the term scales with the scan. The
-mean is left alone (the RMSE does not change).
+``lambda = 0.5`` covers it at 2 sigma at the cost of the LL where hidden matter is
+solid. Both widths are lengths of the scan's own geometry, so the term scales with the
+scan. The mean is left alone (the RMSE does not change).
 """
 
 from __future__ import annotations
