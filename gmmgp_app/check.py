@@ -47,7 +47,8 @@ The residual's Jacobian is ``J_i = [g_i^T, ((y_i - c) x g_i)^T]``. The registrat
 uses one point per 0.1 m cell (at most 30k), first every n-th of them (5k) until
 the steps are under 1 mm, then all of them until they are under 0.2 mm, then all
 the scan's points (at most 150k: the scan's noise averages out over more points)
-until the step computed at ``T`` is under 50 um and 5 urad (that step is not
+until the step computed at ``T`` is under 0.1 mm and 10 urad (without the dense
+stage: 50 um and 5 urad) (that step is not
 applied: its prediction serves the information at the solution). Near the solution the steps along a weakly
 constrained direction shrink geometrically and are extrapolated (Aitken, see
 :func:`_aitken`). On a loaded map 75-90 % of the time is the map's ``predict``:
@@ -578,8 +579,9 @@ def _coarse_to_fine(smap, x, x_dense, T0, frozen, frame, max_iter, kw,
                     coarse_points=_COARSE_POINTS):
     """Gauss-Newton on every ``len(x) // coarse_points``-th point until the steps are
     under 1 mm and 0.006 deg, then on all of ``x`` until they are under 0.2 mm and
-    20 urad, then on the dense points ``x_dense`` (None: ``x`` is the last stage) to
-    the final tolerance (the costly map queries of the first, long steps are made on
+    20 urad, then on the dense points ``x_dense`` (None: ``x`` is the last stage, to
+    50 um and 5 urad) until they are under 0.1 mm and 10 urad (each dense query
+    costs 4-5 of the fine stage's) (the costly map queries of the first, long steps are made on
     few points; the dense stage starts next to its solution)."""
     history: list = []
     it = 0
@@ -602,7 +604,7 @@ def _coarse_to_fine(smap, x, x_dense, T0, frozen, frame, max_iter, kw,
         return T, it + it2, converged, history + h2, last
     history += [dict(h, stage="fine") for h in h2]
     T, it3, converged, h3, last = _gauss_newton(smap, x_dense, T, frozen, max_iter=max_iter,
-                                                frame=frame, **kw)
+                                                frame=frame, tol_t=1e-4, tol_r=1e-5, **kw)
     return T, it + it2 + it3, converged, history + [dict(h, stage="dense") for h in h3], last
 
 
@@ -658,7 +660,7 @@ def _finite_information(smap, x, T, info, v, delta, stride: int = 4):
 
 
 def _register(smap, x, x_dense, T0, *, noise, known_std, c_robust, loss, max_iter,
-              degeneracy_ratio, cluster_size, candidate_ratio=0.02, probe=0.2,
+              degeneracy_ratio, cluster_size, share_cell, candidate_ratio=0.02, probe=0.2,
               min_clusters=24, probe_points=7000):
     """Gauss-Newton/IRLS on d(T x) with the map's gradient (see module docstring).
 
@@ -674,7 +676,7 @@ def _register(smap, x, x_dense, T0, *, noise, known_std, c_robust, loss, max_ite
     """
     noise2 = noise * noise
     kw = dict(noise2=noise2, known_std=known_std, c_robust=c_robust, loss=loss,
-              share_cell=cluster_size)
+              share_cell=share_cell)
     xs = x if x_dense is None else x_dense
     T, it, converged, history, last = _coarse_to_fine(smap, x, x_dense, T0, [], None,
                                                       max_iter, kw)
@@ -734,7 +736,7 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
                sample_voxel: float = 0.1, dense_points: int = 150000, max_iter: int = 30,
                robust_c: float = 4.685, loss: str = "tukey",
                degeneracy_ratio: float = 3e-4, cluster_size: float = 6.0,
-               seed: int = 0) -> CheckResult:
+               share_cell: float = 1.0, seed: int = 0) -> CheckResult:
     """Check a scan against a map; optionally register it first.
 
     Parameters
@@ -788,6 +790,9 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
         facades are wrong by 1-2 cm in a pattern that repeats with the 3 m window
         bays; with 1 m (3 m) clusters the truth lay at Mahalanobis^2 29-37 (11-15)
         in the reported covariance, with 6 m at 3-5 (three noise seeds).
+    share_cell : float
+        Cell (m) over which the registration counts the points that share the map's
+        error (weights ``1 / (std^2 + noise^2 / n)``, see the module docstring).
     seed : int
         Seed of the subsample.
 
@@ -812,6 +817,7 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
             raise CheckError(f"Expected scan points with shape (N, 3), found {pts.shape}.")
         s_off, src = np.zeros(3), "the scan"
     for name, val, lo in (("z_threshold", z_threshold, 0.0), ("noise", noise, 0.0),
+                          ("share_cell", share_cell, 0.0),
                           ("known_std", known_std, 0.0), ("segment_radius", segment_radius, 0.0)):
         if not (np.isfinite(val) and val > lo) and not (name == "noise" and val == 0):
             raise CheckError(f"Expected {name} > {lo}, found {val!r}.")
@@ -862,6 +868,7 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
             dense = x if len(x) <= dense_points else \
                 x[np.sort(rng.choice(len(x), dense_points, replace=False))]
         fit = _register(smap, x[sample], dense, T_loc, noise=noise, known_std=known_std,
+                        share_cell=share_cell,
                         c_robust=robust_c, loss=loss, max_iter=max_iter,
                         degeneracy_ratio=degeneracy_ratio, cluster_size=cluster_size)
         t_align = time.perf_counter() - ta
