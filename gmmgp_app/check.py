@@ -28,16 +28,18 @@ Registration (``align=True``): Gauss-Newton on the residuals ``d(T x_i)`` with t
 map's analytic gradient ``g_i``, weighted by ``1 / (s_i^2 + noise^2 / n_i)`` and by
 a Tukey robust weight (IRLS) on ``z_i`` so that changed points do not pull; only
 known points take part. ``n_i`` is the number of registration points in the point's
-cell of ``cluster_size`` (6 m): the map's error at a place is shared by all the scan
-points there (it is correlated over metres, see the covariance below) and does not
-average out over them, the scan's noise does; so the places the map knows best
-count most. With ``1 / (s^2 + noise^2)`` (the scan's 1 cm noise above the map's
+cell of ``share_cell`` (1 m): the map's error at a place is shared by all the scan
+points there (it is correlated beyond the GP's length scale; see the covariance
+below) and does not average out over them, the scan's noise does; so the places the
+map knows best count most. With ``1 / (s^2 + noise^2)`` (the scan's 1 cm noise above the map's
 4-9 mm std, nearly equal weights) the Gauss-Newton step from the truth on the
 synthetic street (bench pair, all points) was 0.0038-0.0040 deg and the
 registration's error 0.0088-0.010 deg; with ``1 / s^2`` the step was 0.0011-0.0015
-deg, and with the shared count the registration's error 0.0013-0.0017 deg (three
+deg, and with the shared count the registration's error 0.0012-0.0018 deg (three
 noise seeds; Open3D point-to-plane ICP 0.0018 deg). A density normalisation (weights
-``1 / (n_i s_i^2 + noise^2)``, each cell one vote) was worse (0.0045-0.0053 deg). Parametrisation: each step is a left perturbation in the
+``1 / (n_i s_i^2 + noise^2)``, each cell one vote) was worse (0.0045-0.0053 deg).
+Counting over 6 m cells was as good there but moved two KITTI scans 0.04 deg from
+the pose file and both Open3D peers (1 m: within their spread); see docs/check.md. Parametrisation: each step is a left perturbation in the
 map frame about a pivot ``c`` (the weighted centroid of the aligned points)::
 
     T <- exp(xi) T,   first order:  y' = y + phi x (y - c) + rho,  xi = (rho, phi)
@@ -419,9 +421,8 @@ def _weights(m, var, noise2, known, c_robust, loss="tukey", n_share=1.0):
 
     ``z = m / sqrt(var + noise2)`` (the point's own statistic, as in the check);
     the inverse-variance factor is ``1 / (var + noise2 / n_share)``: the map's error
-    at a point is shared by the ``n_share`` registration points around it (it is
-    correlated over metres, see ``cluster_size``) and does not average out over
-    them, the scan's noise, independent from point to point, does (see
+    at a point is shared by the ``n_share`` registration points around it (in its
+    ``share_cell``) and does not average out over them, the scan's noise, independent from point to point, does (see
     :func:`_share_counts` and the module docstring).
 
     ``loss``: "tukey" (biweight: points beyond ``c_robust`` robust scales get no
@@ -640,10 +641,12 @@ def _finite_information(smap, x, T, info, v, delta, stride: int = 4):
     the points along a wall does not change their distances, so the measured
     curvature stays at the level of the map's noise.
 
-    Measured on every ``stride``-th weighted point and scaled by the weight sums to
-    all of them (the two extra map queries are the cost; ratios to the largest
-    eigenvalue with stride 4 against all points: corridor 8.7e-5 / 8.4e-5, synthetic
-    street 1.18e-2 / 1.13e-2, threshold 3e-4).
+    Measured on every ``stride``-th weighted point (the caller's: about 7000 points,
+    every 4th at least) and scaled by the weight sums to all of them (the two extra
+    map queries are the cost; ratios to the largest eigenvalue with stride 4 against
+    all points: corridor 8.7e-5 / 8.4e-5, synthetic street 1.18e-2 / 1.13e-2,
+    threshold 3e-4). The weights are the per-point ones (``w_geo``, see
+    :func:`_information`).
     """
     w, m0 = info["w_geo"], info["m"]
     pos = w > 0
@@ -769,8 +772,8 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
         Its last stage uses all the scan's points, at most this many (a random
         subset beyond; 0: no dense stage). The map's errors are shared by the points
         near each other, the scan's noise is not: more points average the noise out
-        (synthetic street, step from the truth: 0.0022 deg with the 27k voxel sample,
-        0.0015 deg with all 128k points).
+        (synthetic street, Gauss-Newton step from the truth: 0.0023-0.0026 deg with
+        the 27k voxel sample, 0.0012-0.0015 deg with all 128k points).
     sample_voxel : float
         Cell of the registration subsample (m).
     max_iter : int
