@@ -757,8 +757,9 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
     z_threshold : float
         |z| above which a known point counts as changed.
     noise : float
-        Range noise std of the new scan (m), added to the map variance in z and
-        in the registration weights.
+        Range noise std of the new scan (m), added to the map variance in z (and in
+        the registration's robust weights); in its inverse-variance weights divided
+        by the number of points sharing the map's error (``share_cell``).
     known_std : float
         The map knows a place where its std is below this (m).
     segment_radius : float
