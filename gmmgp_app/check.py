@@ -37,7 +37,7 @@ synthetic street (bench pair, all points) was 0.0038-0.0040 deg and the
 registration's error 0.0088-0.010 deg; with ``1 / s^2`` the step was 0.0011-0.0015
 deg, and with the shared count the registration's error 0.0012-0.0018 deg (three
 noise seeds; Open3D point-to-plane ICP 0.0018 deg). A density normalisation (weights
-``1 / (n_i s_i^2 + noise^2)``, each cell one vote) was worse (0.0045-0.0053 deg).
+``1 / (n_i s_i^2 + noise^2)``, each cell one vote) was worse (step from the truth 0.0049-0.0053 deg).
 Counting over 6 m cells was as good there but moved two KITTI scans 0.04 deg from
 the pose file and both Open3D peers (1 m: within their spread); see docs/check.md. Parametrisation: each step is a left perturbation in the
 map frame about a pivot ``c`` (the weighted centroid of the aligned points)::
@@ -773,8 +773,9 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
         Its last stage uses all the scan's points, at most this many (a random
         subset beyond; 0: no dense stage). The map's errors are shared by the points
         near each other, the scan's noise is not: more points average the noise out
-        (synthetic street, Gauss-Newton step from the truth: 0.0023-0.0026 deg with
-        the 27k voxel sample, 0.0012-0.0015 deg with all 128k points).
+        (synthetic street, Gauss-Newton step from the truth: 0.0027-0.0032 deg with
+        the 30k voxel sample, 0.0012-0.0015 deg with all 128k points;
+        scripts/check_error_budget.py).
     sample_voxel : float
         Cell of the registration subsample (m).
     max_iter : int
