@@ -31,16 +31,19 @@ known points take part. ``n_i`` is the number of registration points in the poin
 cell of ``share_cell`` (1 m): the map's error at a place is shared by all the scan
 points there (it is correlated beyond the GP's length scale; see the covariance
 below) and does not average out over them, the scan's noise does; so the places the
-map knows best count most. With ``1 / (s^2 + noise^2)`` (the scan's 1 cm noise above the map's
-4-9 mm std, nearly equal weights) the Gauss-Newton step from the truth on the
+map knows best count most. With ``1 / (s^2 + noise^2)`` (the scan's 1 cm noise above
+the map's 4-9 mm std, nearly equal weights) the Gauss-Newton step from the truth on the
 synthetic street (bench pair, all points) was 0.0038-0.0040 deg and the
 registration's error 0.0088-0.010 deg; with ``1 / s^2`` the step was 0.0011-0.0015
 deg, and with the shared count the registration's error 0.0012-0.0018 deg (three
 noise seeds; Open3D point-to-plane ICP 0.0018 deg). A density normalisation (weights
-``1 / (n_i s_i^2 + noise^2)``, each cell one vote) was worse (step from the truth 0.0049-0.0053 deg).
-Counting over 6 m cells was as good there but moved two KITTI scans 0.04 deg from
-the pose file and both Open3D peers (1 m: within their spread); see docs/check.md. Parametrisation: each step is a left perturbation in the
-map frame about a pivot ``c`` (the weighted centroid of the aligned points)::
+``1 / (n_i s_i^2 + noise^2)``, each cell one vote) was worse (step from the truth
+0.0049-0.0053 deg). Counting over 6 m cells was as good there but moved two KITTI
+scans 0.04 deg from the pose file and both Open3D peers (1 m: within their spread);
+see docs/check.md and scripts/check_error_budget.py.
+
+Parametrisation: each step is a left perturbation in the map frame about a pivot
+``c`` (the weighted centroid of the aligned points)::
 
     T <- exp(xi) T,   first order:  y' = y + phi x (y - c) + rho,  xi = (rho, phi)
 
