@@ -222,19 +222,78 @@ def aligned(drives):
 def test_second_drive_transform_and_covariance(aligned, drives):
     """Issue targets: within 2 mm and 0.01 deg, truth inside the 3-sigma ellipsoid.
 
-    Measured (noise seeds 1 / 2 / 3 of the second drive): translation error 3.5 /
-    0.8 / 4.3 mm, rotation 0.0063 / 0.0042 / 0.0079 deg, Mahalanobis^2 of the truth
-    5.2 / 3.1 / 4.6 (6 m clusters). The 2 mm target is MISSED on this map: the
-    street's facades in the map lie 1-2 cm behind the true ones near the window
-    recesses (HGMM smoothing) and along the street only recesses, balconies, the
-    pole and the car constrain the translation. This test holds the figures reached.
+    Measured (noise seeds 1 / 2 / 3 of the second drive): rotation error 0.0044 /
+    0.0047 / 0.0066 deg (before the shared weights and the dense stage 0.0064 /
+    0.0065 / 0.0101), translation error at the map origin (the street's end, 10 m
+    from the points' centre) 2.7 / 2.4 / 3.6 mm (before 1.9 / 2.7 / 3.0), at the
+    points' centre (the pivot) along / across / height (1.5, 1.7, 0.1) / (0.2, 1.7,
+    0.1) / (2.4, 1.6, 0.1) mm (before (-0.5, 1.1, -0.1) / (-1.7, 1.2, -0.1) / (2.4,
+    0.9, 0.05)); Mahalanobis^2 of the truth 1.8 / 1.7 / 2.1. The 2 mm target is
+    MISSED on this map, and the map sets the limit: it is the paper's field with the fixed urban
+    values, whose GP corrects the GMM prior only where it is off by more than
+    d_m = 2 cm, so its facades lie 13 mm (y > 0 side) and 15 mm (y < 0) behind the
+    true ones (medians at the noise-free second drive's points; across the street
+    the difference, about 1.3 mm, is what the scan cannot tell), and along the street
+    the faces facing x that the second drive sees are ones the map knows to 24-73 mm
+    (std). On the default map of the same pair (36 m street) the targets are met:
+    test_default_map_second_drive_meets_the_targets. Across the street and in height
+    the error is asserted at the points' centre, where it does not mix with the
+    rotation's (which is asserted on its own).
     """
     rot, trans, mahal2, D = _errors(aligned, drives["T"])
     assert aligned.converged and aligned.degenerate == ()
     assert rot < 0.01, rot
     assert trans < 5e-3, trans
-    assert abs(D[1, 3]) < 2e-3 and abs(D[2, 3]) < 2e-3  # across the street and height
+    rho = D[:3, :3] @ aligned.pivot + D[:3, 3] - aligned.pivot  # error at the pivot
+    assert abs(rho[1]) < 2e-3 and abs(rho[2]) < 2e-3, rho  # across the street and height
     assert mahal2 < 9.0, mahal2  # Mahalanobis distance < 3 (stricter than CHI2_6_3SIGMA)
+
+
+@pytest.mark.slow  # ~25 s: builds the default map of the 36 m street, Open3D ICP and GICP
+def test_default_map_second_drive_meets_the_targets():
+    """The pair of scripts/bench_check.py: first drive through the 36 m street mapped
+    with the default configuration (scale-aware values, far field), second drive
+    (other lane, noise seed 1, the van) moved by the known transform. Issue targets:
+    within 2 mm and 0.01 deg, the truth inside the 3-sigma ellipsoid, and at least as
+    accurate as the better of Open3D's point-to-plane ICP and GICP on the same pair
+    (measured: gmmgp 0.0017 deg / 0.36 mm, Mahalanobis^2 2.1, point-to-plane 0.0018 deg
+    / 1.33 mm, GICP 0.0023 deg / 1.40 mm; noise seeds 2 and 3: 0.0018 / 0.0012 deg,
+    1.4 / 0.8 mm, Mahalanobis^2 2.7 / 1.8). The rotation's margin over point-to-plane
+    is thin (0.0001 deg); before the weights shared over 1 m cells and the dense
+    stage it was 0.0088 deg."""
+    import open3d as o3d
+
+    import gmmgp_app as gm
+    from gmmgp_app.synth import scan_scene
+
+    first, street = scan_scene("street", density=0.1, seed=0, scene_params=dict(length=36.0))
+    smap = gm.build_map(first)
+    second, _ = scan_scene("street_van", density=0.1, seed=1, scene_params=dict(length=36.0),
+                           lane_y=-1.5)
+    T = _truth()
+    moved = _move(second.points, T)
+    res = check_scan(Scan(moved), smap, align=True)
+    rot, trans, mahal2, _ = _errors(res, T)
+    assert res.converged and res.degenerate == ()
+    assert rot < 0.01 and trans < 2e-3, (rot, trans)
+    assert mahal2 < CHI2_6_3SIGMA, mahal2
+    # the peers on the same pair, as in scripts/bench_check.py
+    reg = o3d.pipelines.registration
+    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(first.points))
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(moved))
+    for pc in (tgt, src):
+        pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.3, max_nn=30))
+    crit = reg.ICPConvergenceCriteria(relative_fitness=1e-9, relative_rmse=1e-9,
+                                      max_iteration=100)
+    peers = [reg.registration_icp(src, tgt, 0.5, np.eye(4), reg.TransformationEstimationPointToPlane(
+        reg.TukeyLoss(k=0.1)), crit).transformation,
+        reg.registration_generalized_icp(src, tgt, 0.5, np.eye(4),
+                                         reg.TransformationEstimationForGeneralizedICP(),
+                                         crit).transformation]
+    for Tp in peers:
+        D = T @ np.linalg.inv(np.asarray(Tp))
+        rot_p = np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1)))
+        assert rot <= rot_p and trans <= np.linalg.norm(D[:3, 3]), (rot, trans, rot_p, D[:3, 3])
 
 
 def test_van_is_flagged_and_little_else(aligned, drives):

@@ -1,0 +1,107 @@
+"""Error budget of check_scan's registration on the synthetic second drive.
+
+The Gauss-Newton step taken from the true transform, ``-(J^T W J)^-1 J^T W d``, is the
+registration's linearised error there: what the weights, the points used and the
+map's gradient make of the map's bias and the scan's noise. This script prints it
+(rotation in deg x 1e-3, translation at the points' weighted centre in mm) for the
+bench pair of scripts/bench_check.py (36 m street, default map; second drive through
+``street_van``, lane -1.5, noise seeds 1-3 and a noise-free one) under:
+
+- weights: ``old`` 1 / (std^2 + noise^2); ``shared C`` 1 / (std^2 + noise^2 / n), n
+  the points in the point's C m cell (check_scan's share_cell); ``density C``
+  1 / (n std^2 + noise^2) (each cell one vote);
+- points: one per 0.1 m cell (the fine stage's voxel sample) or all (the dense stage);
+- gradient: the map's analytic one or forward differences of its mean (h = 1e-5 m;
+  points where the difference and the analytic gradient differ by more than 0.5, the
+  mean jumping at a block's region boundary, left out).
+
+    PYTHONPATH=$PWD .venv/bin/python scripts/check_error_budget.py --out out/budget.json
+    PYTHONPATH=$PWD .venv/bin/python scripts/check_error_budget.py --scene street2
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scene", default="street", help="street (bench) or street2 (held out)")
+    ap.add_argument("--length", type=float, default=36.0)
+    ap.add_argument("--density", type=float, default=0.1)
+    ap.add_argument("--noise", type=float, default=0.01, help="check_scan's noise (m)")
+    ap.add_argument("--out", default=None, help="JSON file (optional)")
+    args = ap.parse_args(argv)
+
+    import gmmgp_app as gm
+    from gmmgp_app.check import _normal_matrix, _share_counts, _voxel_sample, _weights
+    from gmmgp_app.synth import scan_scene
+
+    params = dict(length=args.length)
+    first, _ = scan_scene(args.scene, density=args.density, seed=0, scene_params=params)
+    smap = gm.build_map(first)
+    second_scene = "street_van" if args.scene == "street" else args.scene
+    n2 = args.noise ** 2
+    variants = [("old", None), ("shared 1", 1.0), ("shared 6", 6.0), ("density 1", -1.0)]
+    rows = []
+    for seed, rn in ((1, None), (2, None), (3, None), (1, 0.0)):
+        kw = {} if rn is None else dict(range_noise=rn)
+        second, _ = scan_scene(second_scene, density=args.density, seed=seed,
+                               scene_params=params, lane_y=-1.5, **kw)
+        y_all = second.points - smap.offset  # the truth: the scan in the map frame
+        m_a, var_a, g_a = smap.predict(y_all, return_grad=True, far=False)
+        h = 1e-5
+        gfd_a = np.stack([(smap.predict(y_all + h * e, far=False)[0] - m_a) / h
+                          for e in np.eye(3)], axis=1)
+        jump = np.linalg.norm(gfd_a - g_a, axis=1) > 0.5
+        for points, voxel in (("voxel 0.1", 0.1), ("all", None)):
+            idx = np.arange(len(y_all)) if voxel is None else \
+                _voxel_sample(y_all, voxel, 30000, np.random.default_rng(0))
+            y, m, var = y_all[idx], m_a[idx], var_a[idx]
+            for wname, cell in variants:
+                if cell is None:
+                    w, _ = _weights(m, var, n2, np.sqrt(var) < 0.1, 4.685)
+                elif cell > 0:
+                    w, _ = _weights(m, var, n2, np.sqrt(var) < 0.1, 4.685, "tukey",
+                                    _share_counts(y, cell))
+                else:
+                    w, _ = _weights(m, var, n2, np.sqrt(var) < 0.1, 4.685)
+                    w = w * (var + n2) / (_share_counts(y, -cell) * var + n2)
+                for gname, G, ww in (("analytic", g_a[idx], w),
+                                     ("differences", gfd_a[idx], np.where(jump[idx], 0, w))):
+                    pivot = (ww[:, None] * y).sum(0) / ww.sum()
+                    _, H, b = _normal_matrix(y, G, ww, m, pivot)
+                    xi = np.linalg.solve(H, b)
+                    rows.append({"seed": seed, "scan_noise": "default" if rn is None else rn,
+                                 "points": points, "n": int(len(idx)), "weights": wname,
+                                 "gradient": gname,
+                                 "rot_mdeg": float(1e3 * np.degrees(np.linalg.norm(xi[3:]))),
+                                 "transl_mm": float(1e3 * np.linalg.norm(xi[:3])),
+                                 "gradient_jumps_left_out": int(jump[idx].sum())})
+        print(f"  seed {seed} (range noise {'default' if rn is None else rn}): done",
+              file=sys.stderr, flush=True)
+    print("| points | weights | gradient | seeds 1 / 2 / 3 / noise-free 1: rot (deg x 1e-3) "
+          "/ transl (mm) |")
+    print("|---|---|---|---|")
+    keys = sorted({(r["points"], r["weights"], r["gradient"]) for r in rows},
+                  key=lambda k: (k[0], [v[0] for v in variants].index(k[1]), k[2]))
+    for k in keys:
+        cells = [f"{r['rot_mdeg']:.2f} / {r['transl_mm']:.2f}" for r in rows
+                 if (r["points"], r["weights"], r["gradient"]) == k]
+        print(f"| {k[0]} | {k[1]} | {k[2]} | {'; '.join(cells)} |")
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps({"argv": sys.argv[1:], "rows": rows}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
