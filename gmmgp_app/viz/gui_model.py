@@ -362,6 +362,10 @@ class ViewerModel:
             raise Cancelled(start)
         if record:
             summary["auto"] = record  # the values chosen from the scan, as build_map keeps them
+            # ... and every result of this run carries them from its first stage on: a
+            # run stopped early (the caller's ``cancelled``, e.g. a screenshot up to the
+            # GP stage) hands out the on_stage results, which must say which d_m was used
+            r = dataclasses.replace(r, summary={**r.summary, "auto": record})
         run_stages(names, state, ctx, summary=summary, on_stage=after)
         # keep what the pipeline reported beyond timings (e.g. "auto": settings
         # resolved from the scan), over what the previous results held
