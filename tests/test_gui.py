@@ -472,3 +472,51 @@ def test_app_steps_through_stages_and_reruns_under_xvfb(tmp_path, box_scan):
     assert s3["d_m"] == 0.05 and s3["generation"] == s2["generation"] + 2
     assert s3["counts"]["faces"] != s2["counts"]["faces"]
     assert (out / "saved" / "map" / "map.json").is_file()
+
+
+def _until(model, start, cfg, last, base=None):
+    """model.compute from ``start`` stopped after stage ``last`` (its results)."""
+    got = {}
+
+    def on_stage(n, r):
+        got[n] = r
+    try:
+        model.compute(start, cfg, 0.2, base=base, on_stage=on_stage,
+                      cancelled=lambda: last in got)
+    except Cancelled:
+        pass
+    return got[last]
+
+
+def test_threshold_refit_reuses_node_fits_and_equals_a_fresh_run():
+    """After a split-threshold change the model refits only the HGMM nodes it never
+    split before (its node-fit cache), with bitwise the hierarchy of a fresh model; the
+    values resolved from the scan are taken again without measuring the scan."""
+    from gmmgp_app.pipeline import resolve_config
+    from gmmgp_app.synth import scan_scene
+
+    scan, _ = scan_scene("box", density=0.05)  # at 0.08 both thresholds give 18 leaves
+    cfg = MappingConfig()
+    m = ViewerModel(StageResults(config=cfg, voxel_size=0.2, scan=scan), "box")
+    m.results = _until(m, "prepare", cfg, "hgmm")
+    first = m.hgmm_cache.misses
+    assert first > 1 and m.hgmm_cache.hits == 0
+    leaves = {}
+    for t in (0.03, 0.003, 0.03):
+        new_cfg = cfg.replace("hgmm.split_threshold", t)
+        hits, misses = m.hgmm_cache.hits, m.hgmm_cache.misses
+        r = _until(m, "hgmm", new_cfg, "hgmm", base=m.results)
+        fresh = ViewerModel(StageResults(config=new_cfg, voxel_size=0.2, scan=scan), "box")
+        f = _until(fresh, "prepare", new_cfg, "hgmm")
+        for a, b in zip((r.hgmm.leaves.means, r.hgmm.leaves.covariances, r.hgmm.leaf_level),
+                        (f.hgmm.leaves.means, f.hgmm.leaves.covariances, f.hgmm.leaf_level)):
+            assert a.tobytes() == b.tobytes()
+        assert m.hgmm_cache.hits > hits   # the first fit (at least) was reused
+        if t == 0.03:
+            assert m.hgmm_cache.misses == misses  # fewer splits: nothing to fit
+        leaves[t] = r.hgmm.leaves.n_components
+        # the resolved values: those of pipeline.resolve_config, in the run's summary
+        run_cfg, record = resolve_config(new_cfg, scan)
+        assert m._resolve(new_cfg, scan) == (run_cfg, record)
+        assert r.summary["auto"]["gp.d_m"]["value"] == run_cfg.gp.d_m
+    assert leaves[0.003] > leaves[0.03]
