@@ -520,3 +520,42 @@ def test_threshold_refit_reuses_node_fits_and_equals_a_fresh_run():
         assert m._resolve(new_cfg, scan) == (run_cfg, record)
         assert r.summary["auto"]["gp.d_m"]["value"] == run_cfg.gp.d_m
     assert leaves[0.003] > leaves[0.03]
+
+
+def test_lighting_switches_the_sun_on_from_the_cameras_side():
+    """The app's light (window and screenshots): Open3DScene.set_lighting alone left the
+    sun off (ambient only: surfaces dark grey), and its direction lit the faces turned
+    away from the default camera. A stand-in scene records the calls."""
+    from gmmgp_app.viz.gui_layers import set_lighting
+    from gmmgp_app.viz.gui_screenshot import camera_pose
+
+    calls = []
+
+    class Inner:
+        def set_sun_light(self, d, colour, intensity):
+            calls.append(("sun", np.asarray(d, float), float(intensity)))
+
+        def enable_sun_light(self, on):
+            calls.append(("enable", on))
+
+    class Scene:
+        scene = Inner()
+
+        def set_lighting(self, profile, d):
+            calls.append(("profile", profile))
+
+    class Rendering:
+        class Open3DScene:
+            class LightingProfile:
+                NO_SHADOWS = "no shadows"
+
+    set_lighting(Scene(), Rendering)
+    assert ("profile", "no shadows") in calls and ("enable", True) in calls
+    sun = [c for c in calls if c[0] == "sun"][0]
+    d = sun[1]
+    assert sun[2] > 0 and abs(np.linalg.norm(d) - 1) < 1e-6
+    pts = np.random.default_rng(0).uniform([0, 0, 0], [40, 8, 12], size=(500, 3))
+    _, _, centre, eye = camera_pose(pts)
+    to_eye = (eye - centre) / np.linalg.norm(eye - centre)
+    assert to_eye @ -d > 0.5            # lit from the viewer's side
+    assert np.array([0, -1.0, 0]) @ -d > 0 and np.array([0, 0, 1.0]) @ -d > 0  # facade, ground

@@ -40,7 +40,7 @@ from typing import Optional
 import numpy as np
 
 from .gui_layers import (LAYERS, STAGE_LAYERS, compare_scene_points, layer_geometry,  # noqa: F401
-                         materials)
+                         materials, set_lighting)
 from .gui_model import STAGES, ViewerError, ViewerModel
 
 __all__ = ["STAGE_LAYERS", "materials", "camera_pose", "SceneState", "render_png",
@@ -154,8 +154,7 @@ def render_png(model: ViewerModel, path, size=(1600, 1000), stage: Optional[str]
     scene.set_background([1.0, 1.0, 1.0, 1.0])
     scene.show_axes(False)
     scene.view.set_post_processing(False)  # as the window: tone mapping shifts colour maps
-    scene.set_lighting(rendering.Open3DScene.LightingProfile.NO_SHADOWS,
-                       np.array([0.577, -0.577, -0.577], np.float32))
+    set_lighting(scene, rendering)
     mats = materials(rendering)
     for name in LAYERS:
         if name not in layers:
