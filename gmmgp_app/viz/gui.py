@@ -759,6 +759,9 @@ class ViewerApp:
         s = o3d.geometry.TriangleMesh.create_sphere(radius=r, resolution=10)
         s.translate(xyz)
         s.compute_vertex_normals()
+        from .gui_geometry import _zero_uvs
+
+        _zero_uvs(s)  # lit meshes without texture coordinates stall CPU frames (see there)
         sc = self.scene.scene
         if sc.has_geometry("probe"):
             sc.remove_geometry("probe")

@@ -23,7 +23,17 @@ function of the content; the cause inside the renderer stack was not found. Henc
 tests do not wait for the window's frames at all, and the offscreen frames they render
 are small (320x240) with time limits that only guard against a hang.
 
-Two more observations (2 cores, load 12-14): the compare view at the HGMM stage (two sets
+The cause found (2026-11-23): lit meshes without texture coordinates. Open3D's lit
+material samples its placeholder texture maps at the mesh's texture coordinates; without
+any, the CPU renderer's frame cost varied and sometimes ran away. A frame of the demo's
+lit HGMM ellipsoids that had run 9 min spent its time (perf, both rasterizer threads) in
+one JIT-compiled fragment loop of texel gathers; the same grey lit sphere as above
+(640x480) cost 0.4-1.1 s of rasterizer CPU per frame without coordinates and 0.1 s with
+all-zero or planar ones in the same session. The app's lit meshes (ellipsoids, surfaces,
+probe) now carry zero coordinates (``gui_geometry._zero_uvs``); what is drawn does not
+change.
+
+Two more observations (2 cores, load 12-14), from before that fix: the compare view at the HGMM stage (two sets
 of lit ellipsoids side by side) did not finish a frame in 15 min at 1280x800 on the demo,
 nor in 8 min at 320x240 on a small plane, while one set alone took 3-5 s (so the tests and
 the README draw the comparison at the GP stage, unlit points); and flushing denormals
