@@ -16,7 +16,7 @@ the same frame's cost varies by 100x between processes, so compare within one se
 
 UVS gives the sphere texture coordinates (the lit material samples its placeholder
 texture maps at them). 2026-11-23, load ~7, grey, lit, 6240 triangles at 640x480,
-rasterizer CPU per frame (both threads): none 1.1-1.9 s and 0.9-1.1 s (two sessions),
+rasterizer CPU per frame (both threads): none 1.9 s and 1.1 s (two sessions),
 zero 0.2 s, planar 0.2 s. The app's lit meshes get zero coordinates
 (gui_geometry._zero_uvs).
 """

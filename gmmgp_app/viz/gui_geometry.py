@@ -152,8 +152,8 @@ def _zero_uvs(mesh) -> None:
     The lit material samples its (1x1 placeholder) texture maps at the mesh's
     texture coordinates; a mesh without any made Mesa's CPU renderer spend a varying,
     sometimes unbounded, time in the fragment shader's texture fetches: a grey lit
-    sphere of 6240 triangles at 640x480 cost 0.4-1.1 s of rasterizer CPU per frame
-    without coordinates and 0.1 s with zero (or planar) ones in the same session
+    sphere of 6240 triangles at 640x480 cost 1.1-1.9 s of rasterizer CPU per frame
+    without coordinates and 0.2 s with zero (or planar) ones in the same sessions
     (scripts/bench_render_frames.py, UVS=none|zero|planar), and a stalled frame of lit
     ellipsoids (9 min, both rasterizer threads busy) was spent in one JIT-compiled
     loop of texel gathers. What is drawn does not change (the maps are uniform)."""

@@ -28,8 +28,8 @@ material samples its placeholder texture maps at the mesh's texture coordinates;
 any, the CPU renderer's frame cost varied and sometimes ran away. A frame of the demo's
 lit HGMM ellipsoids that had run 9 min spent its time (perf, both rasterizer threads) in
 one JIT-compiled fragment loop of texel gathers; the same grey lit sphere as above
-(640x480) cost 0.4-1.1 s of rasterizer CPU per frame without coordinates and 0.1 s with
-all-zero or planar ones in the same session. The app's lit meshes (ellipsoids, surfaces,
+(640x480) cost 1.1-1.9 s of rasterizer CPU per frame (both threads) without coordinates
+and 0.2 s with all-zero or planar ones in the same sessions. The app's lit meshes (ellipsoids, surfaces,
 probe) now carry zero coordinates (``gui_geometry._zero_uvs``); what is drawn does not
 change.
 
