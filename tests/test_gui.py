@@ -47,6 +47,11 @@ def test_ellipsoid_mesh_vertices_lie_on_the_two_sigma_surface():
     np.testing.assert_allclose(np.asarray(m.vertex_colors).reshape(5, -1, 3)[:, 0], cols)
     f = np.asarray(m.triangles) // v.shape[1]
     assert np.all(f == f[:, :1])
+    # lit meshes carry (zero) texture coordinates: without them CPU frames ran away
+    for mesh in (m, G.triangle_mesh(v.reshape(-1, 3), np.asarray(m.triangles),
+                                    np.full((v.size // 3, 3), 0.5))):
+        uv = np.asarray(mesh.triangle_uvs)
+        assert uv.shape == (3 * len(mesh.triangles), 2) and not uv.any()
 
 
 def test_ellipsoid_wireframe_lines_join_points_on_the_surface():
