@@ -50,6 +50,9 @@ view "$work/demo" --stage surface --screenshot "$OUT/gui_surface.png"
 # renderer for over 15 min on the busy machine (not understood; see gui_screenshot)
 view assets/demo_street.npz --stage gp --compare hgmm.split_threshold=0.03 \
   --screenshot "$OUT/gui_compare_threshold.png"
+# the same comparison on the HGMM stage (level 3): the leaves of both runs side by side
+view assets/demo_street.npz --stage hgmm --level 3 --compare hgmm.split_threshold=0.03 \
+  --screenshot "$OUT/gui_compare_hgmm.png"
 view "$work/tiled" --stage surface --screenshot "$OUT/gui_tiled_surface.png"
 view "$work/check" --screenshot "$OUT/gui_check_z.png"
 # 256-colour palette PNGs: a quarter of the bytes, no visible change for flat renders.
@@ -58,5 +61,5 @@ for f in sys.argv[1:]:
     Image.open(f).convert("RGB").quantize(256, method=Image.Quantize.MEDIANCUT).save(f, optimize=True)' \
   "$OUT"/gui_hgmm_level2.png "$OUT"/gui_hgmm_level3.png "$OUT"/gui_gp_points.png \
   "$OUT"/gui_surface.png "$OUT"/gui_compare_threshold.png "$OUT"/gui_tiled_surface.png \
-  "$OUT"/gui_check_z.png
+  "$OUT"/gui_check_z.png "$OUT"/gui_compare_hgmm.png
 ls -l "$OUT"/gui_*.png
