@@ -46,8 +46,8 @@ view "$work/demo" --stage hgmm --level 2 --screenshot "$OUT/gui_hgmm_level2.png"
 view "$work/demo" --stage hgmm --level 3 --screenshot "$OUT/gui_hgmm_level3.png"
 view "$work/demo" --stage gp --screenshot "$OUT/gui_gp_points.png"
 view "$work/demo" --stage surface --screenshot "$OUT/gui_surface.png"
-# the GP stage (unlit points): two sets of lit HGMM ellipsoids side by side stalled the CPU
-# renderer for over 15 min on the busy machine (not understood; see gui_screenshot)
+# the GP stage, and below the HGMM stage (two sets of lit ellipsoids: they stalled the CPU
+# renderer for over 15 min until lit meshes got texture coordinates, see gui_geometry._zero_uvs)
 view assets/demo_street.npz --stage gp --compare hgmm.split_threshold=0.03 \
   --screenshot "$OUT/gui_compare_threshold.png"
 # the same comparison on the HGMM stage (level 3): the leaves of both runs side by side
