@@ -311,6 +311,10 @@ class RunContext:
     auto_fields : tuple of str
         Dotted fields whose value was chosen from the scan (``"auto"``); the
         ``gp_hyper`` stage searches only these.
+    hgmm_cache : HGMMFitCache, optional
+        Node fits kept by the caller between runs on the same rows (the desktop app
+        re-fitting after a split-threshold change); the ``hgmm`` stage reuses and
+        adds to it, with the same result as without it.
     """
 
     cfg: MappingConfig
@@ -321,6 +325,7 @@ class RunContext:
     surface_progress: Optional[Callable] = None
     loggpis_lambda: Optional[float] = None
     auto_fields: tuple = ()
+    hgmm_cache: Any = None
 
 
 @dataclass(frozen=True)
@@ -364,7 +369,7 @@ def _prepare_stage(ctx, scan):
 
 
 def _hgmm_stage(ctx, data):
-    return {"hgmm": _hgmm.fit_hgmm(data, ctx.cfg.hgmm)}
+    return {"hgmm": _hgmm.fit_hgmm(data, ctx.cfg.hgmm, cache=ctx.hgmm_cache)}
 
 
 def _gmr_stage(ctx, data, hgmm=None, prior=None):
@@ -859,6 +864,7 @@ ConstantPrior = _gp.ConstantPrior
 complexity = _hgmm.complexity
 format_level_history = _hgmm.format_level_history
 HGMMError = _hgmm.HGMMError
+HGMMFitCache = _hgmm.HGMMFitCache
 PrepareError = _prepare.PrepareError
 prepare = _prepare.prepare
 fit_hgmm = _hgmm.fit_hgmm

@@ -47,6 +47,11 @@ def test_ellipsoid_mesh_vertices_lie_on_the_two_sigma_surface():
     np.testing.assert_allclose(np.asarray(m.vertex_colors).reshape(5, -1, 3)[:, 0], cols)
     f = np.asarray(m.triangles) // v.shape[1]
     assert np.all(f == f[:, :1])
+    # lit meshes carry (zero) texture coordinates: without them CPU frames ran away
+    for mesh in (m, G.triangle_mesh(v.reshape(-1, 3), np.asarray(m.triangles),
+                                    np.full((v.size // 3, 3), 0.5))):
+        uv = np.asarray(mesh.triangle_uvs)
+        assert uv.shape == (3 * len(mesh.triangles), 2) and not uv.any()
 
 
 def test_ellipsoid_wireframe_lines_join_points_on_the_surface():
@@ -472,3 +477,90 @@ def test_app_steps_through_stages_and_reruns_under_xvfb(tmp_path, box_scan):
     assert s3["d_m"] == 0.05 and s3["generation"] == s2["generation"] + 2
     assert s3["counts"]["faces"] != s2["counts"]["faces"]
     assert (out / "saved" / "map" / "map.json").is_file()
+
+
+def _until(model, start, cfg, last, base=None):
+    """model.compute from ``start`` stopped after stage ``last`` (its results)."""
+    got = {}
+
+    def on_stage(n, r):
+        got[n] = r
+    try:
+        model.compute(start, cfg, 0.2, base=base, on_stage=on_stage,
+                      cancelled=lambda: last in got)
+    except Cancelled:
+        pass
+    return got[last]
+
+
+def test_threshold_refit_reuses_node_fits_and_equals_a_fresh_run():
+    """After a split-threshold change the model refits only the HGMM nodes it never
+    split before (its node-fit cache), with bitwise the hierarchy of a fresh model; the
+    values resolved from the scan are taken again without measuring the scan."""
+    from gmmgp_app.pipeline import resolve_config
+    from gmmgp_app.synth import scan_scene
+
+    scan, _ = scan_scene("box", density=0.05)  # at 0.08 both thresholds give 18 leaves
+    cfg = MappingConfig()
+    m = ViewerModel(StageResults(config=cfg, voxel_size=0.2, scan=scan), "box")
+    m.results = _until(m, "prepare", cfg, "hgmm")
+    first = m.hgmm_cache.misses
+    assert first > 1 and m.hgmm_cache.hits == 0
+    leaves = {}
+    for t in (0.03, 0.003, 0.03):
+        new_cfg = cfg.replace("hgmm.split_threshold", t)
+        hits, misses = m.hgmm_cache.hits, m.hgmm_cache.misses
+        r = _until(m, "hgmm", new_cfg, "hgmm", base=m.results)
+        fresh = ViewerModel(StageResults(config=new_cfg, voxel_size=0.2, scan=scan), "box")
+        f = _until(fresh, "prepare", new_cfg, "hgmm")
+        for a, b in zip((r.hgmm.leaves.means, r.hgmm.leaves.covariances, r.hgmm.leaf_level),
+                        (f.hgmm.leaves.means, f.hgmm.leaves.covariances, f.hgmm.leaf_level)):
+            assert a.tobytes() == b.tobytes()
+        assert m.hgmm_cache.hits > hits   # the first fit (at least) was reused
+        if t == 0.03:
+            assert m.hgmm_cache.misses == misses  # fewer splits: nothing to fit
+        leaves[t] = r.hgmm.leaves.n_components
+        # the resolved values: those of pipeline.resolve_config, in the run's summary
+        run_cfg, record = resolve_config(new_cfg, scan)
+        assert m._resolve(new_cfg, scan) == (run_cfg, record)
+        assert r.summary["auto"]["gp.d_m"]["value"] == run_cfg.gp.d_m
+    assert leaves[0.003] > leaves[0.03]
+
+
+def test_lighting_switches_the_sun_on_from_the_cameras_side():
+    """The app's light (window and screenshots): Open3DScene.set_lighting alone left the
+    sun off (ambient only: surfaces dark grey), and its direction lit the faces turned
+    away from the default camera. A stand-in scene records the calls."""
+    from gmmgp_app.viz.gui_layers import set_lighting
+    from gmmgp_app.viz.gui_screenshot import camera_pose
+
+    calls = []
+
+    class Inner:
+        def set_sun_light(self, d, colour, intensity):
+            calls.append(("sun", np.asarray(d, float), float(intensity)))
+
+        def enable_sun_light(self, on):
+            calls.append(("enable", on))
+
+    class Scene:
+        scene = Inner()
+
+        def set_lighting(self, profile, d):
+            calls.append(("profile", profile))
+
+    class Rendering:
+        class Open3DScene:
+            class LightingProfile:
+                NO_SHADOWS = "no shadows"
+
+    set_lighting(Scene(), Rendering)
+    assert ("profile", "no shadows") in calls and ("enable", True) in calls
+    sun = [c for c in calls if c[0] == "sun"][0]
+    d = sun[1]
+    assert sun[2] > 0 and abs(np.linalg.norm(d) - 1) < 1e-6
+    pts = np.random.default_rng(0).uniform([0, 0, 0], [40, 8, 12], size=(500, 3))
+    _, _, centre, eye = camera_pose(pts)
+    to_eye = (eye - centre) / np.linalg.norm(eye - centre)
+    assert to_eye @ -d > 0.5            # lit from the viewer's side
+    assert np.array([0, -1.0, 0]) @ -d > 0 and np.array([0, 0, 1.0]) @ -d > 0  # facade, ground

@@ -411,3 +411,44 @@ def test_screenshot_refuses_what_a_target_cannot_show(check_dir, tiled, tmp_path
     with pytest.raises(ViewerError, match="--segment selects a change segment of a check"):
         screenshot_target(t, tmp_path / "a.png", segment=0)
     assert not list(tmp_path.iterdir())  # nothing written
+
+
+def test_compare_screenshot_records_the_resolved_d_m_with_default_settings(tmp_path,
+                                                                             monkeypatch):
+    """``gmmgp view SCAN --compare hgmm.split_threshold=0.03 --screenshot PNG`` with the
+    default settings (d_m 'auto', no --set): both run records name the d_m the runs used,
+    the value resolved from the scan (it printed "d_m nan": a run stopped at the GP stage
+    handed out results without the resolved values). The frame itself is not rendered
+    here (test_results_render_offscreen renders the compare view)."""
+    import re
+
+    from gmmgp_app.config import is_auto
+    from gmmgp_app.pipeline import resolve_config
+    from gmmgp_app.viz import gui_screenshot as S
+
+    drawn = {}
+
+    def fake_render(model, path, **kw):
+        drawn.update(kw, results=model.results)
+        return path
+    monkeypatch.setattr(S, "render_png", fake_render)
+    scan = _plane_scan()
+    cfg = MappingConfig()
+    assert is_auto(cfg.gp.d_m)
+    m = ViewerModel(StageResults(config=cfg, voxel_size=0.2, scan=scan), "plane")
+    lines = []
+    S.screenshot_target(m, tmp_path / "cmp.png", stage="gp",
+                        compare={"hgmm.split_threshold": 0.03}, log=lines.append)
+    runs = [ln for ln in lines if ln.startswith("run ")]
+    assert len(runs) == 2, lines
+    d_m = resolve_config(cfg, scan)[0].gp.d_m
+    assert d_m > 0
+    for ln in runs:
+        got = re.search(r"d_m ([^,]+),", ln).group(1)
+        assert got == f"{d_m:.3g}", ln
+    assert "c* 0.03" in runs[1] and "leaves" in runs[1] and "GP pts" in runs[1]
+    # the results drawn (and the previous run beside them) carry the resolved record
+    assert drawn["stage"] == "gp" and drawn["previous"] is not None
+    for r in (drawn["results"], drawn["previous"]):
+        assert r.summary["auto"]["gp.d_m"]["value"] == d_m
+        assert r.gp_points is not None and r.mesh is None  # stopped after the GP stage

@@ -1,5 +1,7 @@
 """Tests of the EM kernels, flat EM and the hierarchical GMM (stages/hgmm.py)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.special import logsumexp
@@ -500,3 +502,71 @@ def test_fit_hgmm_takes_a_training_set_and_ties_its_groups():
     # a hit point and its virtual points share one component: counted once, the
     # observation likelihood per row is above the row marginal
     assert d["heldout_observation_loglik"] > d["heldout_mean_loglik"]
+
+
+# ----------------------------------------------------------------- node-fit cache
+def _assert_same_hierarchy(a, b):
+    """Bitwise the same levels, leaves and fit statistics (timings aside)."""
+    assert len(a.levels) == len(b.levels)
+    for x, y in zip(a.levels, b.levels):
+        for f in ("weights", "means", "covariances"):
+            assert getattr(x.mixture, f).tobytes() == getattr(y.mixture, f).tobytes()
+        for f in ("parent", "complexity", "split", "n_rows"):
+            assert getattr(x, f).tobytes() == getattr(y, f).tobytes()
+    for f in ("weights", "means", "covariances"):
+        assert getattr(a.leaves, f).tobytes() == getattr(b.leaves, f).tobytes()
+    assert a.leaf_level.tobytes() == b.leaf_level.tobytes()
+    drop = ("fit_seconds",)
+    assert repr({k: v for k, v in a.info.items() if k not in drop}) == \
+        repr({k: v for k, v in b.info.items() if k not in drop})
+
+
+@pytest.mark.parametrize("tied", [False, True])
+def test_cached_refit_after_threshold_changes_equals_a_fresh_fit(tied):
+    """A node's fit depends on its rows and place only, so a cache of node fits kept
+    across threshold changes gives bitwise the hierarchy a fresh fit gives, and fits
+    only the nodes never split before."""
+    from gmmgp_app.stages.hgmm import HGMMFitCache
+
+    rows, groups = sphere_triplets(np.random.default_rng(5), n=1200)
+    kw = dict(groups=groups) if tied else {}
+    cache = HGMMFitCache()
+    base = HGMMConfig(split_threshold=0.02, min_rows=32)
+    seen = {}
+    for t in (0.02, 0.05, 0.005, 0.05, 0.02, 0.002):
+        cfg = dataclasses.replace(base, split_threshold=t)
+        before = cache.misses
+        got = fit_hgmm(rows, cfg, cache=cache, **kw)
+        fresh = fit_hgmm(rows, cfg, **kw)
+        _assert_same_hierarchy(got, fresh)
+        fitted = cache.misses - before
+        n_fits = sum(s["n_fits"] for s in fresh.info["level_fits"])
+        if t == 0.02 and not seen:
+            assert fitted == n_fits   # an empty cache fits every node
+        if t == 0.05 or t in seen:
+            assert fitted == 0        # a higher or a known threshold splits known nodes
+        seen[t] = fresh.leaves.n_components
+    assert seen[0.002] > seen[0.005] > seen[0.02] > seen[0.05]  # the thresholds matter
+    assert cache.hits > 0 and len(cache) == cache.misses
+
+
+def test_fit_cache_empties_on_other_rows_or_fit_settings():
+    from gmmgp_app.stages.hgmm import HGMMFitCache
+
+    rows, _ = sphere_triplets(np.random.default_rng(6), n=600)
+    cache = HGMMFitCache()
+    cfg = HGMMConfig(split_threshold=0.01, min_rows=32)
+    fit_hgmm(rows, cfg, cache=cache)
+    n = len(cache)
+    assert n > 1
+    # the decision fields keep the fits; other rows, seeds or children counts do not
+    fit_hgmm(rows, dataclasses.replace(cfg, split_threshold=0.03, max_levels=3), cache=cache)
+    assert len(cache) == n
+    for other_rows, other in ((rows[::-1].copy(), cfg), (rows, dataclasses.replace(cfg, seed=1)),
+                              (rows, dataclasses.replace(cfg, n_children=4))):
+        before = cache.misses
+        _assert_same_hierarchy(fit_hgmm(other_rows, other, cache=cache),
+                               fit_hgmm(other_rows, other))
+        assert len(cache) == cache.misses - before > 0  # emptied, then filled again
+    with pytest.raises(HGMMError, match="either rng= or cache="):
+        fit_hgmm(rows, cfg, cache=cache, rng=np.random.default_rng(0))

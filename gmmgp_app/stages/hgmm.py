@@ -34,6 +34,7 @@ from gmmgp_app.types import GaussianMixture, HGMMLevel, HierarchicalGMM, Trainin
 
 __all__ = [
     "HGMMError",
+    "HGMMFitCache",
     "complexity",
     "fit_gmm",
     "fit_hgmm",
@@ -413,7 +414,8 @@ def predict_labels(gm: GaussianMixture, X: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------- hierarchy
 def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
              rng: Optional[np.random.Generator] = None,
-             groups: Optional[np.ndarray] = None) -> HierarchicalGMM:
+             groups: Optional[np.ndarray] = None,
+             cache: Optional["HGMMFitCache"] = None) -> HierarchicalGMM:
     """Fit the top-down hierarchical GMM (paper Sec. III-A).
 
     Parameters
@@ -427,11 +429,21 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
         ``min_rows``, ``max_levels``, EM settings, ``seed`` and
         ``complexity_metric``.
     rng : numpy Generator, optional
-        Defaults to ``np.random.default_rng(hcfg.seed)``.
+        Seeds the first fit; defaults to ``np.random.default_rng(hcfg.seed)``. The
+        split of a node draws its k-means++ uniforms from its own stream, seeded by
+        ``hcfg.seed`` (or, with ``rng``, one integer drawn from it) and the node's
+        path in the tree (:func:`_node_uniforms`): a node's fit depends on its rows
+        and its place only, not on how many other nodes split before it, so nodes
+        split under two thresholds get the same fit (what ``cache`` relies on).
     groups : (M,) int, optional
         ``TrainingSet.groups``: the hit point each row belongs to. When given (and
         ``hcfg.tie_virtual``), every EM of the hierarchy is tied: a hit point and its
         virtual points share one component, and nodes are split by whole groups.
+    cache : HGMMFitCache, optional
+        Fits of nodes kept from earlier calls (owned by the caller, e.g. the desktop
+        app between threshold changes): a node fitted before with the same rows,
+        place and fit settings is taken from it, the others are fitted and added.
+        The result is bitwise the one without a cache. Not with ``rng``.
 
     Returns
     -------
@@ -450,15 +462,24 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
             raise HGMMError("Expected groups either inside the TrainingSet or as groups=, "
                             "found both; pass the TrainingSet alone.")
         rows, groups = rows.rows, rows.groups
+    if cache is not None and rng is not None:
+        raise HGMMError("Expected either rng= or cache=, found both; a cache holds fits "
+                        "seeded by hcfg.seed, so drop rng (set hcfg.seed instead).")
     X = _check_rows(rows, min_rows=hcfg.initial_components)
     _check_not_identical(X)
-    rng = np.random.default_rng(hcfg.seed) if rng is None else rng
+    node_seed = hcfg.seed
+    if rng is None:
+        rng = np.random.default_rng(hcfg.seed)
+    else:
+        node_seed = int(rng.integers(2 ** 63))
     D = X.shape[1]
     gsorted = None
     if groups is not None and hcfg.tie_virtual:
         # Rows of a group made contiguous; node row lists stay sorted, so groups
         # stay contiguous inside every node.
         X, gsorted = _sort_by_groups(X, groups)
+    if cache is not None:
+        cache._use(X, gsorted, hcfg)
 
     def group_ptr(idx):
         """Group boundaries of the rows ``idx`` (all rows: None), or None untied."""
@@ -478,13 +499,19 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
     em_kw = dict(max_iter=hcfg.max_iter, tol=hcfg.tol, reg_covar=hcfg.reg_covar)
     min_child_rows = _ROWS_PER_CHILD_PER_DIM * D
 
-    gm0, info0, labels = fit(X, group_ptr(None), hcfg.initial_components)
+    got0 = None if cache is None else cache._get((), None)
+    if got0 is None:
+        got0 = fit(X, group_ptr(None), hcfg.initial_components)
+        if cache is not None:
+            cache._put((), None, got0)
+    gm0, info0, labels = got0
     # Current level: arrays of node parameters and the row indices of each node.
     weights, means, covs = gm0.weights, gm0.means, gm0.covariances
     # fractions of observations (hit point groups) per node, for the tied likelihood
     gweights = info0.get("group_weights", weights)
     parents = np.full(len(weights), -1, dtype=np.int64)
     node_rows = _group(labels, len(weights))
+    paths = [(j,) for j in range(len(weights))]  # each node's place: child index per level
 
     levels = []
     leaves_w, leaves_m, leaves_c, leaf_level, leaves_gw = [], [], [], [], []
@@ -501,11 +528,12 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
         want &= (n_rows >= hcfg.min_rows) & (lev < hcfg.max_levels - 1)
         split = np.zeros(len(weights), dtype=bool)
         nxt_w, nxt_m, nxt_c, nxt_p, nxt_rows, nxt_gw = [], [], [], [], [], []
+        nxt_paths = []
         stats = dict(n_fits=0, em_iter=0, dropped=0, not_converged=0, failed_splits=0)
-        # The splits of one level are independent: each gets its k-means++ uniforms
-        # drawn here in node order (the stream a sequential loop would use), then the
-        # fits run in threads (the EM kernels release the GIL); results are taken in
-        # node order, so the hierarchy is the one the sequential loop builds.
+        # The splits of one level are independent: each gets the k-means++ uniforms of
+        # its own place in the tree, then the fits run in threads (the EM kernels
+        # release the GIL); results are taken in node order, so the hierarchy is the
+        # one a sequential loop builds. Fits found in the cache are not run again.
         tasks = []
         for j in np.flatnonzero(want):
             idx = node_rows[j]
@@ -523,9 +551,18 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
                 if k < 2:
                     stats["failed_splits"] += 1
                     continue
-            tasks.append((j, idx, Xj, gptr, k, rng.random(k)))
-        for (j, idx, Xj, gptr, k, u), (gmj, infoj, lab) in zip(
-                tasks, _map_threads(lambda t: fit(t[2], t[3], t[4], t[5]), tasks)):
+            tasks.append((j, idx, Xj, gptr, k, _node_uniforms(node_seed, paths[j], k)))
+        got = [None if cache is None else cache._get(paths[t[0]], t[1]) for t in tasks]
+        todo = [t for t, g in zip(tasks, got) if g is None]
+        fitted = iter(_map_threads(lambda t: fit(t[2], t[3], t[4], t[5]), todo))
+        results = []
+        for t, g in zip(tasks, got):
+            if g is None:
+                g = next(fitted)
+                if cache is not None:
+                    cache._put(paths[t[0]], t[1], g)
+            results.append(g)
+        for (j, idx, Xj, gptr, k, u), (gmj, infoj, lab) in zip(tasks, results):
             stats["n_fits"] += 1
             stats["em_iter"] += infoj["n_iter"]
             stats["dropped"] += len(infoj["dropped"])
@@ -545,6 +582,7 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
                 nxt_c.append(gmj.covariances[g])
                 nxt_p.append(j)
                 nxt_rows.append(idx[child_rows[g]])
+                nxt_paths.append(paths[j] + (g,))
         levels.append(HGMMLevel(
             mixture=GaussianMixture(weights, means, covs), parent=parents,
             complexity=np.asarray(c, dtype=np.float64), split=split, n_rows=n_rows))
@@ -563,6 +601,7 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
         covs = np.asarray(nxt_c)
         parents = np.asarray(nxt_p, dtype=np.int64)
         node_rows = nxt_rows
+        paths = nxt_paths
     lw = np.concatenate(leaves_w)
     leaves = GaussianMixture(lw / lw.sum(), np.concatenate(leaves_m), np.concatenate(leaves_c))
     lgw = np.concatenate(leaves_gw)
@@ -579,6 +618,88 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
     )
     return HierarchicalGMM(levels=tuple(levels), leaves=leaves,
                            leaf_level=np.concatenate(leaf_level), info=info)
+
+
+def _node_uniforms(seed: int, path: tuple, k: int) -> np.ndarray:
+    """The k-means++ uniforms of the split of the node at ``path`` (its child index at
+    every level from the first): a stream of its own, seeded by (seed, path)."""
+    return np.random.default_rng([int(seed), _NODE_STREAM, len(path), *path]).random(k)
+
+
+_NODE_STREAM = 0x48474D4D  # tags the node streams apart from default_rng(seed)
+
+
+class HGMMFitCache:
+    """Fits of hierarchy nodes kept between :func:`fit_hgmm` calls on the same rows.
+
+    With the same rows and seeds, a node has the same rows and the same fit under any
+    split threshold, as long as its ancestors split (each split's k-means++ uniforms
+    come from the node's own stream, :func:`_node_uniforms`); only the decision to
+    split it depends on the threshold. So after a threshold change only the nodes that
+    were never split before need EM. An entry is keyed by the node's path in the tree
+    and a digest of its rows; the cache holds the fits of one set of rows and fit
+    settings (everything of :class:`HGMMConfig` but the split decision fields
+    ``split_threshold``, ``split_max_std``, ``min_rows``, ``max_levels`` and
+    ``complexity_metric``) and empties itself when either changes.
+
+    The caller owns it (e.g. the desktop app's model, through the pipeline's
+    ``RunContext.hgmm_cache``); stages keep no state. Not thread safe: one fit at a
+    time. ``hits`` / ``misses`` count the node fits reused and computed.
+    """
+
+    #: HGMMConfig fields that decide which nodes split, not how a node is fitted
+    DECISION_FIELDS = ("split_threshold", "split_max_std", "min_rows", "max_levels",
+                       "complexity_metric")
+
+    def __init__(self):
+        self._key = None
+        self._fits: dict = {}
+        self.hits = 0
+        self.misses = 0
+
+    def __len__(self) -> int:
+        return len(self._fits)
+
+    def clear(self) -> None:
+        self._key, self._fits = None, {}
+
+    def _use(self, X: np.ndarray, gsorted, hcfg: HGMMConfig) -> None:
+        import dataclasses
+        import hashlib
+
+        h = hashlib.blake2b(digest_size=16)
+        h.update(repr(X.shape).encode())
+        h.update(X.tobytes())
+        if gsorted is not None:
+            h.update(np.ascontiguousarray(gsorted).tobytes())
+        fit_settings = tuple((f.name, getattr(hcfg, f.name)) for f in dataclasses.fields(hcfg)
+                             if f.name not in self.DECISION_FIELDS)
+        key = (h.digest(), gsorted is None, fit_settings)
+        if key != self._key:
+            self._key, self._fits = key, {}
+
+    @staticmethod
+    def _rows_key(idx) -> bytes:
+        import hashlib
+
+        if idx is None:
+            return b"all"
+        return hashlib.blake2b(np.ascontiguousarray(idx).tobytes(), digest_size=16).digest()
+
+    def _get(self, path: tuple, idx):
+        import copy
+
+        got = self._fits.get((path, self._rows_key(idx)))
+        if got is None:
+            return None
+        self.hits += 1
+        return copy.deepcopy(got)  # a result never shares arrays with the cache
+
+    def _put(self, path: tuple, idx, fit) -> None:
+        import copy
+
+        self.misses += 1
+        self._fits[(path, self._rows_key(idx))] = copy.deepcopy(fit)
 
 
 class _Drawn:

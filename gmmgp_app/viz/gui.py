@@ -39,7 +39,7 @@ from .gui_model import (STAGE_LABELS, STAGES, Cancelled, StageResults, ViewerErr
                         ViewerModel, first_affected_stage)
 from .gui_script import ScriptRunner, load_script
 from .gui_layers import (LAYERS, STAGE_LAYERS, compare_scene_points, layer_geometry,
-                         layer_parts, materials)
+                         layer_parts, materials, set_lighting)
 from .gui_tuning import run_record
 from ..config import concrete, is_auto
 
@@ -240,10 +240,8 @@ class ViewerApp:
         self.scene.scene.show_axes(False)
         # Tone mapping would shift the colour maps (and the legend would lie).
         self.scene.scene.view.set_post_processing(False)
-        # No shadow-map pass: it adds nothing to reading the map and costs every frame
-        # on a CPU renderer (software Vulkan), where frames take seconds under load.
-        self.scene.scene.set_lighting(rendering.Open3DScene.LightingProfile.NO_SHADOWS,
-                                      np.array([0.577, -0.577, -0.577], np.float32))
+        # The sun from the camera's side, no shadow-map pass (gui_layers.set_lighting).
+        set_lighting(self.scene.scene, rendering)
         self.scene.set_on_mouse(self._on_mouse)
         self.window.add_child(self.scene)
         self.panel = self._build_panel(gui, em)
@@ -761,6 +759,9 @@ class ViewerApp:
         s = o3d.geometry.TriangleMesh.create_sphere(radius=r, resolution=10)
         s.translate(xyz)
         s.compute_vertex_normals()
+        from .gui_geometry import _zero_uvs
+
+        _zero_uvs(s)  # lit meshes without texture coordinates stall CPU frames (see there)
         sc = self.scene.scene
         if sc.has_geometry("probe"):
             sc.remove_geometry("probe")

@@ -142,7 +142,24 @@ def ellipsoid_mesh(means, covariances, colors, n_sigma: float = 2.0, resolution:
                                   o3d.utility.Vector3iVector(faces.astype(np.int32)))
     m.vertex_colors = o3d.utility.Vector3dVector(np.repeat(np.asarray(colors, float), nv, 0))
     m.compute_vertex_normals()
+    _zero_uvs(m)
     return m
+
+
+def _zero_uvs(mesh) -> None:
+    """Give a mesh texture coordinates (all zero) before it is drawn lit.
+
+    The lit material samples its (1x1 placeholder) texture maps at the mesh's
+    texture coordinates; a mesh without any made Mesa's CPU renderer spend a varying,
+    sometimes unbounded, time in the fragment shader's texture fetches: a grey lit
+    sphere of 6240 triangles at 640x480 cost 1.1-1.9 s of rasterizer CPU per frame
+    without coordinates and 0.2 s with zero (or planar) ones in the same sessions
+    (scripts/bench_render_frames.py, UVS=none|zero|planar), and a stalled frame of lit
+    ellipsoids (9 min, both rasterizer threads busy) was spent in one JIT-compiled
+    loop of texel gathers. What is drawn does not change (the maps are uniform)."""
+    import open3d as o3d
+
+    mesh.triangle_uvs = o3d.utility.Vector2dVector(np.zeros((3 * len(mesh.triangles), 2)))
 
 
 def ellipsoid_wireframe(means, covariances, colors, n_sigma: float = 2.0, resolution: int = 6):
@@ -200,4 +217,5 @@ def triangle_mesh(vertices, faces, colors):
                                   o3d.utility.Vector3iVector(np.asarray(faces, np.int32)))
     m.vertex_colors = o3d.utility.Vector3dVector(np.asarray(colors, float))
     m.compute_vertex_normals()
+    _zero_uvs(m)
     return m

@@ -52,6 +52,31 @@ def materials(rendering, scaling: float = 1.0) -> dict:
     }
 
 
+#: Direction the sun's light travels: from over the default camera's shoulder (the
+#: camera looks from -y and above, ``gui_screenshot.camera_pose``) down onto the scene,
+#: so faces turned to the viewer are lit. (The window and the screenshots used
+#: (0.577, -0.577, -0.577): light from behind the facades the camera sees.)
+SUN_DIRECTION = (-0.3, 0.6, -0.75)
+#: Sun intensity (lux, Filament's unit): surfaces facing it at 0.75 grey render ~220/255.
+SUN_INTENSITY = 60000.0
+
+
+def set_lighting(open3d_scene, rendering) -> None:
+    """Light an ``Open3DScene`` as the app does (window and offscreen frames).
+
+    ``Open3DScene.set_lighting(NO_SHADOWS, direction)`` alone leaves the scene lit by
+    the image-based (ambient) light only: the direction changed nothing in a render and
+    lit surfaces came out dark grey (a 0.75-grey sphere: 118-173 of 255, the same
+    pixels for opposite directions). The sun is switched on here explicitly; no
+    shadow-map pass (it costs every frame on a CPU renderer and adds nothing to
+    reading the map)."""
+    d = np.asarray(SUN_DIRECTION, np.float32)
+    d /= np.linalg.norm(d)
+    open3d_scene.set_lighting(rendering.Open3DScene.LightingProfile.NO_SHADOWS, d)
+    open3d_scene.scene.set_sun_light(d, np.ones(3, np.float32), SUN_INTENSITY)
+    open3d_scene.scene.enable_sun_light(True)
+
+
 def _hgmm_level_geometry(hgmm, level, shift=0.0, prefix="ellipsoids"):
     from . import gui_geometry as G
 

@@ -23,7 +23,17 @@ function of the content; the cause inside the renderer stack was not found. Henc
 tests do not wait for the window's frames at all, and the offscreen frames they render
 are small (320x240) with time limits that only guard against a hang.
 
-Two more observations (2 cores, load 12-14): the compare view at the HGMM stage (two sets
+The cause found (2026-11-23): lit meshes without texture coordinates. Open3D's lit
+material samples its placeholder texture maps at the mesh's texture coordinates; without
+any, the CPU renderer's frame cost varied and sometimes ran away. A frame of the demo's
+lit HGMM ellipsoids that had run 9 min spent its time (perf, both rasterizer threads) in
+one JIT-compiled fragment loop of texel gathers; the same grey lit sphere as above
+(640x480) cost 1.1-1.9 s of rasterizer CPU per frame (both threads) without coordinates
+and 0.2 s with all-zero or planar ones in the same sessions. The app's lit meshes (ellipsoids, surfaces,
+probe) now carry zero coordinates (``gui_geometry._zero_uvs``); what is drawn does not
+change.
+
+Two more observations (2 cores, load 12-14), from before that fix: the compare view at the HGMM stage (two sets
 of lit ellipsoids side by side) did not finish a frame in 15 min at 1280x800 on the demo,
 nor in 8 min at 320x240 on a small plane, while one set alone took 3-5 s (so the tests and
 the README draw the comparison at the GP stage, unlit points); and flushing denormals
@@ -40,7 +50,7 @@ from typing import Optional
 import numpy as np
 
 from .gui_layers import (LAYERS, STAGE_LAYERS, compare_scene_points, layer_geometry,  # noqa: F401
-                         materials)
+                         materials, set_lighting)
 from .gui_model import STAGES, ViewerError, ViewerModel
 
 __all__ = ["STAGE_LAYERS", "materials", "camera_pose", "SceneState", "render_png",
@@ -154,8 +164,7 @@ def render_png(model: ViewerModel, path, size=(1600, 1000), stage: Optional[str]
     scene.set_background([1.0, 1.0, 1.0, 1.0])
     scene.show_axes(False)
     scene.view.set_post_processing(False)  # as the window: tone mapping shifts colour maps
-    scene.set_lighting(rendering.Open3DScene.LightingProfile.NO_SHADOWS,
-                       np.array([0.577, -0.577, -0.577], np.float32))
+    set_lighting(scene, rendering)
     mats = materials(rendering)
     for name in LAYERS:
         if name not in layers:
