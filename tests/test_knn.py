@@ -42,3 +42,18 @@ def test_small_sets_cell_choices_and_duplicates():
         np.testing.assert_array_equal(d, d2)
         # equidistant duplicates may come in another order: compare the point sets
         np.testing.assert_array_equal(np.sort(p[i].sum(2), 1), np.sort(p[i2].sum(2), 1))
+
+
+def test_ball_lists_match_the_kd_tree():
+    from gmmgp_app.stages.knn import ball_lists
+
+    rng = np.random.default_rng(2)
+    p = _points(rng, 5000)
+    x = np.vstack([p[rng.choice(len(p), 500)] + rng.normal(scale=0.1, size=(500, 3)),
+                   rng.uniform(-9, 9, (100, 3))])
+    for r in (0.05, 0.3):
+        ptr, idx = ball_lists(p, x, r)
+        ref = cKDTree(p).query_ball_point(x, r)
+        assert ptr[-1] == sum(map(len, ref)) > 0
+        for c in range(len(x)):
+            assert sorted(idx[ptr[c]:ptr[c + 1]]) == sorted(ref[c])

@@ -201,3 +201,80 @@ def _knn_grid(x, k, cell, lo, dims, tk, ts, te, pts, order, max_ring):
                 idx[q, m] = order[bi[m]]
             done[q] = True
     return dist, idx, done
+
+
+def ball_lists(points, centres, radius: float):
+    """Indices of the ``points`` within ``radius`` of each centre, as CSR ``(ptr, idx)``
+    (``idx[ptr[c]:ptr[c+1]]`` for centre c, in grid order, not sorted): what
+    ``cKDTree.query_ball_point`` returns as lists, without the Python lists.
+
+    The points are bucketed in cells of edge ``radius``; a centre scans the 27 cells
+    around its own. Two compiled passes over the centres (count, then fill)."""
+    p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+    x = np.ascontiguousarray(np.asarray(centres, dtype=np.float64).reshape(-1, 3))
+    r = float(radius)
+    if len(p) == 0 or len(x) == 0 or not r > 0:
+        return np.zeros(len(x) + 1, np.int64), np.zeros(0, np.int64)
+    cell = r
+    c = np.floor(p / cell).astype(np.int64)
+    lo = c.min(0) - 1
+    dims = (c.max(0) + 1 - lo + 1).astype(np.int64)
+    if float(np.prod(dims.astype(np.float64))) >= 2.0 ** 62:
+        raise ValueError("ball_lists: the points span too many cells of the radius")
+    key = ((c[:, 0] - lo[0]) * dims[1] + (c[:, 1] - lo[1])) * dims[2] + (c[:, 2] - lo[2])
+    order = np.argsort(key, kind="stable").astype(np.int64)
+    ks = key[order]
+    starts = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
+    ends = np.r_[starts[1:], len(ks)]
+    size = 1 << int(np.ceil(np.log2(2 * len(starts) + 2)))
+    tk, ts, te = _build_table(ks[starts], starts.astype(np.int64), ends.astype(np.int64),
+                              size)
+    sp = np.ascontiguousarray(p[order])
+    counts = _ball_pass(x, r, cell, lo, dims, tk, ts, te, sp, order,
+                        np.zeros(len(x) + 1, np.int64), np.zeros(0, np.int64), False)
+    ptr = np.zeros(len(x) + 1, np.int64)
+    np.cumsum(counts[:-1], out=ptr[1:])
+    idx = np.empty(ptr[-1], np.int64)
+    _ball_pass(x, r, cell, lo, dims, tk, ts, te, sp, order, ptr, idx, True)
+    return ptr, idx
+
+
+@nb.njit(cache=True, parallel=True)
+def _ball_pass(x, r, cell, lo, dims, tk, ts, te, pts, order, ptr, idx, fill):
+    """Count (``fill`` False: counts per centre) or write (at ``ptr``) the points within
+    ``r`` of each centre."""
+    K = x.shape[0]
+    counts = np.zeros(K + 1, np.int64)
+    mask = len(tk) - 1
+    r2 = r * r
+    for q in nb.prange(K):
+        c0 = int(math.floor(x[q, 0] / cell)) - lo[0]
+        c1 = int(math.floor(x[q, 1] / cell)) - lo[1]
+        c2 = int(math.floor(x[q, 2] / cell)) - lo[2]
+        n = 0
+        at = ptr[q]
+        for a in range(c0 - 1, c0 + 2):
+            if a < 0 or a >= dims[0]:
+                continue
+            for b in range(c1 - 1, c1 + 2):
+                if b < 0 or b >= dims[1]:
+                    continue
+                for c in range(c2 - 1, c2 + 2):
+                    if c < 0 or c >= dims[2]:
+                        continue
+                    key = (a * dims[1] + b) * dims[2] + c
+                    s = _hash(key, mask)
+                    while tk[s] != -1 and tk[s] != key:
+                        s = (s + 1) & mask
+                    if tk[s] == -1:
+                        continue
+                    for j in range(ts[s], te[s]):
+                        d0 = x[q, 0] - pts[j, 0]
+                        d1 = x[q, 1] - pts[j, 1]
+                        d2 = x[q, 2] - pts[j, 2]
+                        if d0 * d0 + d1 * d1 + d2 * d2 <= r2:
+                            if fill:
+                                idx[at + n] = order[j]
+                            n += 1
+        counts[q] = n
+    return counts
