@@ -466,10 +466,10 @@ def _merge_lists(n_cells, ptrs, idxs, members):
     return ptr, idx
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True)
 def _scatter_lists(p, vals, at, out):
     """Append list c of CSR (p, vals) at ``out[at[c]:]`` and advance ``at[c]``."""
-    for c in nb.prange(len(p) - 1):
+    for c in range(len(p) - 1):
         n = p[c + 1] - p[c]
         for t in range(n):
             out[at[c] + t] = vals[p[c] + t]

@@ -239,7 +239,7 @@ def ball_lists(points, centres, radius: float):
     return ptr, idx
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True)
 def _ball_pass(x, r, cell, lo, dims, tk, ts, te, pts, order, ptr, idx, fill):
     """Count (``fill`` False: counts per centre) or write (at ``ptr``) the points within
     ``r`` of each centre."""
@@ -247,7 +247,7 @@ def _ball_pass(x, r, cell, lo, dims, tk, ts, te, pts, order, ptr, idx, fill):
     counts = np.zeros(K + 1, np.int64)
     mask = len(tk) - 1
     r2 = r * r
-    for q in nb.prange(K):
+    for q in range(K):
         c0 = int(math.floor(x[q, 0] / cell)) - lo[0]
         c1 = int(math.floor(x[q, 1] / cell)) - lo[1]
         c2 = int(math.floor(x[q, 2] / cell)) - lo[2]
