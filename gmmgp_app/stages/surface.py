@@ -225,6 +225,13 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
         f = f[_valid_vertices(v, finite)[f].all(1)]
         if len(f) == 0:
             continue
+        # keep only the vertices of the kept faces: the others (on edges with a masked
+        # end) would be stitched and have their variance evaluated for nothing
+        used = np.zeros(len(v), bool)
+        used[f.reshape(-1)] = True
+        if not used.all():
+            f = (np.cumsum(used) - 1)[f]
+            v = v[used]
         lo, axis, v = _refine_on_edges(v, vol_filled)
         # (lower lattice node, axis) of each vertex's edge packed into one int64 in the
         # order of the rows (axis -1..2: a vertex on a node has axis -1); a vertex inside
@@ -255,6 +262,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     del faces_all, inverse
     faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
                   & (faces[:, 0] != faces[:, 2])]
+    verts, faces, _ = _drop_unused(verts, faces, np.zeros(len(verts)))
     var = np.empty(len(verts))
     for s in range(0, len(verts), batch):
         var[s:s + batch] = predict(verts[s:s + batch])[1]
