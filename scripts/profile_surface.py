@@ -16,6 +16,7 @@ spacing h_t) with the field wrapped to count and time every evaluation, and repo
 
     PYTHONPATH=$PWD .venv/bin/python scripts/profile_surface.py out/street_run/map \\
         --json out/prof_surface.json
+    PYTHONPATH=/path/to/other/checkout .venv/bin/python scripts/profile_surface.py ...
     PYTHONPATH=$PWD .venv/bin/python scripts/profile_surface.py out/street_run/map \\
         --voxel-ht 1.0 --scan out/bench/peers_work/street_d1_s0/scan.npz \\
         --mesh-ref out/bench/peers_work/street_d1_s0/mesh.ply
@@ -34,8 +35,9 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "scripts"))
+# appended, so PYTHONPATH decides which gmmgp_app is profiled (e.g. another checkout's)
+sys.path.append(str(ROOT))
+sys.path.append(str(ROOT / "scripts"))
 
 
 def main(argv=None) -> int:
@@ -109,6 +111,9 @@ def main(argv=None) -> int:
             pts = np.ascontiguousarray(z["points"], np.float64)
         rep["mesh"] = mesh_metrics(mesh.vertices + smap.offset, mesh.faces, pts,
                                    read_ref_mesh(Path(args.mesh_ref)), 200_000, 0)
+    import gmmgp_app
+
+    rep["gmmgp_app"] = str(Path(gmmgp_app.__file__).parent)
     text = json.dumps(rep, indent=1)
     print(text)
     if args.json:
