@@ -90,6 +90,8 @@ import numba as nb
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .knn import GridKNN
+
 __all__ = ["FarField", "FarFieldError", "blend_fields", "BlendedField", "VARIANCE_COEF",
            "calibrated_variance", "behind_width", "extent_width", "unseen_variance"]
 
@@ -140,6 +142,14 @@ class FarField:
             float(beta)
         self.tree = cKDTree(p)
 
+    @property
+    def knn(self):
+        """The exact k-nearest-neighbour search of the queries (:class:`GridKNN`, about
+        twice as fast as the k-d tree on surface lattices; same neighbours)."""
+        if getattr(self, "_knn", None) is None:
+            self._knn = GridKNN(self.points, self.k, tree=self.tree)
+        return self._knn
+
     def params(self) -> dict:
         return dict(rho0=self.rho0, noise=self.noise, k=self.k, growth=self.growth,
                     spread_weight=self.spread_weight, beta=self.beta)
@@ -159,8 +169,7 @@ class FarField:
         if K == 0:
             z = np.zeros(0)
             return dict(mean=z, var=z, r=z, spread2=z, n_eff=z, grad=np.zeros((0, 3)))
-        d, i = self.tree.query(x, k=self.k, workers=-1)
-        d, i = d.reshape(K, self.k), i.reshape(K, self.k)
+        d, i = self.knn.query(x)
         mean, var, spread2, n_eff, g = _imls(x, d, i, self.points, self.normals, self.rho0,
                                              self.growth, self.noise, self.spread_weight,
                                              self.beta, bool(return_grad))

@@ -16,7 +16,8 @@ The search is exact, not heuristic, and its set-up is paid once per cell:
 1. Space is cut into a fixed grid of cubic cells of edge ``h`` (half diagonal
    ``rho``) over the box where any component can be a candidate (the union of the
    balls below). A query outside that box has no candidate at all.
-2. Component means sit in scipy cKDTrees, one per *radius bucket*. Because
+2. Component means are grouped by *radius bucket* (each bucket's ball search is a
+   compiled grid scan, stages/knn.py ``ball_lists``). Because
    ``D_j(x) <= c`` implies ``|x - mu_jX| <= c sqrt(lambda_max(Sigma_jXX)) =: r_j``,
    a Euclidean ball of radius ``r_j`` contains the whole Mahalanobis ellipsoid; with
    flat (anisotropic) covariances ``r_j`` must use the *largest* eigenvalue or
@@ -79,15 +80,15 @@ corrects the mean near them.
 
 from __future__ import annotations
 
-import itertools
 import math
 import threading
 
 import numba as nb
 import numpy as np
-from scipy.spatial import cKDTree
 
 from gmmgp_app.types import GaussianMixture
+
+from .knn import ball_lists
 
 __all__ = [
     "GMRError",
@@ -452,6 +453,29 @@ def _gmr_kernel(xyz, qslot, ptr, idx, mux, prec, logc, a, b, s2, axes, half,
     return mean, var, grad, fallback.sum()
 
 
+def _merge_lists(n_cells, ptrs, idxs, members):
+    """Concatenate per-cell candidate lists of the radius buckets (bucket order within
+    a cell, member indices mapped to component indices) into one CSR."""
+    lens = sum(np.diff(p) for p in ptrs)
+    ptr = np.zeros(n_cells + 1, dtype=np.int64)
+    np.cumsum(lens, out=ptr[1:])
+    idx = np.empty(ptr[-1], dtype=np.int64)
+    at = ptr[:-1].copy()
+    for p, i, m in zip(ptrs, idxs, members):
+        _scatter_lists(p, m[i], at, idx)
+    return ptr, idx
+
+
+@nb.njit(cache=True)
+def _scatter_lists(p, vals, at, out):
+    """Append list c of CSR (p, vals) at ``out[at[c]:]`` and advance ``at[c]``."""
+    for c in range(len(p) - 1):
+        n = p[c + 1] - p[c]
+        for t in range(n):
+            out[at[c] + t] = vals[p[c] + t]
+        at[c] += n
+
+
 # --------------------------------------------------------------------- the field
 def _tau(far_growth_floor: float) -> float:
     """tau of eq. gmr_far_growth for a floor ``f``: ``f / 3`` (0.1 m at f = 0.3 m);
@@ -552,7 +576,7 @@ class GMRField:
         self._buckets = []
         for lv in np.unique(level):
             members = np.flatnonzero(level == lv)
-            self._buckets.append((cKDTree(mux[members]), members,
+            self._buckets.append((members, np.ascontiguousarray(mux[members]),
                                   float(r[members].max())))
         self.n_components = k
         self._lock = threading.Lock()
@@ -595,20 +619,12 @@ class GMRField:
         centres = (np.c_[c0, c1, c2] + self._base + 0.5) * h
         rho = 0.5 * math.sqrt(3.0) * h
         n_cells = len(keys)
-        parts_cell, parts_idx = [], []
-        for tree, members, rad in self._buckets:
-            lists = tree.query_ball_point(centres, rad + rho, return_sorted=False)
-            lens = np.fromiter(map(len, lists), dtype=np.int64, count=n_cells)
-            flat = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64,
-                               count=int(lens.sum()))
-            parts_cell.append(np.repeat(np.arange(n_cells), lens))
-            parts_idx.append(members[flat])
-        cell_of = np.concatenate(parts_cell)
-        idx = np.concatenate(parts_idx)
-        order = np.argsort(cell_of, kind="stable")
-        idx = np.ascontiguousarray(idx[order])
-        ptr = np.zeros(n_cells + 1, dtype=np.int64)
-        np.cumsum(np.bincount(cell_of, minlength=n_cells), out=ptr[1:])
+        parts = []
+        for members, mux_b, rad in self._buckets:
+            # the bucket's means within rad + rho of each cell centre (compiled)
+            parts.append(ball_lists(mux_b, centres, rad + rho))
+        ptr, idx = _merge_lists(n_cells, [p for p, _ in parts], [i for _, i in parts],
+                                [m for m, _, _ in self._buckets])
         c = self._c
         keep = _prune_cells(centres, rho, ptr, idx, c["mux"], c["prec"], c["logc"],
                             c["lip"], self.n_active, self.mahalanobis_cut)

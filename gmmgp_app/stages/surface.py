@@ -201,7 +201,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     del cells
     nb = block_cells + 1
     keys_all, verts_all, faces_all = [], [], []
-    n_verts = 0
+    n_verts = n_inner = 0
     bar = progress(len(blocks), "marching cubes") if progress else None
     bptr, node_local, node_value = _block_nodes(node_keys, values, pack, blocks, block_cells)
     del node_keys, values
@@ -225,10 +225,23 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
         f = f[_valid_vertices(v, finite)[f].all(1)]
         if len(f) == 0:
             continue
+        # keep only the vertices of the kept faces: the others (on edges with a masked
+        # end) would be stitched and have their variance evaluated for nothing
+        used = np.zeros(len(v), bool)
+        used[f.reshape(-1)] = True
+        if not used.all():
+            f = (np.cumsum(used) - 1)[f]
+            v = v[used]
         lo, axis, v = _refine_on_edges(v, vol_filled)
         # (lower lattice node, axis) of each vertex's edge packed into one int64 in the
-        # order of the rows (axis -1..2: a vertex on a node has axis -1)
-        keys_all.append(pack(lo + b * block_cells) * 4 + (axis + 1))
+        # order of the rows (axis -1..2: a vertex on a node has axis -1); a vertex inside
+        # a cell (axis -2, Lewiner's extra point of an ambiguous cube) belongs to this
+        # block alone and gets its own negative key
+        k = pack(lo + b * block_cells) * 4 + (axis + 1)
+        inner = np.flatnonzero(axis == -2)
+        k[inner] = -(n_inner + 1 + np.arange(len(inner)))
+        n_inner += len(inner)
+        keys_all.append(k)
         verts_all.append(v + b * block_cells)           # lattice coordinates
         faces_all.append((f + n_verts).astype(np.int32 if n_verts + len(v) < 2**31
                                               else np.int64))
@@ -249,6 +262,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     del faces_all, inverse
     faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
                   & (faces[:, 0] != faces[:, 2])]
+    verts, faces, _ = _drop_unused(verts, faces, np.zeros(len(verts)))
     var = np.empty(len(verts))
     for s in range(0, len(verts), batch):
         var[s:s + batch] = predict(verts[s:s + batch])[1]
@@ -449,6 +463,13 @@ def _refine_on_edges(v: np.ndarray, vol: np.ndarray):
     two blocks is bitwise identical in both and can be keyed by its edge
     (lower node, axis). A vertex exactly on a node gets axis -1.
 
+    Lewiner's marching cubes also places a vertex inside a cube for some ambiguous
+    configurations (no lattice edge; fractional in two or three coordinates): such a
+    vertex keeps its position (float32 from scikit-image) and gets axis -2, ``lo`` the
+    cube's lower corner. Snapping it to "the" edge of its largest fraction (as this
+    function once did) interpolated between two same-sign nodes and threw it cells away:
+    the long stray triangles of coarse voxels.
+
     Returns
     -------
     lo : (V, 3) int64 lower end node (block-local), axis : (V,) int64, v : (V, 3) float64
@@ -458,8 +479,11 @@ def _refine_on_edges(v: np.ndarray, vol: np.ndarray):
     axis = np.argmax(fr, axis=1)
     on_node = fr.max(1) < 1e-4
     axis[on_node] = -1
+    inner = (fr > 1e-4).sum(1) >= 2
+    axis[inner] = -2
     out = lo.astype(np.float64)
-    e = np.flatnonzero(~on_node)
+    out[inner] = v[inner]
+    e = np.flatnonzero(~on_node & ~inner)
     hi = lo[e].copy()
     hi[np.arange(len(e)), axis[e]] += 1
     v0 = vol[lo[e, 0], lo[e, 1], lo[e, 2]]
@@ -472,12 +496,17 @@ def _refine_on_edges(v: np.ndarray, vol: np.ndarray):
 
 
 def _valid_vertices(v: np.ndarray, finite: np.ndarray) -> np.ndarray:
-    """True for vertices whose lattice edge has two evaluated (unmasked) end nodes."""
+    """True for vertices whose lattice edge has two evaluated (unmasked) end nodes; a
+    vertex inside a cube (Lewiner's extra point) needs all 8 corners evaluated."""
     lo = np.floor(v + 1e-9).astype(np.int64)
     hi = np.ceil(v - 1e-9).astype(np.int64)
     n = finite.shape[0] - 1
     lo, hi = np.clip(lo, 0, n), np.clip(hi, 0, n)
-    return finite[lo[:, 0], lo[:, 1], lo[:, 2]] & finite[hi[:, 0], hi[:, 1], hi[:, 2]]
+    ok = np.ones(len(v), bool)
+    for c in _CORNERS:
+        q = np.where(c == 1, hi, lo)
+        ok &= finite[q[:, 0], q[:, 1], q[:, 2]]
+    return ok
 
 
 def _drop_unused(verts, faces, var):

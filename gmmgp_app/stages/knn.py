@@ -1,0 +1,280 @@
+"""Exact k nearest neighbours on a hashed uniform grid, compiled (the far field's query).
+
+The far field (stages/farfield.py) asks the ``k`` nearest hit points of every field
+query; on a surface lattice those are millions of queries within a few centimetres of
+the data. A k-d tree answers each from the root; here the points are bucketed in cubic
+cells of about the k-th neighbour distance, and a query scans the cells of growing cube
+shells around its own cell, keeping the ``k`` best by insertion, until the k-th best
+distance is within the distance to the outside of the scanned box (so nothing outside
+can be nearer: the result is exact). Queries whose search would need more than
+``max_ring`` shells (far from the data) are answered by the k-d tree instead.
+
+Distances are computed as ``sqrt(dx^2 + dy^2 + dz^2)`` (the k-d tree's formula), in
+ascending order; ties between equidistant points may be ordered differently from the
+k-d tree (no effect on the far field, whose sums are order-independent up to round-off).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+__all__ = ["GridKNN"]
+
+
+class GridKNN:
+    """k nearest neighbours of queries among fixed ``points`` (exact).
+
+    Parameters
+    ----------
+    points : (P, 3) float64
+    k : int
+        Neighbours per query (at most P).
+    tree : scipy.spatial.cKDTree of ``points``, optional
+        For the queries beyond ``max_ring`` shells (built when needed if not given).
+    cell : float, optional
+        Grid cell edge (m); default the median k-th neighbour distance of a sample of
+        the points (so one shell of cells usually holds the answer).
+    max_ring : int
+        Shells scanned before a query is handed to the k-d tree.
+    """
+
+    def __init__(self, points, k: int, tree=None, cell: float | None = None,
+                 max_ring: int = 3):
+        p = np.ascontiguousarray(np.asarray(points, dtype=np.float64))
+        if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
+            raise ValueError(f"Expected points with shape (P, 3), P >= 1, found {p.shape}.")
+        self.points = p
+        self.k = int(min(max(k, 1), len(p)))
+        self._tree = tree
+        self.max_ring = int(max_ring)
+        if cell is None:
+            cell = self._default_cell()
+        self.cell = float(cell)
+        c = np.floor(p / self.cell).astype(np.int64)
+        self.lo = c.min(0)
+        dims = c.max(0) - self.lo + 1
+        if float(np.prod(dims.astype(np.float64))) >= 2.0 ** 62:
+            # too many cells to key in an int64: one giant cell per axis span instead
+            self.cell = float(np.max(np.ptp(p, axis=0))) + 1.0
+            c = np.floor(p / self.cell).astype(np.int64)
+            self.lo = c.min(0)
+            dims = c.max(0) - self.lo + 1
+        self.dims = dims.astype(np.int64)
+        key = ((c[:, 0] - self.lo[0]) * dims[1] + (c[:, 1] - self.lo[1])) * dims[2] \
+            + (c[:, 2] - self.lo[2])
+        order = np.argsort(key, kind="stable")
+        self.order = order.astype(np.int64)
+        self.sorted_points = np.ascontiguousarray(p[order])
+        ks = key[order]
+        starts = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
+        ukeys = ks[starts]
+        ends = np.r_[starts[1:], len(ks)]
+        size = 1 << int(np.ceil(np.log2(2 * len(ukeys) + 2)))
+        self.table_keys, self.table_start, self.table_end = _build_table(
+            ukeys, starts.astype(np.int64), ends.astype(np.int64), size)
+
+    def _default_cell(self) -> float:
+        p = self.points
+        sample = p[np.random.default_rng(0).permutation(len(p))[:2000]]
+        d = self.tree.query(sample, k=self.k)[0].reshape(len(sample), -1)[:, -1]
+        cell = float(np.median(d))
+        if not (cell > 0 and math.isfinite(cell)):
+            ext = float(np.max(np.ptp(p, axis=0))) if len(p) > 1 else 1.0
+            cell = max(ext, 1e-3)
+        return cell
+
+    @property
+    def tree(self):
+        if self._tree is None:
+            from scipy.spatial import cKDTree
+
+            self._tree = cKDTree(self.points)
+        return self._tree
+
+    def query(self, x):
+        """(K, k) distances (ascending) and (K, k) point indices of the queries ``x``."""
+        x = np.ascontiguousarray(np.asarray(x, dtype=np.float64).reshape(-1, 3))
+        d, i, done = _knn_grid(x, self.k, self.cell, self.lo, self.dims, self.table_keys,
+                               self.table_start, self.table_end, self.sorted_points,
+                               self.order, self.max_ring)
+        rest = np.flatnonzero(~done)
+        if len(rest):
+            dr, ir = self.tree.query(x[rest], k=self.k, workers=-1)
+            d[rest] = np.asarray(dr).reshape(len(rest), self.k)
+            i[rest] = np.asarray(ir).reshape(len(rest), self.k)
+        return d, i
+
+
+@nb.njit(cache=True, inline="always")
+def _hash(key, mask):
+    h = (key * 0x9E3779B97F4A7C15) & 0x7FFFFFFFFFFFFFFF
+    return (h >> 17) & mask
+
+
+@nb.njit(cache=True)
+def _build_table(ukeys, starts, ends, size):
+    """Open-addressing hash table (linear probing) of the occupied cells' point runs."""
+    mask = size - 1
+    tk = np.full(size, -1, np.int64)
+    ts = np.zeros(size, np.int64)
+    te = np.zeros(size, np.int64)
+    for n in range(len(ukeys)):
+        s = _hash(ukeys[n], mask)
+        while tk[s] != -1:
+            s = (s + 1) & mask
+        tk[s] = ukeys[n]
+        ts[s] = starts[n]
+        te[s] = ends[n]
+    return tk, ts, te
+
+
+@nb.njit(cache=True, parallel=True)
+def _knn_grid(x, k, cell, lo, dims, tk, ts, te, pts, order, max_ring):
+    """Per query: cube shells of cells around its own, k best kept sorted by insertion,
+    stop when the k-th best is no farther than the outside of the scanned box."""
+    K = x.shape[0]
+    dist = np.empty((K, k))
+    idx = np.empty((K, k), np.int64)
+    done = np.zeros(K, np.bool_)
+    mask = len(tk) - 1
+    for q in nb.prange(K):
+        bd = np.full(k, np.inf)
+        bi = np.full(k, -1, np.int64)
+        cnt = 0
+        c0 = int(math.floor(x[q, 0] / cell))
+        c1 = int(math.floor(x[q, 1] / cell))
+        c2 = int(math.floor(x[q, 2] / cell))
+        ok = False
+        for r in range(max_ring + 1):
+            for a in range(c0 - r, c0 + r + 1):
+                qa = a - lo[0]
+                if qa < 0 or qa >= dims[0]:
+                    continue
+                for b in range(c1 - r, c1 + r + 1):
+                    qb = b - lo[1]
+                    if qb < 0 or qb >= dims[1]:
+                        continue
+                    edge_ab = a == c0 - r or a == c0 + r or b == c1 - r or b == c1 + r
+                    for c in range(c2 - r, c2 + r + 1):
+                        if not edge_ab and c != c2 - r and c != c2 + r:
+                            continue          # inside the shell: scanned before
+                        qc = c - lo[2]
+                        if qc < 0 or qc >= dims[2]:
+                            continue
+                        key = (qa * dims[1] + qb) * dims[2] + qc
+                        s = _hash(key, mask)
+                        while tk[s] != -1 and tk[s] != key:
+                            s = (s + 1) & mask
+                        if tk[s] == -1:
+                            continue
+                        for j in range(ts[s], te[s]):
+                            d0 = x[q, 0] - pts[j, 0]
+                            d1 = x[q, 1] - pts[j, 1]
+                            d2 = x[q, 2] - pts[j, 2]
+                            dd = d0 * d0 + d1 * d1 + d2 * d2
+                            if cnt < k or dd < bd[k - 1]:
+                                m = cnt if cnt < k else k - 1
+                                while m > 0 and bd[m - 1] > dd:
+                                    bd[m] = bd[m - 1]
+                                    bi[m] = bi[m - 1]
+                                    m -= 1
+                                bd[m] = dd
+                                bi[m] = j
+                                if cnt < k:
+                                    cnt += 1
+            # nearest point outside the scanned box of cells [c - r, c + r]
+            out = math.inf
+            for ax in range(3):
+                ca = c0 if ax == 0 else (c1 if ax == 1 else c2)
+                lo_f = x[q, ax] - (ca - r) * cell
+                hi_f = (ca + r + 1) * cell - x[q, ax]
+                out = min(out, lo_f, hi_f)
+            if cnt == k and bd[k - 1] <= out * out:
+                ok = True
+                break
+        if ok:
+            for m in range(k):
+                dist[q, m] = math.sqrt(bd[m])
+                idx[q, m] = order[bi[m]]
+            done[q] = True
+    return dist, idx, done
+
+
+def ball_lists(points, centres, radius: float):
+    """Indices of the ``points`` within ``radius`` of each centre, as CSR ``(ptr, idx)``
+    (``idx[ptr[c]:ptr[c+1]]`` for centre c, in grid order, not sorted): what
+    ``cKDTree.query_ball_point`` returns as lists, without the Python lists.
+
+    The points are bucketed in cells of edge ``radius``; a centre scans the 27 cells
+    around its own. Two compiled passes over the centres (count, then fill)."""
+    p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+    x = np.ascontiguousarray(np.asarray(centres, dtype=np.float64).reshape(-1, 3))
+    r = float(radius)
+    if len(p) == 0 or len(x) == 0 or not r > 0:
+        return np.zeros(len(x) + 1, np.int64), np.zeros(0, np.int64)
+    cell = r
+    c = np.floor(p / cell).astype(np.int64)
+    lo = c.min(0) - 1
+    dims = (c.max(0) + 1 - lo + 1).astype(np.int64)
+    if float(np.prod(dims.astype(np.float64))) >= 2.0 ** 62:
+        raise ValueError("ball_lists: the points span too many cells of the radius")
+    key = ((c[:, 0] - lo[0]) * dims[1] + (c[:, 1] - lo[1])) * dims[2] + (c[:, 2] - lo[2])
+    order = np.argsort(key, kind="stable").astype(np.int64)
+    ks = key[order]
+    starts = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
+    ends = np.r_[starts[1:], len(ks)]
+    size = 1 << int(np.ceil(np.log2(2 * len(starts) + 2)))
+    tk, ts, te = _build_table(ks[starts], starts.astype(np.int64), ends.astype(np.int64),
+                              size)
+    sp = np.ascontiguousarray(p[order])
+    counts = _ball_pass(x, r, cell, lo, dims, tk, ts, te, sp, order,
+                        np.zeros(len(x) + 1, np.int64), np.zeros(0, np.int64), False)
+    ptr = np.zeros(len(x) + 1, np.int64)
+    np.cumsum(counts[:-1], out=ptr[1:])
+    idx = np.empty(ptr[-1], np.int64)
+    _ball_pass(x, r, cell, lo, dims, tk, ts, te, sp, order, ptr, idx, True)
+    return ptr, idx
+
+
+@nb.njit(cache=True)
+def _ball_pass(x, r, cell, lo, dims, tk, ts, te, pts, order, ptr, idx, fill):
+    """Count (``fill`` False: counts per centre) or write (at ``ptr``) the points within
+    ``r`` of each centre."""
+    K = x.shape[0]
+    counts = np.zeros(K + 1, np.int64)
+    mask = len(tk) - 1
+    r2 = r * r
+    for q in range(K):
+        c0 = int(math.floor(x[q, 0] / cell)) - lo[0]
+        c1 = int(math.floor(x[q, 1] / cell)) - lo[1]
+        c2 = int(math.floor(x[q, 2] / cell)) - lo[2]
+        n = 0
+        at = ptr[q]
+        for a in range(c0 - 1, c0 + 2):
+            if a < 0 or a >= dims[0]:
+                continue
+            for b in range(c1 - 1, c1 + 2):
+                if b < 0 or b >= dims[1]:
+                    continue
+                for c in range(c2 - 1, c2 + 2):
+                    if c < 0 or c >= dims[2]:
+                        continue
+                    key = (a * dims[1] + b) * dims[2] + c
+                    s = _hash(key, mask)
+                    while tk[s] != -1 and tk[s] != key:
+                        s = (s + 1) & mask
+                    if tk[s] == -1:
+                        continue
+                    for j in range(ts[s], te[s]):
+                        d0 = x[q, 0] - pts[j, 0]
+                        d1 = x[q, 1] - pts[j, 1]
+                        d2 = x[q, 2] - pts[j, 2]
+                        if d0 * d0 + d1 * d1 + d2 * d2 <= r2:
+                            if fill:
+                                idx[at + n] = order[j]
+                            n += 1
+        counts[q] = n
+    return counts

@@ -1,0 +1,144 @@
+#!/usr/bin/env python
+"""Where the surface stage's time goes, on a saved map (issue 16).
+
+Loads a map written by ``gmmgp run`` (or ``SurfaceMap.save``), extracts its surface
+(the map's own voxel unless ``--voxel``; ``--voxel-ht F`` for F times the training
+spacing h_t) with the field wrapped to count and time every evaluation, and reports:
+
+* field evaluations on the lattice and at the mesh vertices (the variance pass), the
+  seconds in the field and per evaluation;
+* the lattice nodes that are an end of a sign-changing lattice edge (the only ones a
+  vertex is interpolated from) and the rest (evaluated to find out that no surface
+  crosses there);
+* the rest of the stage (surface following, marching cubes, stitching) and the time
+  to write the PLY;
+* with ``--mesh-ref`` (exact mesh) and ``--scan``: bench_peers' mesh metrics.
+
+    PYTHONPATH=$PWD .venv/bin/python scripts/profile_surface.py out/street_run/map \\
+        --json out/prof_surface.json
+    PYTHONPATH=/path/to/other/checkout .venv/bin/python scripts/profile_surface.py ...
+    PYTHONPATH=$PWD .venv/bin/python scripts/profile_surface.py out/street_run/map \\
+        --voxel-ht 1.0 --scan out/bench/peers_work/street_d1_s0/scan.npz \\
+        --mesh-ref out/bench/peers_work/street_d1_s0/mesh.ply
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+# appended, so PYTHONPATH decides which gmmgp_app is profiled (e.g. another checkout's)
+sys.path.append(str(ROOT))
+sys.path.append(str(ROOT / "scripts"))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("map", help="map directory (gmmgp run --out DIR writes DIR/map)")
+    ap.add_argument("--voxel", type=float, help="surface voxel (m); default the map's")
+    ap.add_argument("--voxel-ht", type=float, help="surface voxel as a multiple of h_t")
+    ap.add_argument("--scan", help="scan .npz (points) for the mesh metrics")
+    ap.add_argument("--mesh-ref", help="exact mesh .ply for the mesh metrics")
+    ap.add_argument("--json", help="write the report here")
+    args = ap.parse_args(argv)
+
+    from gmmgp_app.pipeline import load_map
+    from gmmgp_app.stages.surface import write_mesh_ply
+
+    smap = load_map(args.map)
+    h = smap.config.surface.voxel_size
+    if args.voxel_ht:
+        if smap.far is None:
+            ap.error("--voxel-ht needs a map with a far field (its kernel floor is h_t)")
+        h = float(args.voxel_ht) * float(smap.far.rho0)
+    elif args.voxel:
+        h = float(args.voxel)
+    calls = []                                   # (n, seconds, xyz, mean)
+    field = smap.predict
+
+    def counted(x, **kw):
+        t = time.perf_counter()
+        out = field(x, **kw)
+        calls.append((len(x), time.perf_counter() - t, np.asarray(x), out[0]))
+        return out
+
+    smap.predict = counted
+    t0 = time.perf_counter()
+    mesh = smap.extract_surface(h)
+    total = time.perf_counter() - t0
+    smap.predict = field
+    n_vert = len(mesh.vertices)
+    # the last calls evaluate the vertices (variance pass): as many points as the
+    # stitched vertices before faces were dropped; count from the end
+    n_pts = np.array([c[0] for c in calls])
+    secs = np.array([c[1] for c in calls])
+    # lattice calls are the ones whose points sit on lattice nodes
+    on_lattice = np.array([np.abs(c[2] / h - np.round(c[2] / h)).max() < 1e-6
+                           for c in calls])
+    lat_pts = np.concatenate([c[2] for c, ok in zip(calls, on_lattice) if ok])
+    lat_val = np.concatenate([c[3] for c, ok in zip(calls, on_lattice) if ok])
+    useful = _sign_change_nodes(np.round(lat_pts / h).astype(np.int64), lat_val)
+    with tempfile.TemporaryDirectory() as tmp:
+        t = time.perf_counter()
+        write_mesh_ply(mesh, Path(tmp) / "m.ply")
+        t_write = time.perf_counter() - t
+    rep = {
+        "voxel_m": h, "surface_s": total, "write_ply_s": t_write,
+        "vertices": n_vert, "faces": int(len(mesh.faces)),
+        "lattice_evaluations": int(n_pts[on_lattice].sum()),
+        "lattice_field_s": float(secs[on_lattice].sum()),
+        "vertex_evaluations": int(n_pts[~on_lattice].sum()),
+        "vertex_field_s": float(secs[~on_lattice].sum()),
+        "field_us_per_evaluation": float(1e6 * secs.sum() / max(n_pts.sum(), 1)),
+        "lattice_nodes_on_a_sign_change": int(useful.sum()),
+        "lattice_nodes_without": int((~useful).sum()),
+        "rest_s": float(total - secs.sum()),
+        "load_avg": list(os.getloadavg()),
+    }
+    if args.scan and args.mesh_ref:
+        from bench_peers import mesh_metrics, read_ref_mesh
+
+        with np.load(args.scan) as z:
+            pts = np.ascontiguousarray(z["points"], np.float64)
+        rep["mesh"] = mesh_metrics(mesh.vertices + smap.offset, mesh.faces, pts,
+                                   read_ref_mesh(Path(args.mesh_ref)), 200_000, 0)
+    import gmmgp_app
+
+    rep["gmmgp_app"] = str(Path(gmmgp_app.__file__).parent)
+    text = json.dumps(rep, indent=1)
+    print(text)
+    if args.json:
+        Path(args.json).write_text(text)
+    return 0
+
+
+def _sign_change_nodes(ijk: np.ndarray, val: np.ndarray) -> np.ndarray:
+    """True for nodes that share a lattice edge with an evaluated node of the other sign."""
+    lo = ijk.min(0) - 1
+    dims = ijk.max(0) - lo + 2
+    key = ((ijk[:, 0] - lo[0]) * dims[1] + (ijk[:, 1] - lo[1])) * dims[2] + (ijk[:, 2] - lo[2])
+    order = np.argsort(key)
+    ks, vs = key[order], val[order]
+    useful = np.zeros(len(ks), bool)
+    for step in (dims[1] * dims[2], dims[2], 1):
+        pos = np.minimum(np.searchsorted(ks, ks + step), len(ks) - 1)
+        has = ks[pos] == ks + step
+        ch = has & (np.sign(vs) != np.sign(vs[pos]))
+        useful |= ch
+        useful[pos[ch]] = True
+    out = np.empty(len(ks), bool)
+    out[order] = useful
+    return out
+
+
+if __name__ == "__main__":
+    sys.exit(main())

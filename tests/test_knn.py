@@ -1,0 +1,59 @@
+"""Grid k-nearest neighbours: the same neighbours as scipy's k-d tree (the oracle)."""
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from gmmgp_app.stages.knn import GridKNN
+
+
+def _points(rng, n=20000):
+    # a plane, a cylinder and a few scattered outliers: uneven density like a scan
+    u = rng.uniform(-2, 2, (n, 2))
+    plane = np.c_[u, 0.01 * rng.normal(size=n)]
+    t = rng.uniform(0, 2 * np.pi, n // 2)
+    cyl = np.c_[0.3 * np.cos(t) + 1, 0.3 * np.sin(t), rng.uniform(0, 1.5, n // 2)]
+    return np.vstack([plane, cyl, rng.uniform(-5, 5, (50, 3))])
+
+
+def test_same_neighbours_as_the_kd_tree_near_and_far():
+    rng = np.random.default_rng(0)
+    p = _points(rng)
+    q = np.vstack([p[rng.choice(len(p), 5000)] + rng.normal(scale=0.03, size=(5000, 3)),
+                   rng.uniform(-8, 8, (2000, 3)),          # many beyond max_ring shells
+                   p[:10]])                                 # queries on points
+    for k in (1, 16):
+        g = GridKNN(p, k)
+        d, i = g.query(q)
+        d2, i2 = cKDTree(p).query(q, k=k)
+        d2, i2 = d2.reshape(len(q), k), i2.reshape(len(q), k)
+        np.testing.assert_array_equal(i, i2)
+        np.testing.assert_array_equal(d, d2)
+
+
+def test_small_sets_cell_choices_and_duplicates():
+    rng = np.random.default_rng(1)
+    p = np.vstack([rng.normal(size=(5, 3)), np.zeros((3, 3))])   # duplicates at 0
+    q = rng.normal(scale=2, size=(300, 3))
+    for cell in (None, 0.01, 10.0):
+        g = GridKNN(p, 16, cell=cell)      # k capped at the 8 points
+        assert g.k == 8
+        d, i = g.query(q)
+        d2, i2 = cKDTree(p).query(q, k=8)
+        np.testing.assert_array_equal(d, d2)
+        # equidistant duplicates may come in another order: compare the point sets
+        np.testing.assert_array_equal(np.sort(p[i].sum(2), 1), np.sort(p[i2].sum(2), 1))
+
+
+def test_ball_lists_match_the_kd_tree():
+    from gmmgp_app.stages.knn import ball_lists
+
+    rng = np.random.default_rng(2)
+    p = _points(rng, 5000)
+    x = np.vstack([p[rng.choice(len(p), 500)] + rng.normal(scale=0.1, size=(500, 3)),
+                   rng.uniform(-9, 9, (100, 3))])
+    for r in (0.05, 0.3):
+        ptr, idx = ball_lists(p, x, r)
+        ref = cKDTree(p).query_ball_point(x, r)
+        assert ptr[-1] == sum(map(len, ref)) > 0
+        for c in range(len(x)):
+            assert sorted(idx[ptr[c]:ptr[c + 1]]) == sorted(ref[c])
