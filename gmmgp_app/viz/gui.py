@@ -182,6 +182,30 @@ def run_app(model: ViewerModel, size=(1600, 1000), first_stage=None, script=None
 
 
 # --------------------------------------------------------------------------- the app
+
+def _leave_a_core_to_the_frames() -> None:
+    """Compute the stages in this (worker) thread on one fewer core than the machine has.
+
+    On Mesa's CPU renderer the window's frames are rasterized on the same cores as the
+    stages: with numba's parallel kernels on every core, the frame that shows a new HGMM
+    level waited for the surface stage (12-20 s on 2 cores). numba's thread count is
+    per calling thread, so only this run's kernels are limited; the thread is also
+    niced (Linux: per thread) so that the event loop and the frames come first.
+    """
+    import os
+
+    try:
+        import numba
+
+        numba.set_num_threads(max(1, numba.config.NUMBA_NUM_THREADS - 1))
+    except Exception:  # noqa: BLE001 - an optimisation, never a failure
+        pass
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
+    except (AttributeError, OSError):
+        pass
+
+
 class ViewerApp:
     """The window (view) and its event handlers (controller) around a ViewerModel.
 
@@ -633,6 +657,7 @@ class ViewerApp:
             post(lambda: self._on_progress(gen, stage, frac))
 
         def work():
+            _leave_a_core_to_the_frames()
             try:
                 r = self.model.compute(start, cfg, voxel, base=base, on_stage=on_stage,
                                        cancelled=lambda: gen != self.generation,
