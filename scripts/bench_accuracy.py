@@ -153,8 +153,10 @@ def plane_reference(points, origins, queries, k=16):
     return np.einsum("ij,ij->i", queries - points[i], n[i]), dist
 
 
-def run_scene(name, spec, methods, cfg, seed, n_near, n_far, out_dir):
-    t0 = time.perf_counter()
+def scene_queries(name, spec, seed, n_near, n_far):
+    """One scene's protocol (module docstring): its simulated scan, the random 10 %
+    handed to the map, and the scored queries with their exact SDF and distance to
+    the handed points. Returns (scan, scene, handed, q, y, dist)."""
     scan, scene = make_scan(name, spec["density"], seed)
     rng = np.random.default_rng(seed + 1)
     handed = scan.select(np.sort(rng.choice(len(scan), len(scan) // 10, replace=False)))
@@ -168,6 +170,13 @@ def run_scene(name, spec, methods, cfg, seed, n_near, n_far, out_dir):
     q = np.concatenate([qn[near], qf[far]])
     y = np.concatenate([yn[near], yf[far]])
     dist = np.concatenate([dn[near], df[far]])
+    return scan, scene, handed, q, y, dist
+
+
+def run_scene(name, spec, methods, cfg, seed, n_near, n_far, out_dir):
+    t0 = time.perf_counter()
+    scan, scene, handed, q, y, dist = scene_queries(name, spec, seed, n_near, n_far)
+    sc = spec["scale"]
     bins = [b * sc for b in BINS]
     res = {"scene": name, "tuned_on": spec["tuned"], "scale": sc,
            "n_scan_points": len(scan), "n_handed_points": len(handed),

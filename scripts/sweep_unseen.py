@@ -25,7 +25,6 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_accuracy as B  # noqa: E402
@@ -40,19 +39,8 @@ GRID = dict(min_thickness=(2.0, 3.0, 4.0), edge_gap=(1.0, 2.0),
 def scene_case(name, seed):
     """Queries, truth, bins and the term-off prediction of one bench scene."""
     spec = B.SCENES[name]
-    scan, scene = B.make_scan(name, spec["density"], seed)
-    rng = np.random.default_rng(seed + 1)
-    handed = scan.select(np.sort(rng.choice(len(scan), len(scan) // 10, replace=False)))
+    scan, scene, handed, q, y, dist = B.scene_queries(name, spec, seed, 20000, 6000)
     sc = spec["scale"]
-    full = cKDTree(scan.points)
-    qn, yn = B.sample_band(scene, scan.points, full, 20000, 0.5 * sc, 0.1 * sc, rng)
-    qf, yf = B.sample_band(scene, scan.points, full, 6000, 2.0 * sc, 0.1 * sc, rng)
-    tree = cKDTree(handed.points)
-    dn, df = tree.query(qn)[0], tree.query(qf)[0]
-    near, far = dn < 0.5 * sc, df >= 0.5 * sc
-    q = np.concatenate([qn[near], qf[far]])
-    y = np.concatenate([yn[near], yf[far]])
-    dist = np.concatenate([dn[near], df[far]])
     cfg = gm.MappingConfig().with_overrides(["far.unseen_weight=0"])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
