@@ -78,13 +78,27 @@ corridor of two walls and a floor (9e-5 along the corridor) and the synthetic
 street, whose along-track constraint (window recesses, balconies, pole, car) is
 weak but real (9e-4).
 
-Covariance (of ``xi`` at the solution, same order and units): the cluster-robust
-sandwich ``H^+ (sum_c b_c b_c^T) H^+`` with ``b_c = sum_{i in c} w_i J_i^T d_i``
-over cubic clusters of ``cluster_size`` metres. It does not trust the map's std to
-be calibrated nor its errors to be independent from point to point (they are
-correlated over the GP's length scale); ``H^+`` is the pseudo-inverse on the
-constrained directions, so the covariance says nothing along a degenerate
-direction (there the uncertainty is unbounded, see ``degenerate``).
+Places the map got wrong with a small std: in each ``share_cell`` cell the scan's
+residuals are fitted by the cell's own offset and rigid motion; where the scatter
+that remains is many times the scan's typical one (squared ratio >= 25 and
+significant), the map's variance there is scaled by it (:func:`_cell_variance_factors`,
+every iteration). On the test street a 0.15 m pole mapped with std 3-5 mm but 2-18
+cm wrong in shape otherwise held most of the along-street information and moved the
+solution 4 cm (docs/check.md, scripts/check_seed_sweep.py).
+
+Covariance (of ``xi`` at the solution, same order and units): the delete-one-cluster
+jackknife (CR3, linearised) over cubic clusters of ``cluster_size`` metres,
+``(G - 1) / G sum_c (theta_c - mean)(theta_c - mean)^T`` with ``theta_c`` the
+Gauss-Newton solution without cluster ``c`` (:func:`_cluster_consistency`); the
+cluster-robust sandwich ``H^+ (sum_c b_c b_c^T) H^+`` (``b_c = sum_{i in c} w_i J_i^T
+d_i``) is in the history. Neither trusts the map's std to be calibrated nor its errors
+to be independent from point to point (they are correlated over the GP's length
+scale); the jackknife also sees a cluster that holds most of a direction's
+information (the sandwich sees only its score at the solution, which it fitted). The
+inverses are pseudo-inverses on the constrained directions, so the covariance says
+nothing along a degenerate direction (there the uncertainty is unbounded, see
+``degenerate``). Neither sees an error common to all clusters (a bias of the map's
+surfaces that one-sided faces turn into a shift).
 
 The registration leaves the map's far field out (``predict(..., far=False)``,
 :func:`_predict`; the known/changed decision keeps it): registration fits points to
@@ -264,7 +278,7 @@ class CheckResult:
             out["covariance_convention"] = (
                 "xi = (tx, ty, tz, rx, ry, rz) in m and rad; T_true = exp(xi) T (left "
                 "perturbation in the map frame), to first order y_true = y + r x (y - pivot) "
-                "+ t; cluster-robust sandwich estimate; zero information (pseudo-inverse) "
+                "+ t; delete-one-cluster jackknife estimate; zero information (pseudo-inverse) "
                 "along the degenerate directions")
             out["pivot"] = self.pivot.tolist()
             out["degenerate"] = [d.to_dict() for d in self.degenerate]
@@ -973,7 +987,7 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
         Eigenvalue ratio (scaled normal matrix) below which a direction is
         unconstrained.
     cluster_size : float
-        Cell of the clusters of the sandwich covariance (m), about the distance
+        Cell of the clusters of the jackknife covariance (m), about the distance
         beyond which the map's errors decorrelate; halved until there are at least
         24 clusters (4 per parameter). 6 m: on the synthetic street the map's
         facades are wrong by 1-2 cm in a pattern that repeats with the 3 m window
