@@ -235,10 +235,10 @@ def test_second_drive_transform_and_covariance(aligned, drives):
     main gives 6.9 mm here: the other faces that face x are mapped to 24-73 mm std and,
     like all of this map's surfaces, 13-15 mm behind the true ones (the GP corrects the
     GMM prior only where it is off by more than d_m = 2 cm), so along the street this
-    map fixes the scan to about 1 cm and the 5 mm at the map origin is a draw. Across the street and in height the error
-    is asserted at the points' centre (1.3 mm of the facades' bias difference is what the
-    scan cannot tell across), where it does not mix with the rotation's (asserted on its
-    own). The default map of the 36 m street:
+    map fixes the scan to about 1 cm and the 5 mm at the map origin is a draw. Across
+    the street and in height the error is asserted at the points' centre (1.3 mm of the
+    facades' bias difference is what the scan cannot tell across), where it does not mix
+    with the rotation's (asserted on its own). The default map of the 36 m street:
     test_default_map_second_drive_meets_the_targets.
     """
     rot, trans, mahal2, D = _errors(aligned, drives["T"])
