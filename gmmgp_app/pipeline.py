@@ -187,22 +187,43 @@ class SurfaceMap:
         return self.method != "loggpis"
 
     def extract_surface(self, voxel_size: Optional[float] = None, max_std=None,
-                        progress=None) -> SurfaceMesh:
+                        progress=None, reach: Optional[float] = None) -> SurfaceMesh:
         """Marching-cubes surface of the zero level set, vertices carrying variance.
 
-        ``voxel_size`` and ``max_std`` default to ``config.surface``.
+        ``voxel_size`` and ``max_std`` default to ``config.surface``; ``reach`` (m), how
+        far from a seed the surface is followed, defaults to :meth:`surface_reach`.
         """
         if not self.signed:
             raise PipelineError(f"A {self.method} map predicts an unsigned distance, which "
                                 "has no zero level set to mesh; map with --method gmmgp.")
         return _surface.mesh_field(self.predict, self.seed_points, self.config.surface,
-                                   voxel_size, max_std, progress)
+                                   voxel_size, max_std, progress,
+                                   self.surface_reach() if reach is None else reach)
+
+    def surface_reach(self) -> Optional[float]:
+        """How far from a seed point the surface is followed (m), a length of the data:
+        ``(sqrt(3) / 2) 0.6 h_t + s_seed`` (:func:`stages.surface.data_reach`), the
+        reach the surface at the 0.6 h_t voxel has always had, whatever voxel it is
+        meshed at (a coarser voxel would otherwise follow fins further from the data).
+        None, the voxel's own rule, for a map without a recorded training spacing
+        ``h_t`` (every length set by hand)."""
+        ht = self.train_spacing()
+        if ht is None or len(self.seed_points) == 0:
+            return None
+        return _surface.data_reach(self.seed_points, ht)
+
+    def train_spacing(self) -> Optional[float]:
+        """``h_t`` (m), the spacing of the training subset recorded when the map resolved
+        its automatic values; None if it has none."""
+        ht = (self.summary or {}).get("auto", {}).get("train_spacing", {}).get("value")
+        return float(ht) if ht else None
 
     def prior_surface(self, voxel_size: Optional[float] = None, max_std=None,
                       progress=None) -> SurfaceMesh:
         """Marching-cubes surface of the prior alone (the HGMM's GMR for a gmmgp map)."""
         return _surface.mesh_field(self.prior.predict, self.seed_points,
-                                   self.config.surface, voxel_size, max_std, progress)
+                                   self.config.surface, voxel_size, max_std, progress,
+                                   self.surface_reach())
 
     # ------------------------------------------------------------------ save/load
     def to_arrays(self) -> dict:
@@ -871,6 +892,7 @@ fit_hgmm = _hgmm.fit_hgmm
 new_space_fraction = _octree.new_space_fraction
 extract_surface = _surface.extract_surface
 mesh_field = _surface.mesh_field
+data_reach = _surface.data_reach
 std_colour_max = _surface.std_colour_max
 variance_colors = _surface.variance_colors
 write_mesh_ply = _surface.write_mesh_ply

@@ -154,8 +154,9 @@ class TiledMap:
         return w > 0
 
     def extract_surface(self, voxel_size: Optional[float] = None, max_std=None,
-                        progress=None):
-        """Marching cubes on the stitched field (seamless: one field, one lattice)."""
+                        progress=None, reach: Optional[float] = None):
+        """Marching cubes on the stitched field (seamless: one field, one lattice);
+        ``reach`` defaults to :meth:`surface_reach`."""
         from ..pipeline import mesh_field
 
         seeds = [t.seed_points[self._weighs(k, t.seed_points)]
@@ -165,7 +166,20 @@ class TiledMap:
         if voxel_size is None:
             voxel_size = self.surface_voxel()
         return mesh_field(self.predict, seeds, self.config.surface, voxel_size, max_std,
-                          progress)
+                          progress, self.surface_reach(seeds) if reach is None else reach)
+
+    def surface_reach(self, seeds) -> Optional[float]:
+        """How far from a seed the stitched surface is followed (m):
+        :func:`stages.surface.data_reach` of the stitched ``seeds`` at the median of the
+        tiles' training spacings h_t (None if no tile records one)."""
+        from ..pipeline import data_reach
+
+        ht = [t.train_spacing() for _, t in self.tiles.items()
+              if hasattr(t, "train_spacing")]
+        ht = [x for x in ht if x is not None]
+        if not ht or len(seeds) == 0:
+            return None
+        return data_reach(seeds, float(np.median(ht)))
 
     def surface_voxel(self) -> float:
         """The surface voxel of the stitched mesh (m): the configured one, or with
