@@ -205,8 +205,8 @@ class SurfaceMap:
         ``(sqrt(3) / 2) 0.6 h_t + s_seed`` (:func:`stages.surface.data_reach`), the
         reach the surface at the 0.6 h_t voxel has always had, whatever voxel it is
         meshed at (a coarser voxel would otherwise follow fins further from the data).
-        None, the voxel's own rule, for a map without a recorded training spacing
-        ``h_t`` (every length set by hand)."""
+        None, the voxel's own rule, for a map whose surface voxel was set by hand
+        (its meshes stay as they were) or that has no recorded ``h_t``."""
         ht = self.train_spacing()
         if ht is None or len(self.seed_points) == 0:
             return None
@@ -214,8 +214,11 @@ class SurfaceMap:
 
     def train_spacing(self) -> Optional[float]:
         """``h_t`` (m), the spacing of the training subset recorded when the map resolved
-        its automatic values; None if it has none."""
-        ht = (self.summary or {}).get("auto", {}).get("train_spacing", {}).get("value")
+        an automatic surface voxel; None if its voxel was set by hand."""
+        auto = (self.summary or {}).get("auto", {})
+        if not auto.get("surface.voxel_size", {}).get("auto"):
+            return None
+        ht = auto.get("train_spacing", {}).get("value")
         return float(ht) if ht else None
 
     def prior_surface(self, voxel_size: Optional[float] = None, max_std=None,

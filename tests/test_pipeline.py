@@ -210,3 +210,9 @@ def test_map_surface_reach_is_the_auto_voxels_whatever_the_voxel(sphere):
     d = extract_surface(smap.predict, smap.seed_points, ht, reach=smap.surface_reach())
     np.testing.assert_array_equal(c.faces, d.faces)
     assert surface_reach(smap.seed_points, ht) > smap.surface_reach()
+    # a map whose voxel was set by hand keeps the voxel's own rule (its meshes unchanged)
+    import copy
+    hand = copy.copy(smap)
+    hand.summary = copy.deepcopy(smap.summary)
+    hand.summary["auto"]["surface.voxel_size"]["auto"] = False
+    assert hand.train_spacing() is None and hand.surface_reach() is None
