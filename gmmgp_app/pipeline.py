@@ -201,25 +201,17 @@ class SurfaceMap:
                                    self.surface_reach() if reach is None else reach)
 
     def surface_reach(self) -> Optional[float]:
-        """How far from a seed point the surface is followed (m), a length of the data:
-        ``(sqrt(3) / 2) 0.6 h_t + s_seed`` (:func:`stages.surface.data_reach`), the
-        reach the surface at the 0.6 h_t voxel has always had, whatever voxel it is
-        meshed at (a coarser voxel would otherwise follow fins further from the data).
-        None, the voxel's own rule, for a map whose surface voxel was set by hand
-        (its meshes stay as they were) or that has no recorded ``h_t``."""
-        ht = self.train_spacing()
-        if ht is None or len(self.seed_points) == 0:
+        """How far from a seed point the surface is followed (m), whatever voxel it is
+        meshed at: the reach of the map's configured voxel,
+        ``(sqrt(3) / 2) voxel + s_seed`` (:func:`stages.surface.surface_reach`;
+        ``s_seed``, the seeds' median spacing). With the automatic voxel 0.6 h_t that is
+        ``(sqrt(3) / 2) 0.6 h_t + s_seed``, a length of the data: meshing coarser no
+        longer follows fins further from the data, and the map's own mesh is unchanged.
+        None (the voxel's own rule) for a map without seeds or a concrete voxel."""
+        v = self.config.surface.voxel_size
+        if is_auto(v) or len(self.seed_points) == 0:
             return None
-        return _surface.data_reach(self.seed_points, ht)
-
-    def train_spacing(self) -> Optional[float]:
-        """``h_t`` (m), the spacing of the training subset recorded when the map resolved
-        an automatic surface voxel; None if its voxel was set by hand."""
-        auto = (self.summary or {}).get("auto", {})
-        if not auto.get("surface.voxel_size", {}).get("auto"):
-            return None
-        ht = auto.get("train_spacing", {}).get("value")
-        return float(ht) if ht else None
+        return _surface.surface_reach(self.seed_points, float(v))
 
     def prior_surface(self, voxel_size: Optional[float] = None, max_std=None,
                       progress=None) -> SurfaceMesh:
@@ -895,7 +887,7 @@ fit_hgmm = _hgmm.fit_hgmm
 new_space_fraction = _octree.new_space_fraction
 extract_surface = _surface.extract_surface
 mesh_field = _surface.mesh_field
-data_reach = _surface.data_reach
+surface_reach = _surface.surface_reach
 std_colour_max = _surface.std_colour_max
 variance_colors = _surface.variance_colors
 write_mesh_ply = _surface.write_mesh_ply

@@ -109,18 +109,6 @@ def surface_reach(seeds: np.ndarray, voxel_size: float) -> float:
                  + REACH_SPACINGS * _median_spacing(np.asarray(seeds, dtype=np.float64)))
 
 
-#: The voxel, in units of the training spacing h_t, whose reach a map keeps at any voxel.
-REACH_VOXEL_HT = 0.6
-
-
-def data_reach(seeds: np.ndarray, train_spacing: float) -> float:
-    """The reach of a map's surface following, independent of the voxel it is meshed at:
-    :func:`surface_reach` of a ``0.6 h_t`` voxel, ``(sqrt(3) / 2) 0.6 h_t + s_seed``
-    (``s_seed``: the seeds' median spacing), the reach of the automatic voxel since the
-    surface following was introduced, so meshes at that voxel are unchanged."""
-    return surface_reach(seeds, REACH_VOXEL_HT * float(train_spacing))
-
-
 def mesh_field(predict: Callable, seeds: np.ndarray, cfg, voxel_size: Optional[float] = None,
                max_std: Optional[float] = None, progress=None,
                reach: Optional[float] = None) -> SurfaceMesh:

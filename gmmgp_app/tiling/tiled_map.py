@@ -169,17 +169,12 @@ class TiledMap:
                           progress, self.surface_reach(seeds) if reach is None else reach)
 
     def surface_reach(self, seeds) -> Optional[float]:
-        """How far from a seed the stitched surface is followed (m):
-        :func:`stages.surface.data_reach` of the stitched ``seeds`` at the median of the
-        tiles' training spacings h_t (None if no tile records one)."""
-        from ..pipeline import data_reach
+        """How far from a seed the stitched surface is followed (m), whatever voxel it
+        is meshed at: :func:`stages.surface.surface_reach` of the stitched ``seeds`` at
+        :meth:`surface_voxel` (see :meth:`SurfaceMap.surface_reach`)."""
+        from ..pipeline import surface_reach
 
-        ht = [t.train_spacing() for _, t in self.tiles.items()
-              if hasattr(t, "train_spacing")]
-        ht = [x for x in ht if x is not None]
-        if not ht or len(seeds) == 0:
-            return None
-        return data_reach(seeds, float(np.median(ht)))
+        return surface_reach(seeds, self.surface_voxel()) if len(seeds) else None
 
     def surface_voxel(self) -> float:
         """The surface voxel of the stitched mesh (m): the configured one, or with
