@@ -129,8 +129,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     The lattice is evaluated only where the surface is: starting from the cells
     that hold a seed point, the zero crossing is followed into a neighbouring cell
     whenever the shared face changes sign, at most ``dilate`` steps and only into
-    cells whose centre lies within half a cell diagonal plus the median seed
-    spacing of a seed. Nodes that were never evaluated are masked, so no surface
+    cells whose centre lies within ``reach`` of a seed. Nodes that were never evaluated are masked, so no surface
     is invented far from the data.
 
     Parameters
@@ -151,8 +150,9 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     progress : callable(total, desc) -> bar with update()/close(), optional
     reach : float, optional
         How far (m) from a seed a followed cell's centre may be. Default: half a cell
-        diagonal plus the median seed spacing (grows with the voxel); a map passes the
-        reach of its data scale instead (:func:`surface_reach`).
+        diagonal plus the median seed spacing (:func:`surface_reach`, grows with the
+        voxel); a map passes the reach of its own voxel at any voxel
+        (``SurfaceMap.surface_reach``).
 
     Returns
     -------
