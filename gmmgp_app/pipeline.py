@@ -187,22 +187,38 @@ class SurfaceMap:
         return self.method != "loggpis"
 
     def extract_surface(self, voxel_size: Optional[float] = None, max_std=None,
-                        progress=None) -> SurfaceMesh:
+                        progress=None, reach: Optional[float] = None) -> SurfaceMesh:
         """Marching-cubes surface of the zero level set, vertices carrying variance.
 
-        ``voxel_size`` and ``max_std`` default to ``config.surface``.
+        ``voxel_size`` and ``max_std`` default to ``config.surface``; ``reach`` (m), how
+        far from a seed the surface is followed, defaults to :meth:`surface_reach`.
         """
         if not self.signed:
             raise PipelineError(f"A {self.method} map predicts an unsigned distance, which "
                                 "has no zero level set to mesh; map with --method gmmgp.")
         return _surface.mesh_field(self.predict, self.seed_points, self.config.surface,
-                                   voxel_size, max_std, progress)
+                                   voxel_size, max_std, progress,
+                                   self.surface_reach() if reach is None else reach)
+
+    def surface_reach(self) -> Optional[float]:
+        """How far from a seed point the surface is followed (m), whatever voxel it is
+        meshed at: the reach of the map's configured voxel,
+        ``(sqrt(3) / 2) voxel + s_seed`` (:func:`stages.surface.surface_reach`;
+        ``s_seed``, the seeds' median spacing). With the automatic voxel 0.6 h_t that is
+        ``(sqrt(3) / 2) 0.6 h_t + s_seed``, a length of the data: meshing coarser no
+        longer follows fins further from the data, and the map's own mesh is unchanged.
+        None (the voxel's own rule) for a map without seeds or a concrete voxel."""
+        v = self.config.surface.voxel_size
+        if is_auto(v) or len(self.seed_points) == 0:
+            return None
+        return _surface.surface_reach(self.seed_points, float(v))
 
     def prior_surface(self, voxel_size: Optional[float] = None, max_std=None,
                       progress=None) -> SurfaceMesh:
         """Marching-cubes surface of the prior alone (the HGMM's GMR for a gmmgp map)."""
         return _surface.mesh_field(self.prior.predict, self.seed_points,
-                                   self.config.surface, voxel_size, max_std, progress)
+                                   self.config.surface, voxel_size, max_std, progress,
+                                   self.surface_reach())
 
     # ------------------------------------------------------------------ save/load
     def to_arrays(self) -> dict:
@@ -871,6 +887,7 @@ fit_hgmm = _hgmm.fit_hgmm
 new_space_fraction = _octree.new_space_fraction
 extract_surface = _surface.extract_surface
 mesh_field = _surface.mesh_field
+surface_reach = _surface.surface_reach
 std_colour_max = _surface.std_colour_max
 variance_colors = _surface.variance_colors
 write_mesh_ply = _surface.write_mesh_ply

@@ -188,3 +188,27 @@ def test_recipes_only_name_stages_of_the_table():
         run_stages(["hgmm"], {}, RunContext(gm.MappingConfig()))
     with pytest.raises(PipelineError, match="has no stage 'gp'"):
         gm.build_map(gm.Scan(np.zeros((20, 3))), method="hgmm", stop_after="gp")
+
+
+def test_map_surface_reach_is_the_auto_voxels_whatever_the_voxel(sphere):
+    # The map follows its surface as far from the data as it does at its own voxel
+    # (automatic: 0.6 h_t): at that voxel the mesh is the voxel rule's (as before)
+    # exactly, and meshing at h_t keeps that reach instead of growing it with the cell.
+    from gmmgp_app.stages.surface import extract_surface, surface_reach
+
+    scan, _ = sphere
+    smap = gm.build_map(scan, gm.MappingConfig(), method="gmmgp")
+    ht = smap.summary["auto"]["train_spacing"]["value"]
+    vox = smap.config.surface.voxel_size
+    assert np.isclose(vox, 0.6 * ht)
+    assert smap.surface_reach() == surface_reach(smap.seed_points, vox)
+    a = smap.extract_surface()
+    b = extract_surface(smap.predict, smap.seed_points, vox)   # the voxel's own reach
+    np.testing.assert_array_equal(a.vertices, b.vertices)
+    np.testing.assert_array_equal(a.faces, b.faces)
+    c = smap.extract_surface(ht)
+    d = extract_surface(smap.predict, smap.seed_points, ht, reach=smap.surface_reach())
+    e = extract_surface(smap.predict, smap.seed_points, ht)    # the old, growing reach
+    np.testing.assert_array_equal(c.faces, d.faces)
+    assert surface_reach(smap.seed_points, ht) > smap.surface_reach()
+    assert len(e.faces) >= len(c.faces)

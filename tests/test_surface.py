@@ -187,3 +187,31 @@ def test_ambiguous_cubes_keep_their_inner_vertices_in_the_cube():
     f0, f1 = field(lo)[0], field(hi)[0]
     t = (v[e, ax] - lo[r, ax]) / h
     np.testing.assert_allclose(f0 + t * (f1 - f0), 0, atol=1e-9)
+
+
+def test_reach_bounds_how_far_the_surface_is_followed():
+    # Seeds on the upper cap only; the surface goes on below it (the sphere's zero set).
+    # A cell is followed only if its centre is within `reach` of a seed, so every vertex
+    # lies within reach + a cell diagonal of a seed; a longer reach follows further.
+    from scipy.spatial import cKDTree
+
+    from gmmgp_app.stages.surface import surface_reach
+
+    cap = _sphere_seeds(20000)
+    cap = cap[cap[:, 2] > 0.5]
+    h = 0.1
+    far = []
+    for reach in (0.05, 0.2):
+        mesh = extract_surface(_sphere_field, cap, voxel_size=h, reach=reach)
+        d = cKDTree(cap).query(mesh.vertices)[0]
+        assert len(mesh.faces) > 50
+        assert d.max() <= reach + np.sqrt(3.0) * h + 1e-9
+        far.append(d.max())
+    assert far[1] > far[0] + 0.05
+    # no reach given: the voxel's own rule, half a cell diagonal plus the seed spacing
+    a = extract_surface(_sphere_field, cap, voxel_size=h)
+    b = extract_surface(_sphere_field, cap, voxel_size=h, reach=surface_reach(cap, h))
+    np.testing.assert_array_equal(a.vertices, b.vertices)
+    np.testing.assert_array_equal(a.faces, b.faces)
+    with pytest.raises(ValueError, match="Expected reach > 0"):
+        extract_surface(_sphere_field, cap, voxel_size=h, reach=0.0)

@@ -102,27 +102,34 @@ def check_surface_grid(points: np.ndarray, cfg) -> int:
     return check_grid_size(surface_seeds(points, cfg), cfg.voxel_size)
 
 
+def surface_reach(seeds: np.ndarray, voxel_size: float) -> float:
+    """How far from a seed the surface is followed: half the diagonal of a cell of
+    ``voxel_size`` plus the median seed spacing (m)."""
+    return float(0.5 * np.sqrt(3.0) * voxel_size
+                 + REACH_SPACINGS * _median_spacing(np.asarray(seeds, dtype=np.float64)))
+
+
 def mesh_field(predict: Callable, seeds: np.ndarray, cfg, voxel_size: Optional[float] = None,
-               max_std: Optional[float] = None, progress=None) -> SurfaceMesh:
+               max_std: Optional[float] = None, progress=None,
+               reach: Optional[float] = None) -> SurfaceMesh:
     """:func:`extract_surface` with the voxel and std cut of ``cfg`` (SurfaceConfig)
     unless given: the one place where a map's surface settings are resolved."""
     return extract_surface(predict, seeds,
                            voxel_size=cfg.voxel_size if voxel_size is None else voxel_size,
                            max_std=cfg.max_std if max_std is None else max_std,
-                           progress=progress)
+                           progress=progress, reach=reach)
 
 
 def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.05, *,
                     max_std: Optional[float] = None, block_cells: int = 32,
                     dilate: Optional[int] = None, batch: int = 65_536,
-                    progress=None) -> SurfaceMesh:
+                    progress=None, reach: Optional[float] = None) -> SurfaceMesh:
     """Zero level set of a field as a triangle mesh with per-vertex variance.
 
     The lattice is evaluated only where the surface is: starting from the cells
     that hold a seed point, the zero crossing is followed into a neighbouring cell
     whenever the shared face changes sign, at most ``dilate`` steps and only into
-    cells whose centre lies within half a cell diagonal plus the median seed
-    spacing of a seed. Nodes that were never evaluated are masked, so no surface
+    cells whose centre lies within ``reach`` of a seed. Nodes that were never evaluated are masked, so no surface
     is invented far from the data.
 
     Parameters
@@ -141,6 +148,11 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
         How far (in cells) the surface may be followed from the seed cells.
         Default: enough to bridge the median seed spacing, at least 2.
     progress : callable(total, desc) -> bar with update()/close(), optional
+    reach : float, optional
+        How far (m) from a seed a followed cell's centre may be. Default: half a cell
+        diagonal plus the median seed spacing (:func:`surface_reach`, grows with the
+        voxel); a map passes the reach of its own voxel at any voxel
+        (``SurfaceMap.surface_reach``).
 
     Returns
     -------
@@ -162,7 +174,11 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     from scipy.spatial import cKDTree
 
     tree = cKDTree(seeds)
-    reach = 0.5 * np.sqrt(3.0) * h + REACH_SPACINGS * _median_spacing(seeds)
+    if reach is None:
+        reach = surface_reach(seeds, h)
+    elif not reach > 0:
+        raise ValueError(f"Expected reach > 0 m, found {reach}.")
+    reach = float(reach)
     cells = _unique_rows(np.floor(seeds / h).astype(np.int64))
     pack = _Packer(cells.min(0) - dilate - block_cells - 2,
                    cells.max(0) + dilate + block_cells + 2)

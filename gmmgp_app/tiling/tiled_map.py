@@ -154,8 +154,9 @@ class TiledMap:
         return w > 0
 
     def extract_surface(self, voxel_size: Optional[float] = None, max_std=None,
-                        progress=None):
-        """Marching cubes on the stitched field (seamless: one field, one lattice)."""
+                        progress=None, reach: Optional[float] = None):
+        """Marching cubes on the stitched field (seamless: one field, one lattice);
+        ``reach`` defaults to :meth:`surface_reach`."""
         from ..pipeline import mesh_field
 
         seeds = [t.seed_points[self._weighs(k, t.seed_points)]
@@ -165,7 +166,15 @@ class TiledMap:
         if voxel_size is None:
             voxel_size = self.surface_voxel()
         return mesh_field(self.predict, seeds, self.config.surface, voxel_size, max_std,
-                          progress)
+                          progress, self.surface_reach(seeds) if reach is None else reach)
+
+    def surface_reach(self, seeds) -> Optional[float]:
+        """How far from a seed the stitched surface is followed (m), whatever voxel it
+        is meshed at: :func:`stages.surface.surface_reach` of the stitched ``seeds`` at
+        :meth:`surface_voxel` (see :meth:`SurfaceMap.surface_reach`)."""
+        from ..pipeline import surface_reach
+
+        return surface_reach(seeds, self.surface_voxel()) if len(seeds) else None
 
     def surface_voxel(self) -> float:
         """The surface voxel of the stitched mesh (m): the configured one, or with
