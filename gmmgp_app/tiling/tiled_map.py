@@ -159,14 +159,19 @@ class TiledMap:
         ``reach`` defaults to :meth:`surface_reach`."""
         from ..pipeline import mesh_field
 
-        seeds = [t.seed_points[self._weighs(k, t.seed_points)]
-                 if self.spec.blend == "smooth" else t.seed_points
-                 for k, t in self.tiles.items()]
-        seeds = np.unique(np.concatenate(seeds), axis=0) if seeds else np.zeros((0, 3))
+        seeds = self.stitched_seeds()
         if voxel_size is None:
             voxel_size = self.surface_voxel()
         return mesh_field(self.predict, seeds, self.config.surface, voxel_size, max_std,
                           progress, self.surface_reach(seeds) if reach is None else reach)
+
+    def stitched_seeds(self) -> np.ndarray:
+        """Where the stitched surface is sought: every tile's seed points (with smooth
+        blending, those the tile weighs), without duplicates."""
+        seeds = [t.seed_points[self._weighs(k, t.seed_points)]
+                 if self.spec.blend == "smooth" else t.seed_points
+                 for k, t in self.tiles.items()]
+        return np.unique(np.concatenate(seeds), axis=0) if seeds else np.zeros((0, 3))
 
     def surface_reach(self, seeds) -> Optional[float]:
         """How far from a seed the stitched surface is followed (m), whatever voxel it

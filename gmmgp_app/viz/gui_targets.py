@@ -132,6 +132,7 @@ class TiledView:
     def __init__(self, tmap):
         self.tmap = tmap
         self.pieces: dict = {}  # key -> TilePiece, in load order
+        self._reach = None  # the stitched surface's reach (m), found at the first load
 
     @property
     def keys(self) -> list:
@@ -177,6 +178,10 @@ class TiledView:
         """
         from ..pipeline import mesh_field
 
+        if self._reach is None and mesh:
+            # the stitched surface's reach (TiledMap.extract_surface), the same for
+            # every piece so that the pieces are that surface face for face
+            self._reach = self.tmap.surface_reach(self.tmap.stitched_seeds())
         todo = [tuple(k) for k in keys if tuple(k) not in self.pieces]
         for i, key in enumerate(todo):
             t = self.tmap.tiles[key]
@@ -185,7 +190,7 @@ class TiledView:
             m = None
             if mesh and len(seeds):
                 full = mesh_field(self.tmap.predict, seeds, self.tmap.config.surface,
-                                  voxel_size)
+                                  voxel_size, reach=self._reach)
                 m = _crop_faces(full, lambda c, k=key: self._in_squares(c[:, :2], k))
             gp = np.asarray(t.gp_points, float)
             self.pieces[key] = TilePiece(key, seeds, gp[self._in_squares(gp[:, :2], key)]
