@@ -114,6 +114,15 @@ def _hash(key, mask):
     return (h >> 17) & mask
 
 
+@nb.njit(cache=True, inline="always")
+def _slot(tk, key, mask):
+    """The table slot of cell ``key`` (linear probing), or -1 when the cell is empty."""
+    s = _hash(key, mask)
+    while tk[s] != -1 and tk[s] != key:
+        s = (s + 1) & mask
+    return s if tk[s] != -1 else -1
+
+
 @nb.njit(cache=True)
 def _build_table(ukeys, starts, ends, size):
     """Open-addressing hash table (linear probing) of the occupied cells' point runs."""
@@ -165,10 +174,8 @@ def _knn_grid(x, k, cell, lo, dims, tk, ts, te, pts, order, max_ring):
                         if qc < 0 or qc >= dims[2]:
                             continue
                         key = (qa * dims[1] + qb) * dims[2] + qc
-                        s = _hash(key, mask)
-                        while tk[s] != -1 and tk[s] != key:
-                            s = (s + 1) & mask
-                        if tk[s] == -1:
+                        s = _slot(tk, key, mask)
+                        if s < 0:
                             continue
                         for j in range(ts[s], te[s]):
                             d0 = x[q, 0] - pts[j, 0]
@@ -263,10 +270,8 @@ def _ball_pass(x, r, cell, lo, dims, tk, ts, te, pts, order, ptr, idx, fill):
                     if c < 0 or c >= dims[2]:
                         continue
                     key = (a * dims[1] + b) * dims[2] + c
-                    s = _hash(key, mask)
-                    while tk[s] != -1 and tk[s] != key:
-                        s = (s + 1) & mask
-                    if tk[s] == -1:
+                    s = _slot(tk, key, mask)
+                    if s < 0:
                         continue
                     for j in range(ts[s], te[s]):
                         d0 = x[q, 0] - pts[j, 0]
