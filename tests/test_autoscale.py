@@ -181,6 +181,23 @@ def test_blend_is_inverse_variance_and_widens_on_disagreement():
     assert abs(m[0]) < 1e-4
 
 
+def test_blend_with_an_infinite_variance_returns_the_other_prediction():
+    """No information (var = inf) weighs nothing: no NaN from inf / inf or 0 * inf."""
+    import warnings
+
+    inf = np.inf
+    m1, v1 = np.array([1.0, np.nan, 2.0, 4.0]), np.array([0.5, inf, inf, 1.0])
+    m2, v2 = np.array([np.nan, 3.0, 5.0, 6.0]), np.array([inf, 0.25, inf, 1.0])
+    g1 = np.array([[1.0, 0, 0], [np.nan, 0, 0], [0, 1.0, 0], [1.0, 0, 0]])
+    g2 = np.array([[np.nan, 0, 0], [0, 0, 1.0], [0, 0, 1.0], [0, 1.0, 0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        m, v, g = blend_fields(m1, v1, m2, v2, g1, g2)
+    assert m[:3].tolist() == [1.0, 3.0, 5.0] and v[:3].tolist() == [0.5, 0.25, inf]
+    np.testing.assert_array_equal(g[:3], [[1.0, 0, 0], [0, 0, 1.0], [0, 0, 1.0]])
+    assert m[3] == 5.0 and v[3] == pytest.approx(1.0 + 0.25 * 4)
+
+
 def test_compiled_imls_equals_the_numpy_formulas():
     """The compiled far field (one pass per query) against eqs. imls / far_var written
     out in numpy over the (K, k, 3) neighbour arrays: equal to round-off."""

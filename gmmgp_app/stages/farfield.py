@@ -242,17 +242,31 @@ def blend_fields(m1, v1, m2, v2, g1=None, g2=None):
     ``var = w v1 + (1 - w) v2 + w (1 - w) (m1 - m2)^2`` (law of total variance of the
     two-component mixture, so the two disagreeing widens the variance).
 
+    A prediction with infinite variance (no information) gets weight 0 exactly: the
+    other one is returned as it is (where both are infinite, the second).
+
     Returns
     -------
     mean (K,), var (K,)[, grad (K, 3) with the same weights when g1, g2 are given]
     """
     v1 = np.maximum(np.asarray(v1, dtype=np.float64), 1e-300)
     v2 = np.maximum(np.asarray(v2, dtype=np.float64), 1e-300)
-    w = v2 / (v1 + v2)
-    mean = w * m1 + (1 - w) * m2
-    var = w * v1 + (1 - w) * v2 + w * (1 - w) * (m1 - m2) ** 2
+    m1 = np.asarray(m1, dtype=np.float64)
+    m2 = np.asarray(m2, dtype=np.float64)
+    only2, only1 = np.isinf(v1), np.isinf(v2) & ~np.isinf(v1)
+    with np.errstate(invalid="ignore"):  # inf / inf and 0 * inf, replaced below
+        w = v2 / (v1 + v2)
+        mean = w * m1 + (1 - w) * m2
+        var = w * v1 + (1 - w) * v2 + w * (1 - w) * (m1 - m2) ** 2
+    if only2.any() or only1.any():
+        w = np.where(only2, 0.0, np.where(only1, 1.0, w))
+        mean = np.where(only2, m2, np.where(only1, m1, mean))
+        var = np.where(only2, v2, np.where(only1, v1, var))
     if g1 is not None and g2 is not None:
-        return mean, var, w[:, None] * g1 + (1 - w)[:, None] * g2
+        with np.errstate(invalid="ignore"):
+            g = w[:, None] * g1 + (1 - w)[:, None] * g2
+        g = np.where(only2[:, None], g2, np.where(only1[:, None], g1, g))
+        return mean, var, g
     return mean, var
 
 
