@@ -63,18 +63,8 @@ class GridKNN:
             self.lo = c.min(0)
             dims = c.max(0) - self.lo + 1
         self.dims = dims.astype(np.int64)
-        key = ((c[:, 0] - self.lo[0]) * dims[1] + (c[:, 1] - self.lo[1])) * dims[2] \
-            + (c[:, 2] - self.lo[2])
-        order = np.argsort(key, kind="stable")
-        self.order = order.astype(np.int64)
-        self.sorted_points = np.ascontiguousarray(p[order])
-        ks = key[order]
-        starts = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
-        ukeys = ks[starts]
-        ends = np.r_[starts[1:], len(ks)]
-        size = 1 << int(np.ceil(np.log2(2 * len(ukeys) + 2)))
-        self.table_keys, self.table_start, self.table_end = _build_table(
-            ukeys, starts.astype(np.int64), ends.astype(np.int64), size)
+        (self.order, self.sorted_points, self.table_keys, self.table_start,
+         self.table_end) = _cell_table(p, c, self.lo, self.dims)
 
     def _default_cell(self) -> float:
         p = self.points
@@ -121,6 +111,21 @@ def _slot(tk, key, mask):
     while tk[s] != -1 and tk[s] != key:
         s = (s + 1) & mask
     return s if tk[s] != -1 else -1
+
+
+def _cell_table(p, c, lo, dims):
+    """The points ``p`` bucketed by their cells ``c`` (int64 cell coordinates, keyed in
+    the box of ``dims`` cells from ``lo``): (order, the points in that order, and the
+    open-addressing table of each occupied cell's run: keys, starts, ends)."""
+    key = ((c[:, 0] - lo[0]) * dims[1] + (c[:, 1] - lo[1])) * dims[2] + (c[:, 2] - lo[2])
+    order = np.argsort(key, kind="stable").astype(np.int64)
+    ks = key[order]
+    starts = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
+    ends = np.r_[starts[1:], len(ks)]
+    size = 1 << int(np.ceil(np.log2(2 * len(starts) + 2)))
+    tk, ts, te = _build_table(ks[starts], starts.astype(np.int64), ends.astype(np.int64),
+                              size)
+    return order, np.ascontiguousarray(p[order]), tk, ts, te
 
 
 @nb.njit(cache=True)
@@ -228,15 +233,7 @@ def ball_lists(points, centres, radius: float):
     dims = (c.max(0) + 1 - lo + 1).astype(np.int64)
     if float(np.prod(dims.astype(np.float64))) >= 2.0 ** 62:
         raise ValueError("ball_lists: the points span too many cells of the radius")
-    key = ((c[:, 0] - lo[0]) * dims[1] + (c[:, 1] - lo[1])) * dims[2] + (c[:, 2] - lo[2])
-    order = np.argsort(key, kind="stable").astype(np.int64)
-    ks = key[order]
-    starts = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
-    ends = np.r_[starts[1:], len(ks)]
-    size = 1 << int(np.ceil(np.log2(2 * len(starts) + 2)))
-    tk, ts, te = _build_table(ks[starts], starts.astype(np.int64), ends.astype(np.int64),
-                              size)
-    sp = np.ascontiguousarray(p[order])
+    order, sp, tk, ts, te = _cell_table(p, c, lo, dims)
     counts = _ball_pass(x, r, cell, lo, dims, tk, ts, te, sp, order,
                         np.zeros(len(x) + 1, np.int64), np.zeros(0, np.int64), False)
     ptr = np.zeros(len(x) + 1, np.int64)
