@@ -259,7 +259,6 @@ def blend_fields(m1, v1, m2, v2, g1=None, g2=None):
         mean = w * m1 + (1 - w) * m2
         var = w * v1 + (1 - w) * v2 + w * (1 - w) * (m1 - m2) ** 2
     if only2.any() or only1.any():
-        w = np.where(only2, 0.0, np.where(only1, 1.0, w))
         mean = np.where(only2, m2, np.where(only1, m1, mean))
         var = np.where(only2, v2, np.where(only1, v1, var))
     if g1 is not None and g2 is not None:
