@@ -928,12 +928,8 @@ def _cluster_consistency(info, P, size):
 def _cells_abs(points, cell):
     """Absolute integer cell keys ``floor(p / cell)`` of the occupied cells and each
     point's index into them (the same key means the same cell for any point set)."""
-    k = np.floor(points / cell).astype(np.int64)
-    lo = k.min(0)
-    span = k.max(0) - lo + 1
-    flat = ((k[:, 0] - lo[0]) * span[1] + (k[:, 1] - lo[1])) * span[2] + (k[:, 2] - lo[2])
-    u, first, inv = np.unique(flat, return_index=True, return_inverse=True)  # 1-D: fast
-    return k[first], inv.reshape(-1)
+    _, first, inv = _cells(points, cell, return_index=True, return_inverse=True)
+    return np.floor(points[first] / cell).astype(np.int64), inv.reshape(-1)
 
 
 # --------------------------------------------------------------------------- entry point
