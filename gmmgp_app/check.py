@@ -507,8 +507,11 @@ def _cell_variance_factors(y, m, s2, g, ok, cell, min_points=10, min_factor=25.0
         / cnt_all[:, None]
     sd = np.sqrt(s2[idx])
     gi = g[idx]
-    A = np.concatenate([np.ones((len(idx), 1)), gi, np.cross(yc - cen[c], gi)], axis=1) \
-        / sd[:, None]
+    A = np.empty((len(idx), 7))
+    A[:, 0] = 1.0
+    A[:, 1:4] = gi
+    _cross(yc - cen[c], gi, A[:, 4:])
+    A /= sd[:, None]
     zb = m[idx] / sd
     M = np.empty((G, 7, 7))
     v = np.empty((G, 7))
@@ -562,10 +565,25 @@ def _factors_here(y, m, var, g, noise2, known_std, cell):
     return _cell_variance_factors(y, m, s2, g, ok & (np.abs(z) < 10.0 * scale), cell)
 
 
+def _cross(a, b, out=None):
+    """Row-wise cross product of (K, 3) arrays into ``out`` ((K, 3), new if None):
+    column by column, 3-4x faster than ``np.cross`` on 100k rows, the same values."""
+    out = np.empty_like(a) if out is None else out
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
 def _normal_matrix(y, g, w, m, pivot):
-    J = np.concatenate([g, np.cross(y - pivot, g)], axis=1)  # (K, 6)
+    """Jacobian ``J_i = [g_i, (y_i - c) x g_i]`` (K, 6), normal matrix ``J^T W J`` and
+    right-hand side ``-J^T W m``."""
+    J = np.empty((len(y), 6))
+    J[:, :3] = g
+    _cross(y - pivot, g, J[:, 3:])
     Jw = J * w[:, None]
-    return J, Jw.T @ J, -(Jw.T @ m)
+    # einsum: the strided matrix-vector product Jw.T @ m took 10-20 ms on 112k points
+    return J, Jw.T @ J, -np.einsum("ij,i->j", Jw, m)
 
 
 def _transform_step(step, pivot):
