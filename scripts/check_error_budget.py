@@ -15,8 +15,23 @@ bench pair of scripts/bench_check.py (36 m street, default map; second drive thr
   points where the difference and the analytic gradient differ by more than 0.5, the
   mean jumping at a block's region boundary, left out).
 
+``--decompose`` (bench pair) splits the error instead, with check_scan's weights (shared
+1 m counts, cell variance factors, Tukey), all points, at the truth; rotation vectors in
+deg x 1e-3 (x is the street's axis), translation at the points' weighted centre in mm:
+
+- ``noise-free``: the step from the truth for a noise-free second drive (same rays);
+- ``noisy``: the same for the noisy drive, and its two parts (the step is linear in the
+  residuals): ``map part`` (the noise-free drive's residuals, with the noisy drive's
+  points and weights) and ``noise part`` (the noisy minus the noise-free residuals),
+  the latter also with uniform weights (how much the weighting amplifies the noise);
+- ``fixed point``: Gauss-Newton/IRLS iterated from the truth to a tight tolerance (the
+  estimator's own error, no starting point, no convergence tolerance) with the Tukey
+  constant 4.685 (default), 20 (nearly no robust loss) and the Cauchy loss, and with
+  the check's tolerance (0.1 mm, 10 urad).
+
     PYTHONPATH=$PWD .venv/bin/python scripts/check_error_budget.py --out out/budget.json
     PYTHONPATH=$PWD .venv/bin/python scripts/check_error_budget.py --scene street2
+    PYTHONPATH=$PWD .venv/bin/python scripts/check_error_budget.py --decompose
 """
 
 from __future__ import annotations
@@ -39,7 +54,12 @@ def main(argv=None) -> int:
     ap.add_argument("--density", type=float, default=0.1)
     ap.add_argument("--noise", type=float, default=0.01, help="check_scan's noise (m)")
     ap.add_argument("--out", default=None, help="JSON file (optional)")
+    ap.add_argument("--decompose", action="store_true",
+                    help="split the error into map bias, noise and the robust loss's fixed "
+                         "point (see above)")
     args = ap.parse_args(argv)
+    if args.decompose:
+        return decompose(args)
 
     import gmmgp_app as gm
     from gmmgp_app.check import _normal_matrix, _share_counts, _voxel_sample, _weights
@@ -100,6 +120,87 @@ def main(argv=None) -> int:
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps({"argv": sys.argv[1:], "rows": rows}, indent=1))
+    return 0
+
+
+def decompose(args) -> int:
+    """The ``--decompose`` table (see the module docstring)."""
+    import gmmgp_app as gm
+    from gmmgp_app.check import (_factors_here, _gauss_newton, _normal_matrix,
+                                 _share_counts, _weights)
+    from gmmgp_app.synth import scan_scene
+    from scipy.spatial.transform import Rotation
+
+    params = dict(length=args.length)
+    first, _ = scan_scene("street", density=args.density, seed=0, scene_params=params)
+    smap = gm.build_map(first)
+    n2 = args.noise ** 2
+    rows = []
+
+    def step(y, m, g, w):
+        pivot = (w[:, None] * y).sum(0) / w.sum()
+        _, H, b = _normal_matrix(y, g, w, m, pivot)
+        xi = np.linalg.solve(H, b)
+        return np.r_[1e3 * xi[:3], 1e3 * np.degrees(xi[3:])]
+
+    for seed in (1, 2, 3):
+        drives = {}
+        for rn in (None, 0.0):
+            kw = {} if rn is None else dict(range_noise=rn)
+            drives[rn], _ = scan_scene("street_van", density=args.density, seed=seed,
+                                       scene_params=params, lane_y=-1.5, **kw)
+        yn = drives[None].points - smap.offset
+        yc = drives[0.0].points - smap.offset
+        if len(yn) != len(yc):
+            raise SystemExit("the noise-free drive has other rays; cannot pair the points")
+        out = {}
+        for name, y in (("noise-free", yc), ("noisy", yn)):
+            m, var, g = smap.predict(y, return_grad=True, far=False)
+            n_share, cell = _share_counts(y, 1.0, return_cells=True)
+            fac = _factors_here(y, m, var, g, n2, 0.1, cell)
+            w, _ = _weights(m, var, n2, np.sqrt(var) < 0.1, 4.685, "tukey", n_share, fac)
+            out[name] = (y, m, g, w)
+            rows.append({"seed": seed, "what": f"step from the truth, {name}",
+                         "xi": step(y, m, g, w)})
+        y, m, g, w = out["noisy"]
+        mc = out["noise-free"][1]
+        rows.append({"seed": seed, "what": "  map part (noise-free residuals)",
+                     "xi": step(y, mc, g, w)})
+        rows.append({"seed": seed, "what": "  noise part", "xi": step(y, m - mc, g, w)})
+        rows.append({"seed": seed, "what": "  noise part, uniform weights",
+                     "xi": step(y, m - mc, g, (w > 0).astype(float))})
+        x = drives[None].points - smap.offset  # the truth is the identity here
+        for label, kw, tol in (("fixed point, Tukey 4.685", {}, (1e-6, 1e-7)),
+                               ("fixed point, Tukey 20", dict(c_robust=20.0), (1e-6, 1e-7)),
+                               ("fixed point, Cauchy 2.385",
+                                dict(loss="cauchy", c_robust=2.3849), (1e-6, 1e-7)),
+                               ("from the truth, check's tolerance", {}, (1e-4, 1e-5))):
+            kw2 = dict(noise2=n2, known_std=0.1, c_robust=4.685, loss="tukey",
+                       share_cell=1.0, cell_factors=True)
+            kw2.update(kw)
+            T, _, _, _, _ = _gauss_newton(smap, x, np.eye(4), [], max_iter=40, tol_t=tol[0],
+                                          tol_r=tol[1], **kw2)
+            c = (w[:, None] * y).sum(0) / w.sum()  # translation at the weighted centre
+            rows.append({"seed": seed, "what": label, "xi": np.r_[
+                1e3 * (T[:3, :3] @ c + T[:3, 3] - c),
+                1e3 * np.degrees(Rotation.from_matrix(T[:3, :3]).as_rotvec())]})
+        print(f"  seed {seed}: done", file=sys.stderr, flush=True)
+    print("| what | seeds 1 / 2 / 3: rotation vector (deg x 1e-3) [norm]; translation (mm) "
+          "[norm] |")
+    print("|---|---|")
+    for what in dict.fromkeys(r["what"] for r in rows):
+        cells = []
+        for r in rows:
+            if r["what"] == what:
+                xi = r["xi"]
+                cells.append(f"({xi[3]:+.2f}, {xi[4]:+.2f}, {xi[5]:+.2f}) "
+                             f"[{np.linalg.norm(xi[3:]):.2f}]; {np.linalg.norm(xi[:3]):.2f}")
+        print(f"| {what} | {' / '.join(cells)} |")
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(
+            {"argv": sys.argv[1:], "rows": [dict(r, xi=r["xi"].tolist()) for r in rows]},
+            indent=1))
     return 0
 
 

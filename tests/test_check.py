@@ -122,6 +122,42 @@ def test_box_registration_is_exact_and_covered_by_its_covariance():
     assert res.summary["fraction_changed"] < 0.01
 
 
+def test_cell_factors_recomputed_only_when_the_points_moved(monkeypatch):
+    """The per-cell variance factors are computed at the start of each stage and again
+    only after the points moved by more than REFACTOR_TOL: fewer fits than iterations,
+    and the same transform as refitting in every iteration. The map is a box whose one
+    face carries a 3 cm bump its std (5 mm) does not admit, so some cells get factors."""
+    import gmmgp_app.check as C
+
+    def sdf(x):
+        bump = 0.03 * np.exp(-((x[:, 1] - 0.5) ** 2 + (x[:, 2] - 0.3) ** 2) / 0.02)
+        return _box_sdf(x) - np.where(x[:, 0] > 1.5, bump, 0.0)
+
+    rng = np.random.default_rng(3)
+    smap = _AnalyticMap(_box_sdf, std=0.005)
+    pts = _box_surface(8000, rng) + rng.normal(0, 0.005, (8000, 3))
+    T = _truth(rot_deg=2.0, t=(0.1, -0.05, 0.08))
+    smap.sdf = sdf
+    calls, factors = [], []
+    orig = C._factors_here
+
+    def counted(*a, **k):
+        f = orig(*a, **k)
+        calls.append(len(f))
+        factors.append(f.max())
+        return f
+
+    monkeypatch.setattr(C, "_factors_here", counted)
+    res = check_scan(_move(pts, T), smap, align=True, noise=0.005)
+    n_default = len(calls)
+    assert max(factors) >= 25  # the bump's cells are flagged
+    calls.clear()
+    monkeypatch.setattr(C, "REFACTOR_TOL", 0.0)
+    every = check_scan(_move(pts, T), smap, align=True, noise=0.005)
+    assert n_default < len(calls), (n_default, len(calls))
+    assert np.abs(res.transform - every.transform).max() < 1e-5
+
+
 def test_sphere_reports_three_free_rotations_and_keeps_the_guess():
     rng = np.random.default_rng(2)
     smap = _AnalyticMap(lambda x: np.linalg.norm(x, axis=1) - 2.0)
