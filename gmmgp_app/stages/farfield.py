@@ -36,12 +36,18 @@ log-linear model of dimensionless features, so that it scales with the scan
 
 with ``h`` the kernel floor (training spacing), ``v_gp`` the GP posterior variance
 and ``m_gp - m_far`` the disagreement of the two fields. The coefficients
-:data:`VARIANCE_COEF` were fitted on the synthetic ``street`` only (least squares
-on ``log (y - mu)^2``, plus 1.27 = -E log chi^2_1 so that the median |z| is about
-0.67), and are checked on ``street2``, ``courtyard`` and ``pipes``
-(scripts/bench_accuracy.py, docs/field.md). The errors are heavy-tailed (a few queries
-near surfaces the scan never saw), so a Gaussian with this variance covers about
-65-74 % within 1 sigma but only 91-95 % within 2 sigma on the street.
+:data:`VARIANCE_COEF` (t0 ... t4) are the 0.68-quantile regression of ``log (y - mu)^2 / h^2``
+on the five features (eq. variance_quantile_fit, :func:`fit_variance_quantile`: the
+pinball loss, i.e. the likelihood of an asymmetric Laplace distribution), so that
+``|y - mu| <= sigma`` for 68 % of the queries *at any value of the features*, whatever
+the shape of the error's tails. The fit uses the two tuned scenes (synthetic ``street``
+and ``sphere``, scripts/fit_variance.py) and only their queries where the
+unseen-geometry widths below are zero: this term describes the error of the surface
+the scan observed; what it did not observe has its own terms. Checked on ``street2``,
+``courtyard``, ``pipes`` and ``bunny`` (scripts/bench_accuracy.py, docs/field.md,
+"Variance by query category"). It replaces a least-squares fit on ``log (y - mu)^2``
+on the street alone, which matched the mean of ``log z^2`` and over-covered (0.74-0.94
+within 1 sigma next to the data on the six scenes).
 
 **Unseen geometry** (issue 15, fix-15c). The log-linear model is fitted on the typical
 query; it does not know what the scan cannot know. The worst queries of the held-out
@@ -93,11 +99,13 @@ from scipy.spatial import cKDTree
 from .knn import GridKNN
 
 __all__ = ["FarField", "FarFieldError", "blend_fields", "BlendedField", "VARIANCE_COEF",
-           "calibrated_variance", "behind_width", "extent_width", "unseen_variance"]
+           "calibrated_variance", "variance_features", "fit_variance_quantile",
+           "behind_width", "extent_width", "unseen_variance"]
 
-#: (t0, ..., t4) of eq. calibrated_var, fitted on the synthetic street (10 % of a
-#: density-0.3 drive; the recipe is in docs/field.md).
-VARIANCE_COEF = (0.5358, -0.3834, 1.1189, 0.2069, 0.1491)
+#: (t0, ..., t4) of eq. calibrated_var: the 0.68-quantile regression (eq.
+#: variance_quantile_fit) on the tuned scenes' observed queries (synthetic street and
+#: sphere, 10 % handed, seed 0; ``python scripts/fit_variance.py``, docs/field.md).
+VARIANCE_COEF = (-0.4044, -0.2168, 1.0341, 0.1707, 0.1343)
 
 
 class FarFieldError(ValueError):
@@ -269,12 +277,39 @@ def blend_fields(m1, v1, m2, v2, g1=None, g2=None):
     return mean, var
 
 
+def variance_features(h, noise, r, spread2, disagreement2, v_gp):
+    """The five dimensionless features of eq. calibrated_var, one row per query:
+    ``1, log((r^2 + h^2)/h^2), log((s^2 + sigma^2)/h^2), log((d^2 + sigma^2)/h^2),
+    log(v_gp/h^2)`` (``s^2`` = ``spread2``, ``d^2`` = ``disagreement2``).
+
+    Parameters
+    ----------
+    h, noise : float
+        Kernel floor (training spacing) and noise along the normals sigma (m).
+    r, spread2, disagreement2, v_gp : (K,)
+        Distance to the nearest hit point, neighbours' plane-distance variance,
+        squared GP - far-field difference, GP posterior variance.
+
+    Returns
+    -------
+    (K, 5) float64
+    """
+    h2, s2 = h * h, noise * noise
+    r = np.asarray(r, dtype=np.float64)
+    return np.stack([np.ones_like(r), np.log((r ** 2 + h2) / h2),
+                     np.log((np.asarray(spread2, dtype=np.float64) + s2) / h2),
+                     np.log((np.asarray(disagreement2, dtype=np.float64) + s2) / h2),
+                     np.log(np.maximum(np.asarray(v_gp, dtype=np.float64), 1e-300) / h2)],
+                    axis=1)
+
+
 def calibrated_variance(h, noise, r, spread2, disagreement2, v_gp, coef=VARIANCE_COEF,
                         disagreement_weight: float = 1.0):
-    """Predictive variance of the blended field (eq. calibrated_var).
+    """Predictive variance of the blended field (eq. calibrated_var):
+    ``h^2 exp(X t) + kappa d^2``, X from :func:`variance_features`.
 
-    The log-linear model (fitted on ``log (y - mu)^2``, i.e. on the typical query)
-    raises the variance only as ``disagreement2 ** t3`` (t3 = 0.21), so where the GP
+    The log-linear part (coefficients t from eq. variance_quantile_fit) raises the
+    variance only as ``disagreement2 ** t3`` (t3 = 0.17), so where the GP
     and far-field means disagree by centimetres near the data (edges, surfaces seen
     from one side) it stays at a few millimetres and those queries fall 3-10 sigma
     out. Two independent estimates of the same distance that differ by ``d`` say the
@@ -295,13 +330,54 @@ def calibrated_variance(h, noise, r, spread2, disagreement2, v_gp, coef=VARIANCE
     -------
     (K,) float64, m^2
     """
-    h2, s2 = h * h, noise * noise
-    t = np.asarray(coef, dtype=np.float64)
-    z = (t[0] + t[1] * np.log((r ** 2 + h2) / h2) + t[2] * np.log((spread2 + s2) / h2)
-         + t[3] * np.log((disagreement2 + s2) / h2)
-         + t[4] * np.log(np.maximum(v_gp, 1e-300) / h2))
-    return h2 * np.exp(z) + np.asarray(disagreement_weight) * np.asarray(disagreement2,
-                                                                         dtype=np.float64)
+    X = variance_features(h, noise, r, spread2, disagreement2, v_gp)
+    return h * h * np.exp(X @ np.asarray(coef, dtype=np.float64)) \
+        + np.asarray(disagreement_weight) * np.asarray(disagreement2, dtype=np.float64)
+
+
+def fit_variance_quantile(features, log_err2, tau: float = 0.68):
+    """Coefficients t of eq. calibrated_var by linear quantile regression
+    (eq. variance_quantile_fit):
+
+        t = argmin_t sum_i rho_tau(log(e_i^2 / h^2) - X_i t),
+        rho_tau(u) = u (tau - [u < 0])          (pinball loss)
+
+    so that ``e^2 <= h^2 exp(X t)``, i.e. ``|z| <= 1``, for a fraction ``tau`` of the
+    queries at every value of the features (when the log-variance is linear in them).
+    Minimising the pinball loss is maximising the likelihood of an asymmetric Laplace
+    distribution; unlike least squares on ``log e^2`` it does not depend on the shape
+    of the error's tails. Solved exactly as a linear programme (HiGHS):
+    ``min tau 1'u + (1 - tau) 1'v  s.t.  X t + u - v = y, u, v >= 0``.
+
+    Parameters
+    ----------
+    features : (N, P) rows of :func:`variance_features` (or any design matrix)
+    log_err2 : (N,) ``log(e^2 / h^2)``, finite
+    tau : float in (0, 1), the target coverage within 1 sigma (0.68)
+
+    Returns
+    -------
+    (P,) float64
+    """
+    from scipy.optimize import linprog
+    from scipy.sparse import eye, hstack, csr_matrix
+
+    X = np.asarray(features, dtype=np.float64)
+    y = np.asarray(log_err2, dtype=np.float64)
+    if X.ndim != 2 or len(X) != len(y) or len(y) <= X.shape[1] or not np.isfinite(X).all() \
+            or not np.isfinite(y).all():
+        raise ValueError(f"Expected finite features (N, P) and log errors (N,), N > P, found "
+                         f"{X.shape} and {y.shape}.")
+    if not 0.0 < tau < 1.0:
+        raise ValueError(f"Expected a quantile tau in (0, 1), found {tau!r}.")
+    n, k = X.shape
+    A = hstack([csr_matrix(X), eye(n, format="csr"), -eye(n, format="csr")], format="csr")
+    c = np.r_[np.zeros(k), np.full(n, tau), np.full(n, 1.0 - tau)]
+    bounds = [(None, None)] * k + [(0.0, None)] * (2 * n)
+    res = linprog(c, A_eq=A, b_eq=y, bounds=bounds, method="highs")
+    if not res.success:  # pragma: no cover - HiGHS solves every feasible instance
+        raise RuntimeError(f"quantile regression failed: {res.message}")
+    return res.x[:k]
 
 
 def behind_width(mean, min_thickness):
