@@ -11,6 +11,9 @@ changing the field's mean). Then:
 * ``--fit`` (tuned scenes only): the 0.68-quantile regression of ``log (y - mu)^2 / h^2``
   on the five features of eq. calibrated_var over the queries where the
   unseen-geometry widths are zero (the observed surface), printed as VARIANCE_COEF;
+* ``--sweep``: candidate fits (least squares on log e^2, Gaussian and Student-t
+  likelihood, the 0.68 quantile; street or both tuned scenes; all or observed queries)
+  scored on every scene;
 * ``--categories``: per bin and per query category the count, coverage within 1 and
   2 sigma, mean log-likelihood, median and 99th percentile of |z| and which variance
   term dominates. Categories (exclusive): ``near`` |m| <= h (at the located surface),
@@ -23,6 +26,7 @@ Examples::
 
     python scripts/fit_variance.py --fit
     python scripts/fit_variance.py --categories --scenes street,courtyard,pipes
+    python scripts/fit_variance.py --sweep docs/field_bench/bench_accuracy.json
 """
 
 from __future__ import annotations
@@ -139,12 +143,117 @@ def fit(cases, tau=0.68):
     return F.fit_variance_quantile(np.concatenate(X), np.concatenate(Y), tau)
 
 
+def _design(d, mask_obs):
+    t = terms(d)
+    keep = (t["w_b"] == 0) & (t["w_e"] == 0) if mask_obs else np.ones(len(d["y"]), bool)
+    X = F.variance_features(d["h"], d["noise"], d["r"], d["spread2"],
+                            (d["m_gp"] - d["m_far"]) ** 2, d["v_gp"])
+    e2 = np.maximum((d["y"] - d["mean"]) ** 2, 1e-30)
+    return X, e2, t, keep
+
+
+def _lik_fit(cases, nu=None):
+    """Coefficients maximising the Gaussian (nu None) or Student-t likelihood of the
+    whole variance (the other terms held fixed), from VARIANCE_COEF."""
+    from scipy.optimize import minimize
+
+    packs = []
+    for d in cases:
+        X, e2, t, _ = _design(d, False)
+        packs.append((X, e2, t["kap"] + t["beh"] + t["ext"], d["h"] ** 2))
+
+    def f(c):
+        tot, g = 0.0, 0.0
+        for X, e2, ex, h2 in packs:
+            b = h2 * np.exp(X @ c)
+            v = b + ex
+            if nu is None:
+                nll, gv = 0.5 * np.log(v) + 0.5 * e2 / v, 0.5 / v - 0.5 * e2 / v ** 2
+            else:
+                nll = 0.5 * np.log(v) + 0.5 * (nu + 1) * np.log1p(e2 / (nu * v))
+                gv = 0.5 / v - 0.5 * (nu + 1) * e2 / (nu * v * v + e2 * v)
+            tot += nll.mean()
+            g = g + (gv * b) @ X / len(e2)
+        return tot, g
+
+    return minimize(f, np.asarray(F.VARIANCE_COEF), jac=True, method="L-BFGS-B").x
+
+
+def sweep(seed, cache, baselines) -> str:
+    """The candidate fits of eq. calibrated_var, scored on all six scenes."""
+    import json
+
+    base = {r["scene"]: r for r in json.loads(Path(baselines).read_text())["results"]}
+    names = [n for n in B.SCENES if n != "bunny" or B.BUNNY.is_dir()]
+    cases = {n: scene_case(n, seed, cache) for n in names}
+    tuned = [cases[n] for n in names if B.SCENES[n]["tuned"]]
+    street = [cases["street"]]
+
+    def ls(cs, obs):
+        X, Y = [], []
+        for d in cs:
+            x, e2, _, k = _design(d, obs)
+            X.append(x[k])
+            Y.append(np.log(e2[k] / d["h"] ** 2) + 1.27)
+        return np.linalg.lstsq(np.concatenate(X), np.concatenate(Y), rcond=None)[0]
+
+    def qf(cs, obs):
+        X, Y = [], []
+        for d in cs:
+            x, e2, _, k = _design(d, obs)
+            X.append(x[k])
+            Y.append(np.log(e2[k] / d["h"] ** 2))
+        return F.fit_variance_quantile(np.concatenate(X), np.concatenate(Y), 0.68)
+
+    cands = [("before: least squares on log e^2 + 1.27, street, all queries",
+              (0.5358, -0.3834, 1.1189, 0.2069, 0.1491)),
+             ("least squares on log e^2 + 1.27, street, observed", ls(street, True)),
+             ("least squares on log e^2 + 1.27, street + sphere, observed", ls(tuned, True)),
+             ("Gaussian likelihood, street, all", _lik_fit(street)),
+             ("Student-t (4 dof) likelihood, street, all", _lik_fit(street, 4.0)),
+             ("0.68 quantile, street, observed", qf(street, True)),
+             ("0.68 quantile, street + sphere, all", qf(tuned, False)),
+             ("**0.68 quantile, street + sphere, observed**", qf(tuned, True))]
+    lines = ["Per scene: 1-sigma coverage per bin [bins within 0.68 +- 0.05] / bins with 2-sigma "
+             "coverage within 0.95 +- 0.03 / bins with mean LL above hgmm, gpis and loggpis "
+             "(of 7).\n",
+             "| fit (t0..t4) | " + " | ".join(
+                 f"{n} ({'tuned' if B.SCENES[n]['tuned'] else 'held out'})" for n in names)
+             + " |", "|---|" + "---|" * len(names)]
+    for label, coef in cands:
+        cells = []
+        for n in names:
+            d = cases[n]
+            t = terms(d, coef)
+            v = t["ll"] + t["kap"] + t["beh"] + t["ext"]
+            z = np.abs(d["y"] - d["mean"]) / np.sqrt(v)
+            ll = -0.5 * np.log(2 * np.pi * v) - 0.5 * z * z
+            ms = base[n]["methods"]
+            c1, c2, ok = [], [], 0
+            for i in range(len(B.BINS) - 1):
+                s = d["bin"] == i
+                c1.append(np.mean(z[s] <= 1))
+                c2.append(np.mean(z[s] <= 2))
+                best = max(ms[k]["ll_sdf" if k != "loggpis" else "ll_edf"][i]
+                           for k in ("hgmm", "gpis", "loggpis") if k in ms)
+                ok += ll[s].mean() > best
+            n1 = sum(abs(c - 0.68) <= 0.05 for c in c1)
+            n2 = sum(abs(c - 0.95) <= 0.03 for c in c2)
+            cells.append(" ".join(f"{c:.2f}" for c in c1) + f" [{n1}] / {n2} / {ok}")
+        lines.append(f"| {label} ({', '.join(f'{x:.3f}' for x in coef)}) | "
+                     + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scenes", default=",".join(B.SCENES))
     p.add_argument("--fit", action="store_true", help="fit VARIANCE_COEF on the tuned scenes")
     p.add_argument("--categories", action="store_true", help="per-bin category tables")
+    p.add_argument("--sweep", default=None, metavar="BASELINES_JSON",
+                   help="score candidate fits on every scene; LL margins against the "
+                   "hgmm/gpis/loggpis rows of this bench_accuracy.py JSON (same seed)")
     p.add_argument("--tau", type=float, default=0.68)
     p.add_argument("--coef", default=None,
                    help="t0,...,t4 for --categories (default: VARIANCE_COEF)")
@@ -158,8 +267,8 @@ def main(argv=None) -> int:
         print(f"error: unknown scene(s) {', '.join(bad)}; expected some of "
               f"{', '.join(B.SCENES)}", file=sys.stderr)
         return 2
-    if not (a.fit or a.categories):
-        print("error: nothing to do; give --fit and/or --categories", file=sys.stderr)
+    if not (a.fit or a.categories or a.sweep):
+        print("error: nothing to do; give --fit, --categories and/or --sweep", file=sys.stderr)
         return 2
     cache = Path(a.cache)
     text = []
@@ -175,6 +284,8 @@ def main(argv=None) -> int:
                 print("bunny: skipped, ../shared not found", file=sys.stderr)
                 continue
             text.append(category_table(n, scene_case(n, a.seed, cache), coef))
+    if a.sweep:
+        text.append(sweep(a.seed, cache, a.sweep))
     out = "\n".join(text) + "\n"
     print(out)
     if a.out:
