@@ -99,3 +99,67 @@ def test_quantile_fit_rejects_bad_input():
         fit_variance_quantile(np.ones((10, 2)), np.ones(10), 1.5)
     with pytest.raises(ValueError, match="finite features"):
         fit_variance_quantile(np.ones((10, 2)), np.r_[np.ones(9), np.nan])
+
+
+# ------------------------------------------------------------------ robust far field
+def _sphere_hits(rng, n=6000, flip=0.01):
+    # the upper half of the unit sphere, exact points; a fraction of normals flipped
+    v = rng.normal(size=(n, 3))
+    v[:, 2] = np.abs(v[:, 2])
+    p = v / np.linalg.norm(v, axis=1, keepdims=True)
+    nrm = p.copy()
+    bad = rng.random(n) < flip
+    nrm[bad] *= -1
+    return p, nrm, bad
+
+
+def test_robust_imls_drops_flipped_normals_of_a_plane_at_any_distance():
+    from gmmgp_app.stages.farfield import FarField
+
+    rng = np.random.default_rng(4)
+    p = np.c_[rng.uniform(-2, 2, (8000, 2)), np.zeros(8000)]
+    nrm = np.tile([0.0, 0.0, 1.0], (8000, 1))
+    nrm[rng.random(8000) < 0.02] *= -1
+    q = np.c_[rng.uniform(-0.5, 0.5, (300, 2)), rng.uniform(0.5, 2.0, 300)]
+    plain = FarField(p, nrm, 0.03, 0.001).predict(q)[0]
+    robust = FarField(p, nrm, 0.03, 0.001, robust_scale=1.0).predict(q)[0]
+    # a flipped neighbour moves the plain IMLS by 2 |f| / k; the robust one keeps it at
+    # weight exp(-(2 f / rho)^2) ~ exp(-4) (rho ~ r ~ f): within 1 % of the distance
+    assert np.sqrt(np.mean((plain - q[:, 2]) ** 2)) > 0.05
+    assert np.all(np.abs(robust - q[:, 2]) <= 0.01 * q[:, 2])
+    # without flipped normals both are the exact plane distance
+    nrm[:] = [0.0, 0.0, 1.0]
+    np.testing.assert_allclose(FarField(p, nrm, 0.03, 0.001, robust_scale=1.0).predict(q)[0],
+                               q[:, 2], atol=1e-12)
+
+
+def test_robust_imls_far_from_a_sphere_with_flipped_normals():
+    from gmmgp_app.stages.farfield import FarField
+
+    rng = np.random.default_rng(5)
+    p, nrm, _ = _sphere_hits(rng)
+    d = rng.normal(size=(400, 3))
+    d[:, 2] = np.abs(d[:, 2]) + 0.5
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    q = d * rng.uniform(1.5, 3.0, (400, 1))          # 0.5-2 m from the sphere
+    truth = np.linalg.norm(q, axis=1) - 1.0
+    h = np.sqrt(4 * np.pi / 2 / len(p))               # spacing of the hits
+    err = lambda c: FarField(p, nrm, h, 0.001, robust_scale=c).predict(q)[0] - truth  # noqa: E731
+    e0, e1 = err(0.0), err(1.0)
+    # the plain IMLS is pulled in by the 1 % flipped normals; the robust one is within
+    # the curvature error of averaging the tangent planes of a kernel of width ~ r
+    assert np.sqrt(np.mean(e0 ** 2)) > 0.02
+    assert np.sqrt(np.mean(e1 ** 2)) < 0.01
+
+
+def test_robust_imls_changes_nothing_within_the_noise_near_the_data():
+    from gmmgp_app.stages.farfield import FarField
+
+    rng = np.random.default_rng(6)
+    p = np.c_[rng.uniform(-1, 1, (5000, 2)), rng.normal(0, 0.002, 5000)]
+    nrm = np.tile([0.0, 0.0, 1.0], (5000, 1))
+    q = np.c_[rng.uniform(-0.5, 0.5, (300, 2)), rng.uniform(-0.02, 0.02, 300)]
+    a = FarField(p, nrm, 0.03, 0.002).predict(q)[0]
+    b = FarField(p, nrm, 0.03, 0.002, robust_scale=1.0).predict(q)[0]
+    # residuals ~ noise (2 mm) against a scale of rho = 30 mm: weights change by < 1 %
+    assert np.max(np.abs(a - b)) < 2e-4
