@@ -120,8 +120,8 @@ __all__ = ["FarField", "FarFieldError", "blend_fields", "BlendedField", "VARIANC
 
 #: (t0, ..., t4) of eq. calibrated_var: the 0.68-quantile regression (eq.
 #: variance_quantile_fit) on the tuned scenes' observed queries (synthetic street and
-#: sphere, 10 % handed, seed 0; ``python scripts/fit_variance.py``, docs/field.md).
-VARIANCE_COEF = (-0.4044, -0.2168, 1.0341, 0.1707, 0.1343)
+#: sphere, 10 % handed, seed 0, with the robust far field; ``python scripts/fit_variance.py``).
+VARIANCE_COEF = (-0.4467, -0.2284, 1.0049, 0.1815, 0.1381)
 
 
 class FarFieldError(ValueError):
@@ -360,7 +360,7 @@ def calibrated_variance(h, noise, r, spread2, disagreement2, v_gp, coef=VARIANCE
     ``h^2 exp(X t) + kappa d^2``, X from :func:`variance_features`.
 
     The log-linear part (coefficients t from eq. variance_quantile_fit) raises the
-    variance only as ``disagreement2 ** t3`` (t3 = 0.17), so where the GP
+    variance only as ``disagreement2 ** t3`` (t3 = 0.18), so where the GP
     and far-field means disagree by centimetres near the data (edges, surfaces seen
     from one side) it stays at a few millimetres and those queries fall 3-10 sigma
     out. Two independent estimates of the same distance that differ by ``d`` say the
