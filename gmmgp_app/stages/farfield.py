@@ -129,7 +129,8 @@ class FarFieldError(ValueError):
 
 
 class FarField:
-    """IMLS signed distance of the located surface with a variance (eqs. imls, far_var).
+    """(Robust) IMLS signed distance of the located surface with a variance (eqs. imls,
+    rimls, far_var).
 
     Parameters
     ----------
@@ -196,7 +197,8 @@ class FarField:
             (out["mean"], out["var"])
 
     def components(self, xyz, return_grad: bool = False) -> dict:
-        """Mean (eq. imls), variance (eq. far_var) and their ingredients: ``r`` the
+        """Mean (eq. imls; eq. rimls when ``robust_scale > 0``), variance (eq. far_var)
+        and their ingredients: ``r`` the
         distance to the nearest hit point, ``spread2`` the neighbours' weighted
         variance of plane distances, ``n_eff``; ``grad`` when asked."""
         x = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
