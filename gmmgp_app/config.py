@@ -308,6 +308,17 @@ class FarFieldConfig:
     kernel_growth: float = _f(
         1.0, "The kernel width grows as c times the distance to the nearest hit point.",
         0.0, 100.0, symbol="c", source="chosen on the synthetic street (0.5 / 1 / 2)")
+    robust_scale: float = _f(
+        1.0, "Scale c_r of the robust IMLS (eq. rimls in stages/farfield.py): each "
+        "neighbour's tangent-plane distance a_j is down-weighted by exp(-((a_j - f) / "
+        "(c_r rho))^2), rho the kernel width; 0: the plain IMLS (eq. imls).", 0.0, 100.0,
+        symbol="c_r", source="chosen on the street and sphere among 0 / 0.25 / 0.5 / 1 "
+        "(docs/field.md, 'Robust far field'): sphere 0.5-1 m / 1-2 m RMSE 29.5 / 40.3 -> "
+        "14.3 / 20.5 mm; 0.25 and 0.5 put the street above the tangent plane at 0.1-0.2 m")
+    robust_iterations: int = _f(
+        3, "Re-weighting passes of the robust IMLS (eq. rimls).", 0, 20,
+        source="fixed: three passes from the IMLS estimate remove a neighbour whose plane "
+        "distance is off by 2 |f| (a flipped normal)")
     spread_weight: float = _f(
         1.0, "Weight a of the neighbours' plane disagreement in the far-field variance.",
         0.0, 100.0, symbol="a", source="chosen on the synthetic street")

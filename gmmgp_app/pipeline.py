@@ -489,7 +489,8 @@ def far_field(data, cfg: MappingConfig):
     return _farfield.FarField(data.points, data.normals, f.kernel_floor,
                               max(g.value_noise, 1e-30) ** 0.5, k=f.neighbours,
                               growth=f.kernel_growth, spread_weight=f.spread_weight,
-                              beta=f.growth)
+                              beta=f.growth, robust_scale=f.robust_scale,
+                              robust_iterations=f.robust_iterations)
 
 
 def _map_stage(ctx, scan, summary=None, prior=None, hgmm=None, gp=None, gp_points=None,
