@@ -331,14 +331,16 @@ def _unique_rows(cells: np.ndarray, pack=None) -> np.ndarray:
     return cells[first]
 
 
-def _block_nodes(node_keys, values, pack, blocks, block_cells: int):
+def _block_nodes(node_keys, values, pack, blocks, block_cells: int, dense=None):
     """Lattice nodes grouped by the marching-cubes blocks ``blocks`` whose (B+1)^3 node
     boxes hold them (a node on a block face belongs to both blocks, on an edge or
     corner to 4 or 8): CSR ``ptr`` (len(blocks) + 1) over the flat local indices
     ``(i nb + j) nb + k`` (int32) and values of each block's nodes.
 
     One compiled counting pass over the nodes (no per-block box lookups, no sort of
-    (block, node) pairs: the grouping needs ~12 bytes per pair).
+    (block, node) pairs: the grouping needs ~12 bytes per pair). Blocks are found in a
+    dense table of the blocks' bounding box when it is small (``dense`` None: at most
+    8 cells per block or 1M cells; False: always by binary search).
     """
     blocks = np.asarray(blocks, dtype=np.int64).reshape(-1, 3)
     bpack = _Packer(blocks.min(0) - 1, blocks.max(0) + 1) if len(blocks) else None
@@ -347,7 +349,7 @@ def _block_nodes(node_keys, values, pack, blocks, block_cells: int):
     bkeys = bpack(blocks)
     order = np.argsort(bkeys, kind="stable")
     ncells = float(np.prod(bpack.dims.astype(np.float64)))
-    if ncells <= max(8.0 * len(blocks), 1e6):
+    if dense is not False and ncells <= max(8.0 * len(blocks), 1e6):
         # a dense table of the block box (block index per key, -1: none): one lookup
         # instead of a binary search per (node, block)
         dense = np.full(int(ncells), -1, np.int64)
