@@ -172,14 +172,25 @@ class SurfaceMap:
         field_ = self.gp if self.gp is not None else self.prior
         if self.far is None or not far:
             return field_.predict(xyz, return_grad=return_grad)
+        return self._blended().predict(xyz, return_grad=return_grad)
+
+    def predict_mean(self, xyz) -> np.ndarray:
+        """(K,) the mean of :meth:`predict` alone (the same values; what the surface
+        lattice needs: the variance model is skipped where it does not feed the mean)."""
+        xyz = as_queries(xyz)
+        if self.far is None:
+            return (self.gp if self.gp is not None else self.prior).predict(xyz)[0]
+        return self._blended().predict(xyz, mean_only=True)
+
+    def _blended(self):
+        field_ = self.gp if self.gp is not None else self.prior
         return _farfield.BlendedField(field_, self.far, self.config.far.calibrated,
                             self.config.far.gp_growth,
                             self.config.far.disagreement_weight,
                             None if is_auto(self.config.gp.length_scale)
                             else self.config.gp.length_scale,
                             self.config.far.unseen_weight, self.config.far.min_thickness,
-                            self.config.far.edge_gap).predict(
-                                xyz, return_grad=return_grad)
+                            self.config.far.edge_gap)
 
     @property
     def signed(self) -> bool:
@@ -198,7 +209,8 @@ class SurfaceMap:
                                 "has no zero level set to mesh; map with --method gmmgp.")
         return _surface.mesh_field(self.predict, self.seed_points, self.config.surface,
                                    voxel_size, max_std, progress,
-                                   self.surface_reach() if reach is None else reach)
+                                   self.surface_reach() if reach is None else reach,
+                                   predict_mean=self.predict_mean)
 
     def surface_reach(self) -> Optional[float]:
         """How far from a seed point the surface is followed (m), whatever voxel it is

@@ -3,8 +3,10 @@
 A sampler thread reads the process's resident set size (``/proc/self/status``,
 VmRSS) every few milliseconds while ``gmmgp run ARGS...`` runs in this process;
 the pipeline's stage events (start and end of each stage, the map save in between)
-mark the segments. Printed and written as JSON: per segment its seconds, the RSS at
-its start and the highest RSS sampled within it; and the process's ``ru_maxrss``.
+mark the segments. Printed and written as JSON: per segment its seconds, the process's
+CPU seconds (all threads; on a machine shared with other jobs a steadier measure of the
+work than the wall time), the RSS at its start and the highest RSS sampled within it;
+and the process's ``ru_maxrss``.
 
     PYTHONPATH=$PWD .venv/bin/python scripts/profile_run.py --json out/prof.json -- \\
         run out/peers_work/street_d1_s0/scan.npz --out out/prof_run -q
@@ -66,15 +68,15 @@ def main(argv=None) -> int:
     from gmmgp_app import pipeline
     from gmmgp_app.cli import main as gmmgp_main
 
-    marks = [(time.perf_counter(), "start")]
+    marks = [(time.perf_counter(), "start", time.process_time())]
     orig_start, orig_stage = pipeline.FanoutObserver.on_stage_start, pipeline.FanoutObserver.on_stage
 
     def on_stage_start(self, name):
-        marks.append((time.perf_counter(), f"{name}>"))
+        marks.append((time.perf_counter(), f"{name}>", time.process_time()))
         return orig_start(self, name)
 
     def on_stage(self, name, payload):
-        marks.append((time.perf_counter(), f"<{name}"))
+        marks.append((time.perf_counter(), f"<{name}", time.process_time()))
         return orig_stage(self, name, payload)
 
     pipeline.FanoutObserver.on_stage_start = on_stage_start
@@ -85,24 +87,25 @@ def main(argv=None) -> int:
     sampler = Sampler(args.period)
     sampler.start()
     rc = gmmgp_main(cli)
-    marks.append((time.perf_counter(), "end"))
+    marks.append((time.perf_counter(), "end", time.process_time()))
     sampler.stop.set()
     sampler.join()
     samples = sampler.samples
     segs = []
-    for (t0, a), (t1, b) in zip(marks[:-1], marks[1:]):
+    for (t0, a, c0), (t1, b, c1) in zip(marks[:-1], marks[1:]):
         inside = [r for t, r in samples if t0 <= t < t1]
         before = [r for t, r in samples if t < t0]
-        segs.append({"from": a, "to": b, "seconds": t1 - t0,
+        segs.append({"from": a, "to": b, "seconds": t1 - t0, "cpu_seconds": c1 - c0,
                      "rss_start_mb": before[-1] if before else None,
                      "rss_peak_mb": max(inside) if inside else None})
     maxrss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    print(f"{'segment':<28}{'s':>8}{'RSS start':>11}{'RSS peak':>10}")
+    print(f"{'segment':<28}{'s':>8}{'cpu s':>8}{'RSS start':>11}{'RSS peak':>10}")
     for s in segs:
         if s["seconds"] < 0.005:
             continue
         fmt = lambda x: f"{x:10.0f}" if x is not None else f"{'-':>10}"  # noqa: E731
-        print(f"{s['from'] + ' .. ' + s['to']:<28}{s['seconds']:8.2f} {fmt(s['rss_start_mb'])}"
+        print(f"{s['from'] + ' .. ' + s['to']:<28}{s['seconds']:8.2f}{s['cpu_seconds']:8.2f} "
+              f"{fmt(s['rss_start_mb'])}"
               f"{fmt(s['rss_peak_mb'])}")
     print(f"ru_maxrss {maxrss:.0f} MB; sampled peak {max(r for _, r in samples):.0f} MB")
     if args.tracemalloc:

@@ -289,3 +289,17 @@ def test_far_outlier_does_not_become_a_surface():
     smap = _quiet(gm.build_map, Scan(pts, origins=org))
     mean, var = smap.predict([[1.5, 1.5, 50.0]])
     assert mean[0] > 10.0 or np.sqrt(var[0]) > 10.0
+
+
+def test_lex_order_is_lexsorts_permutation():
+    """The fast lexicographic order of the scan sample is np.lexsort's, with ties in x
+    (few: sorted within their runs; many: lexsort itself) and full ties (stable)."""
+    from gmmgp_app.stages.autoscale import _lex_order
+
+    rng = np.random.default_rng(4)
+    p = rng.normal(size=(20000, 3))
+    q = p.copy()
+    q[1::40, 0] = q[::40, 0][:len(q[1::40])]          # a few runs of equal x
+    q[5::97] = q[4::97][:len(q[5::97])]                # a few identical rows
+    for pts in (p, q, np.round(p, 1), np.zeros((7, 3)), p[:1]):
+        np.testing.assert_array_equal(_lex_order(pts), np.lexsort(pts.T[::-1]))

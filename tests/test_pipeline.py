@@ -206,6 +206,11 @@ def test_map_surface_reach_is_the_auto_voxels_whatever_the_voxel(sphere):
     b = extract_surface(smap.predict, smap.seed_points, vox)   # the voxel's own reach
     np.testing.assert_array_equal(a.vertices, b.vertices)
     np.testing.assert_array_equal(a.faces, b.faces)
+    # the map's lattice takes the mean alone (predict_mean): the same values bit for bit
+    np.testing.assert_array_equal(a.vertex_variance, b.vertex_variance)
+    q = a.vertices[::7]
+    q = q + np.random.default_rng(1).normal(scale=0.05, size=q.shape)
+    np.testing.assert_array_equal(smap.predict_mean(q), smap.predict(q)[0])
     c = smap.extract_surface(ht)
     d = extract_surface(smap.predict, smap.seed_points, ht, reach=smap.surface_reach())
     e = extract_surface(smap.predict, smap.seed_points, ht)    # the old, growing reach

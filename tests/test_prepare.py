@@ -201,3 +201,19 @@ def test_normals_agree_with_open3d_estimate_normals():
     assert valid.all()
     cos = np.abs(np.einsum("ij,ij->i", ours, theirs))
     assert np.min(cos) > 1 - 1e-6
+
+
+def test_first_of_rows_is_uniques_first_index():
+    """The packed-key first occurrence per distinct row is np.unique's (axis=0,
+    return_index), negative coordinates and duplicates included; the voxel subsample
+    built on it keeps the same points as one built on np.unique."""
+    from gmmgp_app.stages.prepare import _first_of_rows
+
+    rng = np.random.default_rng(2)
+    for n, span in ((0, 3), (1, 3), (500, 3), (5000, 40)):
+        keys = rng.integers(-span, span, size=(n, 3)).astype(np.int64)
+        want = np.unique(keys, axis=0, return_index=True)[1] if n else np.zeros(0, np.int64)
+        np.testing.assert_array_equal(_first_of_rows(keys), want)
+    huge = np.array([[0, 0, 0], [2 ** 40, 0, 0], [0, 2 ** 40, 5], [0, 0, 0]], np.int64)
+    np.testing.assert_array_equal(_first_of_rows(huge),
+                                  np.unique(huge, axis=0, return_index=True)[1])

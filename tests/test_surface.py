@@ -119,9 +119,11 @@ def test_scanned_sphere_mesh_is_accurate_and_tied_em_is_what_makes_it_so():
     assert free > 2 * tied
 
 
-def test_node_grouping_by_block_matches_a_brute_force_box_lookup():
+@pytest.mark.parametrize("dense", [None, False])
+def test_node_grouping_by_block_matches_a_brute_force_box_lookup(dense):
     """Every node lands in exactly the blocks whose (B+1)^3 node box contains it, at
-    its local index, and nowhere else (faces, edges, corners shared)."""
+    its local index, and nowhere else (faces, edges, corners shared); blocks found in
+    the dense table or by binary search alike."""
     from gmmgp_app.stages import surface as S
 
     rng = np.random.default_rng(3)
@@ -137,7 +139,7 @@ def test_node_grouping_by_block_matches_a_brute_force_box_lookup():
     blocks = S._unique_rows(np.concatenate([np.floor_divide(ijk, B),
                                             np.floor_divide(ijk, B) - 1]))
     blocks = blocks[rng.permutation(len(blocks))]
-    ptr, loc, val = S._block_nodes(keys, values, pack, blocks, B)
+    ptr, loc, val = S._block_nodes(keys, values, pack, blocks, B, dense=dense)
     assert len(ptr) == len(blocks) + 1 and ptr[-1] == len(loc) == len(val)
     nb = B + 1
     n_shared = 0
@@ -151,6 +153,34 @@ def test_node_grouping_by_block_matches_a_brute_force_box_lookup():
         n_shared += len(want)
     assert n_shared > len(keys)          # face, edge and corner nodes in several blocks
 
+
+def test_block_volume_is_the_nodes_with_placeholders_and_says_when_no_sign_change():
+    """The compiled block volume equals its numpy statement (values at the given nodes,
+    1.0 elsewhere and at non-finite values, mask of the finite ones), and is None
+    exactly when the finite values do not straddle 0."""
+    from gmmgp_app.stages import surface as S
+
+    rng = np.random.default_rng(5)
+    nb = 6
+    for case in range(40):
+        n = rng.integers(0, 60)
+        loc = rng.permutation(nb ** 3)[:n].astype(np.int32)
+        val = rng.normal(size=n) + (case % 5 - 2)                    # some one-signed
+        val[rng.random(n) < 0.1] = np.nan
+        if case == 3 and n:
+            val[:] = 0.0                                              # all exactly zero
+        out = S._block_volume(np.r_[np.zeros(3, np.int32), loc],
+                              np.r_[np.full(3, 7.0), val], 3, 3 + n, nb)
+        vol = np.full(nb ** 3, np.nan)
+        vol[loc] = val
+        fin = np.isfinite(vol)
+        straddles = fin.any() and vol[fin].min() <= 0 <= vol[fin].max()
+        if not straddles:
+            assert out is None
+            continue
+        filled, finite = out
+        np.testing.assert_array_equal(finite.reshape(-1), fin)
+        np.testing.assert_array_equal(filled.reshape(-1), np.where(fin, vol, 1.0))
 
 
 def _noise_field(h):

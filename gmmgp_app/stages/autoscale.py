@@ -99,6 +99,23 @@ class ScanScale:
         return dataclasses.asdict(self)
 
 
+def _lex_order(pts: np.ndarray) -> np.ndarray:
+    """``np.lexsort(pts.T[::-1])``: the rows' order by x, then y, then z, stable (the
+    same permutation), through a stable argsort of x with only the runs of equal x
+    sorted by (x, y, z) (4x faster on 1.3M float scan points, where such runs are
+    rare; lexsort itself when more than an eighth of the rows tie in x)."""
+    order = np.argsort(pts[:, 0], kind="stable")
+    xs = pts[order, 0]
+    tie = xs[1:] == xs[:-1]
+    if tie.sum() * 8 > len(tie):
+        return np.lexsort(pts.T[::-1])       # quantised coordinates: many runs
+    if tie.any():
+        pos = np.flatnonzero(np.r_[tie, False] | np.r_[False, tie])   # whole runs
+        sub = order[pos]
+        order[pos] = sub[np.lexsort((pts[sub, 2], pts[sub, 1], pts[sub, 0]))]
+    return order
+
+
 def measure_scan(points, origins=None, *, tree: Optional[cKDTree] = None,
                  seed: int = 0) -> ScanScale:
     """Spacing, noise along the normals, extent and sensor distance of a scan.
@@ -127,7 +144,7 @@ def measure_scan(points, origins=None, *, tree: Optional[cKDTree] = None,
     # whatever order the points come in (tiles streamed from a file or cut in memory),
     # and the same after scaling or shifting the scan
     if n > _SAMPLE:
-        order = np.lexsort(pts.T[::-1])
+        order = _lex_order(pts)
         idx = np.sort(order[np.linspace(0, n - 1, _SAMPLE).astype(np.int64)])
     else:
         idx = np.arange(n)

@@ -513,7 +513,9 @@ class BlendedField:
         # the GP's length scale l (auto rule 1.75 h_t when not given)
         self.length_scale = float(length_scale) if length_scale else 1.75 * far.rho0
 
-    def predict(self, xyz, return_grad: bool = False):
+    def predict(self, xyz, return_grad: bool = False, mean_only: bool = False):
+        """Mean, variance[, gradient]; ``mean_only``: the mean alone (the same values;
+        the variance model, which the mean does not use, is skipped)."""
         out = self.base.predict(xyz, return_grad=return_grad)
         c = self.far.components(xyz, return_grad)
         # the GP's weight fades with the distance to the data: beyond a length scale
@@ -521,6 +523,8 @@ class BlendedField:
         v_gp = out[1] + (self.gp_growth * c["r"]) ** 2
         res = blend_fields(out[0], v_gp, c["mean"], c["var"],
                            *((out[2], c["grad"]) if return_grad else ()))
+        if mean_only:
+            return res[0]
         if self.calibrated:
             d2 = (out[0] - c["mean"]) ** 2
             # within a length scale of the data the GP mean is the data's (beyond, it is

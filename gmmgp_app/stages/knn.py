@@ -154,64 +154,78 @@ def _knn_grid(x, k, cell, lo, dims, tk, ts, te, pts, order, max_ring):
     idx = np.empty((K, k), np.int64)
     done = np.zeros(K, np.bool_)
     mask = len(tk) - 1
-    for q in nb.prange(K):
-        bd = np.full(k, np.inf)
-        bi = np.full(k, -1, np.int64)
-        cnt = 0
-        c0 = int(math.floor(x[q, 0] / cell))
-        c1 = int(math.floor(x[q, 1] / cell))
-        c2 = int(math.floor(x[q, 2] / cell))
-        ok = False
-        for r in range(max_ring + 1):
-            for a in range(c0 - r, c0 + r + 1):
-                qa = a - lo[0]
-                if qa < 0 or qa >= dims[0]:
-                    continue
-                for b in range(c1 - r, c1 + r + 1):
-                    qb = b - lo[1]
-                    if qb < 0 or qb >= dims[1]:
+    slack = (1e-9 * cell) ** 2
+    chunk = 512
+    for t in nb.prange((K + chunk - 1) // chunk):
+        bd = np.empty(k)                 # one scratch pair per chunk of queries
+        bi = np.empty(k, np.int64)
+        for q in range(t * chunk, min(K, (t + 1) * chunk)):
+            bd[:] = np.inf
+            bi[:] = -1
+            cnt = 0
+            c0 = int(math.floor(x[q, 0] / cell))
+            c1 = int(math.floor(x[q, 1] / cell))
+            c2 = int(math.floor(x[q, 2] / cell))
+            ok = False
+            for r in range(max_ring + 1):
+                for a in range(c0 - r, c0 + r + 1):
+                    qa = a - lo[0]
+                    if qa < 0 or qa >= dims[0]:
                         continue
-                    edge_ab = a == c0 - r or a == c0 + r or b == c1 - r or b == c1 + r
-                    for c in range(c2 - r, c2 + r + 1):
-                        if not edge_ab and c != c2 - r and c != c2 + r:
-                            continue          # inside the shell: scanned before
-                        qc = c - lo[2]
-                        if qc < 0 or qc >= dims[2]:
+                    for b in range(c1 - r, c1 + r + 1):
+                        qb = b - lo[1]
+                        if qb < 0 or qb >= dims[1]:
                             continue
-                        key = (qa * dims[1] + qb) * dims[2] + qc
-                        s = _slot(tk, key, mask)
-                        if s < 0:
-                            continue
-                        for j in range(ts[s], te[s]):
-                            d0 = x[q, 0] - pts[j, 0]
-                            d1 = x[q, 1] - pts[j, 1]
-                            d2 = x[q, 2] - pts[j, 2]
-                            dd = d0 * d0 + d1 * d1 + d2 * d2
-                            if cnt < k or dd < bd[k - 1]:
-                                m = cnt if cnt < k else k - 1
-                                while m > 0 and bd[m - 1] > dd:
-                                    bd[m] = bd[m - 1]
-                                    bi[m] = bi[m - 1]
-                                    m -= 1
-                                bd[m] = dd
-                                bi[m] = j
-                                if cnt < k:
-                                    cnt += 1
-            # nearest point outside the scanned box of cells [c - r, c + r]
-            out = math.inf
-            for ax in range(3):
-                ca = c0 if ax == 0 else (c1 if ax == 1 else c2)
-                lo_f = x[q, ax] - (ca - r) * cell
-                hi_f = (ca + r + 1) * cell - x[q, ax]
-                out = min(out, lo_f, hi_f)
-            if cnt == k and bd[k - 1] <= out * out:
-                ok = True
-                break
-        if ok:
-            for m in range(k):
-                dist[q, m] = math.sqrt(bd[m])
-                idx[q, m] = order[bi[m]]
-            done[q] = True
+                        edge_ab = a == c0 - r or a == c0 + r or b == c1 - r or b == c1 + r
+                        for c in range(c2 - r, c2 + r + 1):
+                            if not edge_ab and c != c2 - r and c != c2 + r:
+                                continue          # inside the shell: scanned before
+                            qc = c - lo[2]
+                            if qc < 0 or qc >= dims[2]:
+                                continue
+                            if cnt == k:
+                                # skip a cell wholly farther than the k-th best (its points
+                                # could not enter; the margin covers the cell bounds' round-off)
+                                g0 = max(a * cell - x[q, 0], x[q, 0] - (a + 1) * cell, 0.0)
+                                g1 = max(b * cell - x[q, 1], x[q, 1] - (b + 1) * cell, 0.0)
+                                g2 = max(c * cell - x[q, 2], x[q, 2] - (c + 1) * cell, 0.0)
+                                gg = g0 * g0 + g1 * g1 + g2 * g2
+                                if gg > bd[k - 1] * (1.0 + 1e-9) + slack:
+                                    continue
+                            key = (qa * dims[1] + qb) * dims[2] + qc
+                            s = _slot(tk, key, mask)
+                            if s < 0:
+                                continue
+                            for j in range(ts[s], te[s]):
+                                d0 = x[q, 0] - pts[j, 0]
+                                d1 = x[q, 1] - pts[j, 1]
+                                d2 = x[q, 2] - pts[j, 2]
+                                dd = d0 * d0 + d1 * d1 + d2 * d2
+                                if cnt < k or dd < bd[k - 1]:
+                                    m = cnt if cnt < k else k - 1
+                                    while m > 0 and bd[m - 1] > dd:
+                                        bd[m] = bd[m - 1]
+                                        bi[m] = bi[m - 1]
+                                        m -= 1
+                                    bd[m] = dd
+                                    bi[m] = j
+                                    if cnt < k:
+                                        cnt += 1
+                # nearest point outside the scanned box of cells [c - r, c + r]
+                out = math.inf
+                for ax in range(3):
+                    ca = c0 if ax == 0 else (c1 if ax == 1 else c2)
+                    lo_f = x[q, ax] - (ca - r) * cell
+                    hi_f = (ca + r + 1) * cell - x[q, ax]
+                    out = min(out, lo_f, hi_f)
+                if cnt == k and bd[k - 1] <= out * out:
+                    ok = True
+                    break
+            if ok:
+                for m in range(k):
+                    dist[q, m] = math.sqrt(bd[m])
+                    idx[q, m] = order[bi[m]]
+                done[q] = True
     return dist, idx, done
 
 

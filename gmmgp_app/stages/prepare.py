@@ -80,12 +80,28 @@ def subsample(points: np.ndarray, cfg: PrepareConfig,
     if cfg.subsample_voxel is not None:
         perm = rng.permutation(n)
         keys = np.floor((points[perm] - points.min(axis=0)) / cfg.subsample_voxel).astype(np.int64)
-        _, first = np.unique(keys, axis=0, return_index=True)
-        return np.sort(perm[first])
+        return np.sort(perm[_first_of_rows(keys)])
     m = max(1, int(round(cfg.subsample_rate * n)))
     if m >= n:
         return np.arange(n, dtype=np.int64)
     return np.sort(rng.choice(n, size=m, replace=False))
+
+
+def _first_of_rows(keys: np.ndarray) -> np.ndarray:
+    """Index of the first occurrence of each distinct row of ``keys`` ((n, 3) int64),
+    rows in lexicographic order: ``np.unique(keys, axis=0, return_index=True)[1]``,
+    through one packed int64 per row (several times faster on a million rows; the
+    same indices, since the packing keeps the lexicographic order and both sorts are
+    stable)."""
+    if len(keys) == 0:
+        return np.zeros(0, np.int64)
+    lo = keys.min(0)
+    dims = keys.max(0) - lo + 1
+    if float(np.prod(dims.astype(np.float64))) >= 2.0 ** 62:
+        return np.unique(keys, axis=0, return_index=True)[1]
+    q = keys - lo
+    packed = (q[:, 0] * dims[1] + q[:, 1]) * dims[2] + q[:, 2]
+    return np.unique(packed, return_index=True)[1]
 
 
 def estimate_normals(points: np.ndarray, radius: float, max_nn: int,

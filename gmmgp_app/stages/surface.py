@@ -10,6 +10,7 @@ vertices with the same lattice-edge key (no duplicates, no cracks).
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -111,19 +112,21 @@ def surface_reach(seeds: np.ndarray, voxel_size: float) -> float:
 
 def mesh_field(predict: Callable, seeds: np.ndarray, cfg, voxel_size: Optional[float] = None,
                max_std: Optional[float] = None, progress=None,
-               reach: Optional[float] = None) -> SurfaceMesh:
+               reach: Optional[float] = None,
+               predict_mean: Optional[Callable] = None) -> SurfaceMesh:
     """:func:`extract_surface` with the voxel and std cut of ``cfg`` (SurfaceConfig)
     unless given: the one place where a map's surface settings are resolved."""
     return extract_surface(predict, seeds,
                            voxel_size=cfg.voxel_size if voxel_size is None else voxel_size,
                            max_std=cfg.max_std if max_std is None else max_std,
-                           progress=progress, reach=reach)
+                           progress=progress, reach=reach, predict_mean=predict_mean)
 
 
 def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.05, *,
                     max_std: Optional[float] = None, block_cells: int = 32,
                     dilate: Optional[int] = None, batch: int = 65_536,
-                    progress=None, reach: Optional[float] = None) -> SurfaceMesh:
+                    progress=None, reach: Optional[float] = None,
+                    predict_mean: Optional[Callable] = None) -> SurfaceMesh:
     """Zero level set of a field as a triangle mesh with per-vertex variance.
 
     The lattice is evaluated only where the surface is: starting from the cells
@@ -153,6 +156,10 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
         diagonal plus the median seed spacing (:func:`surface_reach`, grows with the
         voxel); a map passes the reach of its own voxel at any voxel
         (``SurfaceMap.surface_reach``).
+    predict_mean : callable, optional
+        ``predict_mean(xyz (K,3)) -> mean (K,)``, the same mean as ``predict``'s without
+        its variance: what the lattice nodes need (only the mesh vertices need the
+        variance). Default: ``predict(xyz)[0]``.
 
     Returns
     -------
@@ -182,7 +189,8 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     cells = _unique_rows(np.floor(seeds / h).astype(np.int64))
     pack = _Packer(cells.min(0) - dilate - block_cells - 2,
                    cells.max(0) + dilate + block_cells + 2)
-    lattice = _LatticeValues(predict, h, pack, batch)
+    lattice = _LatticeValues(predict_mean if predict_mean is not None
+                             else (lambda x: predict(x)[0]), h, pack, batch)
     cell_keys = np.sort(pack(cells))
     frontier = cells
     bar = progress(dilate + 1, "surface field") if progress else None
@@ -225,13 +233,12 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
         bar and bar.update(1)
         if s1 - s0 < 8:
             continue
-        vol = np.full(nb * nb * nb, np.nan)
-        vol[node_local[s0:s1]] = node_value[s0:s1]
-        vol = vol.reshape(nb, nb, nb)
-        finite = np.isfinite(vol)
-        if np.nanmin(vol) > 0 or np.nanmax(vol) < 0:
+        # the block's nodes, unevaluated ones masked (value 1.0: a placeholder, faces
+        # on it are dropped); None when no evaluated node is <= 0 or none >= 0
+        filled = _block_volume(node_local, node_value, s0, s1, nb)
+        if filled is None:
             continue
-        vol_filled = np.where(finite, vol, 1.0)  # placeholder; faces on it are dropped
+        vol_filled, finite = filled
         try:
             v, f, _, _ = marching_cubes(vol_filled, level=0.0, mask=finite,
                                         allow_degenerate=False)
@@ -324,14 +331,16 @@ def _unique_rows(cells: np.ndarray, pack=None) -> np.ndarray:
     return cells[first]
 
 
-def _block_nodes(node_keys, values, pack, blocks, block_cells: int):
+def _block_nodes(node_keys, values, pack, blocks, block_cells: int, dense=None):
     """Lattice nodes grouped by the marching-cubes blocks ``blocks`` whose (B+1)^3 node
     boxes hold them (a node on a block face belongs to both blocks, on an edge or
     corner to 4 or 8): CSR ``ptr`` (len(blocks) + 1) over the flat local indices
     ``(i nb + j) nb + k`` (int32) and values of each block's nodes.
 
     One compiled counting pass over the nodes (no per-block box lookups, no sort of
-    (block, node) pairs: the grouping needs ~12 bytes per pair).
+    (block, node) pairs: the grouping needs ~12 bytes per pair). Blocks are found in a
+    dense table of the blocks' bounding box when it is small (``dense`` None: at most
+    8 cells per block or 1M cells; False: always by binary search).
     """
     blocks = np.asarray(blocks, dtype=np.int64).reshape(-1, 3)
     bpack = _Packer(blocks.min(0) - 1, blocks.max(0) + 1) if len(blocks) else None
@@ -339,15 +348,24 @@ def _block_nodes(node_keys, values, pack, blocks, block_cells: int):
         return np.zeros(len(blocks) + 1, np.int64), np.zeros(0, np.int32), np.zeros(0)
     bkeys = bpack(blocks)
     order = np.argsort(bkeys, kind="stable")
+    ncells = float(np.prod(bpack.dims.astype(np.float64)))
+    if dense is not False and ncells <= max(8.0 * len(blocks), 1e6):
+        # a dense table of the block box (block index per key, -1: none): one lookup
+        # instead of a binary search per (node, block)
+        dense = np.full(int(ncells), -1, np.int64)
+        dense[bkeys] = np.arange(len(bkeys))
+    else:
+        dense = np.zeros(0, np.int64)
     return _block_nodes_kernel(np.asarray(node_keys, np.int64), np.asarray(values, np.float64),
                                pack.lo, pack.dims, int(block_cells), bkeys[order],
-                               order.astype(np.int64), bpack.lo, bpack.dims)
+                               order.astype(np.int64), bpack.lo, bpack.dims, dense)
 
 
 @nb.njit(cache=True)
-def _block_nodes_kernel(keys, values, lo, dims, B, bkeys_sorted, bindex, blo, bdims):
+def _block_nodes_kernel(keys, values, lo, dims, B, bkeys_sorted, bindex, blo, bdims, dense):
     """:func:`_block_nodes`: per node its <= 8 blocks (shifted by one along the axes where
-    it lies on a block face), counted, then written in node order per block."""
+    it lies on a block face), counted, then written in node order per block. A block is
+    found in ``dense`` (block index per key) when given, else by binary search."""
     nblk = len(bkeys_sorted)
     nb_ = B + 1
     plane = dims[1] * dims[2]
@@ -356,6 +374,10 @@ def _block_nodes_kernel(keys, values, lo, dims, B, bkeys_sorted, bindex, blo, bd
     fill = np.zeros(nblk, np.int64)
     loc = np.empty(0, np.int32)
     val = np.empty(0)
+    ijk = np.empty(3, np.int64)     # scratch, rewritten per node
+    base = np.empty(3, np.int64)
+    face = np.empty(3, np.bool_)
+    q = np.empty(3, np.int64)
     for sweep in range(2):
         if sweep == 1:
             ptr = np.zeros(nblk + 1, np.int64)
@@ -366,19 +388,15 @@ def _block_nodes_kernel(keys, values, lo, dims, B, bkeys_sorted, bindex, blo, bd
             val = np.empty(ptr[-1])
         for n in range(len(keys)):
             kq = keys[n]
-            ijk = np.empty(3, np.int64)
             ijk[0] = kq // plane + lo[0]
             ijk[1] = (kq % plane) // dims[2] + lo[1]
             ijk[2] = kq % dims[2] + lo[2]
-            base = np.empty(3, np.int64)
-            face = np.empty(3, np.bool_)
             for a in range(3):
                 base[a] = ijk[a] // B            # floor division, as np.floor_divide
                 face[a] = ijk[a] - base[a] * B == 0
             for o in range(8):
                 ok = True
                 bk = 0
-                q = np.empty(3, np.int64)
                 for a in range(3):
                     oa = (o >> (2 - a)) & 1
                     if oa == 1 and not face[a]:
@@ -392,17 +410,22 @@ def _block_nodes_kernel(keys, values, lo, dims, B, bkeys_sorted, bindex, blo, bd
                     bk = bk * bdims[a] + (b - blo[a])
                 if not ok:
                     continue
-                # binary search of the block key
-                lo_, hi_ = 0, nblk
-                while lo_ < hi_:
-                    mid = (lo_ + hi_) // 2
-                    if bkeys_sorted[mid] < bk:
-                        lo_ = mid + 1
-                    else:
-                        hi_ = mid
-                if lo_ == nblk or bkeys_sorted[lo_] != bk:
-                    continue
-                bi = bindex[lo_]
+                if len(dense):
+                    bi = dense[bk]
+                    if bi < 0:
+                        continue
+                else:
+                    # binary search of the block key
+                    lo_, hi_ = 0, nblk
+                    while lo_ < hi_:
+                        mid = (lo_ + hi_) // 2
+                        if bkeys_sorted[mid] < bk:
+                            lo_ = mid + 1
+                        else:
+                            hi_ = mid
+                    if lo_ == nblk or bkeys_sorted[lo_] != bk:
+                        continue
+                    bi = bindex[lo_]
                 if sweep == 0:
                     counts[bi] += 1
                 else:
@@ -412,11 +435,44 @@ def _block_nodes_kernel(keys, values, lo, dims, B, bkeys_sorted, bindex, blo, bd
     return ptr, loc, val
 
 
+def _block_volume(node_local, node_value, s0: int, s1: int, nb: int):
+    """(nb, nb, nb) values of one block's nodes ``node_local[s0:s1]`` with 1.0 at the
+    unevaluated (or non-finite) ones, and the mask of the evaluated ones; None when
+    the evaluated values do not straddle 0 (all > 0, all < 0, or none)."""
+    vol = np.empty(nb * nb * nb)
+    finite = np.empty(nb * nb * nb, np.bool_)
+    if not _fill_block(node_local, node_value, s0, s1, vol, finite):
+        return None
+    return vol.reshape(nb, nb, nb), finite.reshape(nb, nb, nb)
+
+
+@nb.njit(cache=True)
+def _fill_block(node_local, node_value, s0, s1, vol, finite):
+    """:func:`_block_volume` in one pass: True when some evaluated value is <= 0 and
+    some is >= 0."""
+    vol[:] = 1.0
+    finite[:] = False
+    has_neg = False
+    has_pos = False
+    for n in range(s0, s1):
+        v = node_value[n]
+        if math.isfinite(v):
+            i = node_local[n]
+            vol[i] = v
+            finite[i] = True
+            if v <= 0.0:
+                has_neg = True
+            if v >= 0.0:
+                has_pos = True
+    return has_neg and has_pos
+
+
 class _LatticeValues:
     """Field values at lattice nodes, evaluated once each, in large batches."""
 
-    def __init__(self, predict, h: float, pack, batch: int):
-        self.predict, self.h, self.pack, self.batch = predict, h, pack, batch
+    def __init__(self, predict_mean, h: float, pack, batch: int):
+        # predict_mean(xyz) -> (K,) mean
+        self.predict, self.h, self.pack, self.batch = predict_mean, h, pack, batch
         self.keys = np.zeros(0, dtype=np.int64)       # sorted
         self.values = np.zeros(0)
 
@@ -439,7 +495,7 @@ class _LatticeValues:
             nodes = flat[np.flatnonzero(missing)[first]]
             vals = np.empty(len(nodes))
             for s in range(0, len(nodes), self.batch):
-                vals[s:s + self.batch] = self.predict(nodes[s:s + self.batch] * self.h)[0]
+                vals[s:s + self.batch] = self.predict(nodes[s:s + self.batch] * self.h)
             # merge the sorted new keys into the sorted keys (none is in both)
             at = np.searchsorted(self.keys, new_keys)
             self.keys = np.insert(self.keys, at, new_keys)
