@@ -9,8 +9,8 @@ Two kinds of scene (z is up):
 
 * long in one horizontal direction (a street, a corridor: the longer horizontal side of
   the points' box at least :data:`ELONGATED` times the shorter): the camera stands
-  above the middle of the short side, behind the near end, and looks down along the
-  long side. Facades on both sides are seen from the street, where the sensor was
+  above the street (inside the short side, a quarter off its middle), behind the near
+  end, and looks down along the long side. Facades on both sides are seen from the street, where the sensor was
   (from the side, the near facade hid the far one and was seen from behind);
 * compact (an object, a room): oblique, from the side (-y) and above.
 """
@@ -29,7 +29,14 @@ ELONGATED = 1.6
 #: Camera offset from the box centre, in units of the box diagonal: compact scenes
 #: (x, y, z), and for elongated ones (along the long side, up).
 _OBLIQUE = np.array([0.25, -0.75, 0.55])
-_ALONG, _UP = -0.75, 0.5
+_ALONG, _UP = -1.0, 0.42
+#: ... and across an elongated scene, in units of its short side: a quarter of the way
+#: towards -y (or -x) from the middle, inside the street, so that the far side's facade
+#: is seen a little more from the front than the near one.
+_ACROSS = -0.25
+#: ... and looked at: this much of the long side nearer than the box centre, at this
+#: fraction of the height above the box's floor.
+_NEAR, _LOW = 0.12, 0.3
 
 
 @dataclass(frozen=True)
@@ -93,6 +100,14 @@ def default_view(points) -> DefaultView:
         offset = np.zeros(3)
         offset[along] = _ALONG
         offset[2] = _UP
+        offset[1 - along] = _ACROSS * float(hi[1 - along] - lo[1 - along]) / ext
+        # look at a point low and on the near side of the middle: the near end and the
+        # road stay in the picture (aimed at the box centre, the upper half was sky)
+        eye = centre + ext * offset
+        centre = centre.copy()
+        centre[along] -= _NEAR * float(hi[along] - lo[along])
+        centre[2] = lo[2] + _LOW * float(hi[2] - lo[2])
+        return DefaultView(lo, hi, centre, eye, np.array([0.0, 0.0, 1.0]), along)
     return DefaultView(lo, hi, centre, centre + ext * offset, np.array([0.0, 0.0, 1.0]), along)
 
 
