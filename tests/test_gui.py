@@ -604,6 +604,10 @@ def test_default_view_looks_along_a_street_from_above_and_at_an_object_obliquely
     np.testing.assert_allclose(vy.eye[[1, 0, 2]], v.eye, atol=1e-9)
     sh = compare_shift(pts)
     assert sh[0] == 0 and sh[2] == 0 and sh[1] > np.ptp(pts[:, 1])  # beside, across the view
+    both = np.vstack([pts, pts + sh])  # the compare layer: both framed, viewed as the street
+    assert default_view(both).along is None and default_view(both, like=pts).along == 0
+    vb = default_view(both, like=pts)
+    assert vb.lo[1] < pts[:, 1].min() + 1 and vb.hi[1] > (pts + sh)[:, 1].max() - 1
     # a compact object (a bunny-sized blob): oblique from -y and above, as before
     blob = np.random.default_rng(1).normal(size=(2000, 3)) * [0.08, 0.06, 0.07]
     b = default_view(blob)

@@ -39,7 +39,7 @@ from .gui_model import (FRAME_WAIT_S, STAGE_LABELS, STAGES, Cancelled, ProgressT
                         StageResults, ViewerError, ViewerModel, first_affected_stage,
                         wait_for_frame)
 from .gui_script import ScriptRunner, load_script
-from .gui_layers import (LAYERS, STAGE_LAYERS, compare_scene_points, layer_geometry,
+from .gui_layers import (LAYERS, STAGE_LAYERS, layer_geometry, scene_view,
                          layer_parts, materials, set_lighting)
 from .gui_tuning import run_record
 from ..config import concrete, is_auto
@@ -847,14 +847,13 @@ class ViewerApp:
         return float(np.linalg.norm(np.ptp(s.points, axis=0))) or 1.0
 
     def reset_camera(self):
-        pts = compare_scene_points(self)
-        if pts is None:
+        v = scene_view(self)  # a street: along it from above; an object: oblique
+        if v is None:
             return
         import open3d as o3d
 
-        from .gui_camera import default_view, sun_direction
+        from .gui_camera import sun_direction
 
-        v = default_view(pts)  # a street: along it from above; an object: oblique
         bbox = o3d.geometry.AxisAlignedBoundingBox(v.lo, v.hi)
         self.scene.setup_camera(50.0, bbox, v.centre)
         self.scene.look_at(v.centre, v.eye, v.up)

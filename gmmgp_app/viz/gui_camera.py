@@ -88,12 +88,16 @@ def _long_axis(lo, hi):
     return None
 
 
-def default_view(points) -> DefaultView:
-    """The default camera for ``points`` (N, 3) (see the module's docstring)."""
+def default_view(points, like=None) -> DefaultView:
+    """The default camera for ``points`` (N, 3) (see the module's docstring).
+
+    ``like`` (M, 3), optional: the points whose box decides the kind of view (the
+    compare layer frames the scan and its shifted copy, but views them as it views
+    the scan: a street along its long side, the copy beside it)."""
     lo, hi = _box(points)
     centre = 0.5 * (lo + hi)
     ext = float(np.linalg.norm(hi - lo)) or 1.0
-    along = _long_axis(lo, hi)
+    along = _long_axis(*_box(points if like is None else like))
     if along is None:
         offset = _OBLIQUE
     else:

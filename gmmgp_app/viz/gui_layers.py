@@ -123,6 +123,17 @@ def compare_scene_points(view):
     return np.vstack([pts, pts + compare_shift(pts)])
 
 
+def scene_view(view):
+    """The default camera (:func:`gui_camera.default_view`) of what ``view`` shows: its
+    points and the compare copy framed, viewed as the scan alone (None without a scan)."""
+    from .gui_camera import default_view
+
+    pts = compare_scene_points(view)
+    if pts is None:
+        return None
+    return default_view(pts, like=view.model.results.scan.points)
+
+
 def _compare_geometry(view, r, stage):
     """The previous run (``view.previous``) beside the current one: its HGMM level,
     GP points or surface, shifted by :func:`gui_tuning.compare_shift`."""

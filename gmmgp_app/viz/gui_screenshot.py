@@ -50,7 +50,7 @@ from typing import Optional
 import numpy as np
 
 from .gui_layers import (LAYERS, STAGE_LAYERS, compare_scene_points, layer_geometry,  # noqa: F401
-                         materials, set_lighting)
+                         materials, scene_view, set_lighting)
 from .gui_model import STAGES, ViewerError, ViewerModel
 
 __all__ = ["STAGE_LAYERS", "materials", "camera_pose", "SceneState", "render_png",
@@ -170,16 +170,17 @@ def render_png(model: ViewerModel, path, size=(1600, 1000), stage: Optional[str]
         parts = geom if isinstance(geom, dict) else {name: geom}
         for gname, g in parts.items():
             scene.add_geometry(gname, g, mats[gname if mat is None else mat])
-    pts = compare_scene_points(state)
+    v = scene_view(state)  # as the window's (ViewerApp.reset_camera)
     if segment is not None:
+        from .gui_camera import default_view
+
         sg = r.check.segments[segment]
         pts = np.vstack([sg["bbox_min"], sg["bbox_max"]])
         pad = max(float(np.linalg.norm(pts[1] - pts[0])), 0.3)
-        pts = np.vstack([pts - pad, pts + pad])
-    if pts is not None:
-        from .gui_camera import default_view, sun_direction
+        v = default_view(np.vstack([pts - pad, pts + pad]))
+    if v is not None:
+        from .gui_camera import sun_direction
 
-        v = default_view(pts)  # as the window's (ViewerApp.reset_camera)
         ext, dist = v.extent, v.distance
         ren.setup_camera(50.0, v.centre.astype(np.float32), v.eye.astype(np.float32),
                          v.up.astype(np.float32), max(1e-3 * dist, 1e-4), dist + 4.0 * ext)
