@@ -49,7 +49,7 @@ from typing import Optional
 
 import numpy as np
 
-from .gui_layers import (LAYERS, STAGE_LAYERS, compare_scene_points, layer_geometry,  # noqa: F401
+from .gui_layers import (LAYERS, STAGE_LAYERS, layer_geometry,  # noqa: F401
                          materials, scene_view, set_lighting)
 from .gui_model import STAGES, ViewerError, ViewerModel
 
