@@ -468,6 +468,9 @@ def test_app_steps_through_stages_and_reruns_under_xvfb(tmp_path, box_scan):
     assert len(s0["runs"]) == 1 and s0["runs"][0]["field_change_rms"] is None
     assert len(s2["runs"]) == 2 and s2["runs"][1]["leaves"] == s2["counts"]["leaves"]
     assert s2["runs"][1]["field_change_rms"] > 0 and "run 2: c* 0.1" in s2["runs_label"]
+    # the worker waited after each stage but the last (no 3D view here: drawn at once)
+    assert [w[:2] for w in s2["frame_waits"]] == [["hgmm", "drawn"], ["gmr", "drawn"],
+                                                  ["gp", "drawn"]]
     cmp = json.loads((out / "cmp.json").read_text())
     assert "compare" in cmp["layers"] and "compare" in cmp["drawn"]
     assert cmp["drawn"]["compare"][0] == "cmp_mesh"  # the surface stage: the previous mesh

@@ -1127,6 +1127,7 @@ class ViewerApp:
                 "seconds": self.model.results.seconds, "errors": list(self.errors),
                 "kind": self.model.kind, "summary_label": self.summary_label.text,
                 "latency": dict(self.latency), "frame_latency": dict(self.frame_latency),
+                "frame_waits": [list(w) for w in self.frame_waits],
                 "previous": (None if self.previous is None else self.previous.counts()),
                 "selected_segment": self.selected_segment,
                 "segments_label": self.segments_label.text,
