@@ -55,9 +55,8 @@ def main(argv=None) -> int:
         names.append(("d_m", f"d{i}.json"))
     steps.append({"quit": True})
     (work / "steps.json").write_text(json.dumps(steps))
-    env = dict(os.environ, GMMGP_GUI_FRAME_TIMES="1")
     r = subprocess.run([sys.executable, "-m", "gmmgp_app.viz.gui", a.scan, "--size", a.size,
-                        "--script", str(work / "steps.json")], env=env, text=True,
+                        "--script", str(work / "steps.json")], text=True,
                        capture_output=True)
     if r.returncode != 0:
         print(r.stderr[-3000:], file=sys.stderr)

@@ -26,16 +26,24 @@ trap 'rm -rf "$work"' EXIT
 gmmgp() { "$PY" -m gmmgp_app.cli "$@"; }
 view() { local t0=$SECONDS; xvfb-run -a -s "-screen 0 1600x1000x24" "$PY" -m gmmgp_app.cli view "$@" --size "$SIZE"; echo "  ($((SECONDS - t0)) s)"; }
 
-figures() {  # the figures of a run folder's summary.json
+figures() {  # the figures of a run folder's summary.json (single or tiled map)
   "$PY" -c 'import json, sys
 s = json.load(open(sys.argv[1] + "/summary.json")); c = s.get("counts", {})
 sec = ", ".join(f"{k} {v:.1f}" for k, v in s.get("seconds", {}).items())
-leaves, gp, mesh = c.get("hgmm", {}).get("leaves"), c.get("gp", {}).get("n_points"), c.get("surface")
-print(f"{sys.argv[1]}: seconds: {sec}; leaves {leaves}, GP points {gp}, mesh {mesh}")' "$1"
+if s.get("tiled"):
+    t, size, n = s.get("tile_seconds", {}), s.get("tile_spec", {}).get("size"), s.get("n_tiles")
+    absorbed, skipped, mesh = s.get("n_absorbed_tiles"), s.get("n_skipped_tiles"), c.get("surface")
+    med, top = t.get("median", 0.0), t.get("max", 0.0)
+    print(f"{sys.argv[1]}: tiled ({size} m tiles: {n}, {absorbed} absorbed, {skipped} skipped): "
+          f"seconds: {sec}; per tile median {med:.1f}, max {top:.1f}; mesh {mesh}")
+else:
+    leaves, gp, mesh = c.get("hgmm", {}).get("leaves"), c.get("gp", {}).get("n_points"), c.get("surface")
+    print(f"{sys.argv[1]}: seconds: {sec}; leaves {leaves}, GP points {gp}, mesh {mesh}")' "$1"
 }
 gmmgp run assets/demo_street.npz --out "$work/demo" -q
 figures "$work/demo"
 gmmgp run assets/demo_street.npz --out "$work/tiled" --tile-size 15 -q
+figures "$work/tiled"
 # a second pass of the demo street (other noise, a van parked at y = -1.5 m), checked
 "$PY" -c 'import sys
 from gmmgp_app.synth import save_scan_npz, scan_scene

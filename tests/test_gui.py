@@ -468,6 +468,9 @@ def test_app_steps_through_stages_and_reruns_under_xvfb(tmp_path, box_scan):
     assert len(s0["runs"]) == 1 and s0["runs"][0]["field_change_rms"] is None
     assert len(s2["runs"]) == 2 and s2["runs"][1]["leaves"] == s2["counts"]["leaves"]
     assert s2["runs"][1]["field_change_rms"] > 0 and "run 2: c* 0.1" in s2["runs_label"]
+    # the worker waited after each stage but the last (no 3D view here: drawn at once)
+    assert [w[:2] for w in s2["frame_waits"]] == [["hgmm", "drawn"], ["gmr", "drawn"],
+                                                  ["gp", "drawn"]]
     cmp = json.loads((out / "cmp.json").read_text())
     assert "compare" in cmp["layers"] and "compare" in cmp["drawn"]
     assert cmp["drawn"]["compare"][0] == "cmp_mesh"  # the surface stage: the previous mesh
@@ -554,13 +557,128 @@ def test_lighting_switches_the_sun_on_from_the_cameras_side():
             class LightingProfile:
                 NO_SHADOWS = "no shadows"
 
-    set_lighting(Scene(), Rendering)
-    assert ("profile", "no shadows") in calls and ("enable", True) in calls
-    sun = [c for c in calls if c[0] == "sun"][0]
-    d = sun[1]
-    assert sun[2] > 0 and abs(np.linalg.norm(d) - 1) < 1e-6
-    pts = np.random.default_rng(0).uniform([0, 0, 0], [40, 8, 12], size=(500, 3))
-    _, _, centre, eye = camera_pose(pts)
-    to_eye = (eye - centre) / np.linalg.norm(eye - centre)
-    assert to_eye @ -d > 0.5            # lit from the viewer's side
-    assert np.array([0, -1.0, 0]) @ -d > 0 and np.array([0, 0, 1.0]) @ -d > 0  # facade, ground
+    from gmmgp_app.viz.gui_camera import default_view, sun_direction
+
+    rng = np.random.default_rng(0)
+    for hi in ([40, 8, 12], [3, 2, 2.5]):  # a street (viewed along x), an object (oblique)
+        pts = rng.uniform([0, 0, 0], hi, size=(500, 3))
+        view = default_view(pts)
+        calls.clear()
+        set_lighting(Scene(), Rendering, sun_direction(view))
+        assert ("profile", "no shadows") in calls and ("enable", True) in calls
+        sun = [c for c in calls if c[0] == "sun"][0]
+        d = sun[1]
+        assert sun[2] > 0 and abs(np.linalg.norm(d) - 1) < 1e-6
+        _, _, centre, eye = camera_pose(pts)
+        to_eye = (eye - centre) / np.linalg.norm(eye - centre)
+        assert to_eye @ -d > 0.5            # lit from the viewer's side
+        assert np.array([0, -1.0, 0]) @ -d > 0 and np.array([0, 0, 1.0]) @ -d > 0  # side, ground
+
+
+def _street(n=4000, length=36.0, half_width=8.0, height=14.0, seed=0):
+    """Points of a street along x: two facades at y = +-half_width and the road."""
+    rng = np.random.default_rng(seed)
+    k = n // 3
+    x = rng.uniform(0, length, size=(3, k))
+    left = np.column_stack([x[0], np.full(k, half_width), rng.uniform(0, height, k)])
+    right = np.column_stack([x[1], np.full(k, -half_width), rng.uniform(0, height, k)])
+    road = np.column_stack([x[2], rng.uniform(-half_width, half_width, k), np.zeros(k)])
+    return np.vstack([left, right, road])
+
+
+def test_default_view_looks_along_a_street_from_above_and_at_an_object_obliquely():
+    """A street is seen along its long side from above its middle: each facade's street
+    side faces the camera (the former view from -y saw the near facade from behind);
+    an object keeps the oblique view; the compare copy stands across the view."""
+    from gmmgp_app.viz.gui_camera import across_axis, default_view
+    from gmmgp_app.viz.gui_tuning import compare_shift
+
+    pts = _street()
+    v = default_view(pts)
+    assert v.along == 0 and across_axis(pts) == 1
+    assert v.eye[0] < pts[:, 0].min()                 # behind the near end
+    assert v.eye[2] > 14.0                            # above the facades
+    assert -8.0 < v.eye[1] < 0.0                      # both facades from the street side
+    fwd = (v.centre - v.eye) / v.distance
+    assert fwd[0] > 0.8 and fwd[2] < -0.3 and 0 < fwd[1] < 0.15  # along x, looking down
+    # the street along y: the same view turned
+    vy = default_view(pts[:, [1, 0, 2]])
+    assert vy.along == 1 and across_axis(pts[:, [1, 0, 2]]) == 0
+    np.testing.assert_allclose(vy.eye[[1, 0, 2]], v.eye, atol=1e-9)
+    sh = compare_shift(pts)
+    assert sh[0] == 0 and sh[2] == 0 and sh[1] > np.ptp(pts[:, 1])  # beside, across the view
+    both = np.vstack([pts, pts + sh])  # the compare layer: both framed, viewed as the street
+    assert default_view(both).along is None and default_view(both, like=pts).along == 0
+    vb = default_view(both, like=pts)
+    assert vb.lo[1] < pts[:, 1].min() + 1 and vb.hi[1] > (pts + sh)[:, 1].max() - 1
+    # a compact object (a bunny-sized blob): oblique from -y and above, as before
+    blob = np.random.default_rng(1).normal(size=(2000, 3)) * [0.08, 0.06, 0.07]
+    b = default_view(blob)
+    assert b.along is None and across_axis(blob) == 0
+    d = (b.eye - b.centre) / np.linalg.norm(b.eye - b.centre)
+    np.testing.assert_allclose(d, np.array([0.25, -0.75, 0.55]) / np.linalg.norm(
+        [0.25, -0.75, 0.55]), atol=1e-12)
+    assert 0.2 < b.distance < 1.0  # framed at the object's size
+    assert default_view(np.zeros((0, 3))).extent > 0  # nothing to frame: no crash
+
+
+def test_wait_for_frame_returns_when_drawn_cancelled_or_after_its_timeout():
+    """The run's worker waits for the frame showing a stage; it never hangs."""
+    import threading
+
+    from gmmgp_app.viz.gui_model import wait_for_frame
+
+    ev = threading.Event()
+    threading.Timer(0.1, ev.set).start()
+    t = time.monotonic()
+    assert wait_for_frame(ev, timeout=10.0) == "drawn"
+    assert 0.05 < time.monotonic() - t < 5.0
+    ev = threading.Event()
+    t = time.monotonic()
+    assert wait_for_frame(ev, timeout=0.3) == "timeout"   # the frame never came
+    assert 0.3 <= time.monotonic() - t < 5.0
+    stop = threading.Event()
+    threading.Timer(0.1, stop.set).start()
+    t = time.monotonic()
+    assert wait_for_frame(threading.Event(), stop.is_set, timeout=30.0) == "cancelled"
+    assert time.monotonic() - t < 5.0                       # superseded: stops at once
+    ev.set()
+    assert wait_for_frame(ev, lambda: True, timeout=0.0) == "drawn"  # drawn beats the rest
+
+
+def test_progress_reports_are_throttled_but_the_last_one_passes():
+    from gmmgp_app.viz.gui_model import ProgressThrottle
+
+    now = [0.0]
+    th = ProgressThrottle(0.25, clock=lambda: now[0])
+    shown = []
+    for i in range(1, 101):  # 100 reports over 1 s
+        now[0] = i * 0.01
+        if th("surface", i / 100):
+            shown.append(i)
+    assert shown[0] == 1 and shown[-1] == 100 and 4 <= len(shown) <= 6
+    assert th("gp", 0.5)  # each stage on its own
+
+
+def test_gmr_colours_use_the_d_m_the_run_resolved():
+    """With d_m "auto" the GMR error layer saturates at the d_m the run resolved from
+    the scan (a TypeError comparing "auto" with a number broke the GMR stage)."""
+    import dataclasses
+
+    from gmmgp_app.config import concrete
+    from gmmgp_app.viz.gui_layers import resolved_d_m
+    from gmmgp_app.viz.gui_screenshot import SceneState
+
+    cfg = MappingConfig()
+    assert cfg.gp.d_m == "auto"
+    r = StageResults(config=cfg, voxel_size=0.1, summary={"auto": {"gp.d_m": {"value": 0.042}}})
+    assert resolved_d_m(r) == 0.042
+    assert resolved_d_m(dataclasses.replace(r, summary={})) == concrete(cfg.gp).d_m
+    assert resolved_d_m(dataclasses.replace(r, config=cfg.replace("gp.d_m", 0.02))) == 0.02
+    pts = np.random.default_rng(0).uniform(size=(50, 3))
+    data = type("Rows", (), {"points": pts})()
+    r = dataclasses.replace(r, scan=Scan(pts, origins=np.zeros((50, 3))), data=data,
+                            gmr_error=np.linspace(-0.1, 0.1, 50))
+    key, build, _, legend = SceneState(ViewerModel(r, "x"), "gmr").layer_geometry("points")
+    assert key[0] == "gmr" and legend[0] == "error" and legend[2] > 0
+    assert len(build().points) == 50

@@ -35,10 +35,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .gui_model import (STAGE_LABELS, STAGES, Cancelled, StageResults, ViewerError,
-                        ViewerModel, first_affected_stage)
+from .gui_model import (FRAME_WAIT_S, STAGE_LABELS, STAGES, Cancelled, ProgressThrottle,
+                        StageResults, ViewerError, ViewerModel, first_affected_stage,
+                        wait_for_frame)
 from .gui_script import ScriptRunner, load_script
-from .gui_layers import (LAYERS, STAGE_LAYERS, compare_scene_points, layer_geometry,
+from .gui_layers import (LAYERS, STAGE_LAYERS, layer_geometry, scene_view,
                          layer_parts, materials, set_lighting)
 from .gui_tuning import run_record
 from ..config import concrete, is_auto
@@ -243,10 +244,15 @@ class ViewerApp:
         self.probe_text = ""
         self.previous = None  # results before the last run (the compare layer)
         # seconds from Run to each stage's result in the scene (geometry added), and to
-        # the first frame drawn after it (with GMMGP_GUI_FRAME_TIMES=1: a read-back)
+        # the first frame drawn after it (a read-back served by that frame)
         self.latency: dict = {}
         self.frame_latency: dict = {}
-        self._measure_frames = bool(os.environ.get("GMMGP_GUI_FRAME_TIMES"))
+        # (stage, "drawn" / "timeout" / "cancelled", seconds) of each wait of the run's
+        # worker for the frame showing a stage (gui_model.wait_for_frame)
+        self.frame_waits: list = []
+        self.frame_wait_timeout = FRAME_WAIT_S
+        # GMMGP_GUI_FRAME_TIMES=1: also time the frame after the last stage (benchmarks)
+        self._time_last_frame = bool(os.environ.get("GMMGP_GUI_FRAME_TIMES"))
         self.selected_segment = None  # a check result's segment shown red
         self.legend_key = "unpainted"
         self._std_cache: dict = {}
@@ -260,6 +266,10 @@ class ViewerApp:
         self.em = em
         self.scene = gui.SceneWidget()
         self.scene.scene = rendering.Open3DScene(self.window.renderer)
+        # Redraw the 3D view only when it changes (request_redraw), not with every panel
+        # update (a progress step, a label): on the CPU renderer a frame of the scene
+        # costs seconds and blocks the GUI thread while it is drawn.
+        self.scene.enable_scene_caching(True)
         self.scene.scene.set_background([1.0, 1.0, 1.0, 1.0])
         self.scene.scene.show_axes(False)
         # Tone mapping would shift the colour maps (and the legend would lie).
@@ -642,7 +652,7 @@ class ViewerApp:
             self.previous = base
         n_stages = len(STAGES) - STAGES.index(start)
         self._run_info = {"start": start, "done": 0, "n": n_stages, "t0": time.perf_counter()}
-        self.latency, self.frame_latency = {}, {}
+        self.latency, self.frame_latency, self.frame_waits = {}, {}, []
         self.progress.value = 0.0
         self.status_label.text = f"running from {STAGE_LABELS[start]} ..."
         self._refresh_panel()
@@ -651,10 +661,20 @@ class ViewerApp:
             self.app.post_to_main_thread(self.window, lambda: self._guarded(fn))
 
         def on_stage(name, results):
-            post(lambda: self._on_stage_result(gen, name, results))
+            drawn = threading.Event()
+            post(lambda: self._on_stage_result(gen, name, results, drawn))
+            if name != STAGES[-1]:
+                # the next stage starts once this one is on screen (gui_model.wait_for_frame)
+                t = time.perf_counter()
+                how = wait_for_frame(drawn, lambda: gen != self.generation,
+                                     self.frame_wait_timeout)
+                self.frame_waits.append((name, how, round(time.perf_counter() - t, 3)))
+
+        throttle = ProgressThrottle()
 
         def progress(stage, frac):
-            post(lambda: self._on_progress(gen, stage, frac))
+            if throttle(stage, frac):
+                post(lambda: self._on_progress(gen, stage, frac))
 
         def work():
             _leave_a_core_to_the_frames()
@@ -685,7 +705,20 @@ class ViewerApp:
             self.errors.append(msg)
             self.status_label.text = msg[:200]
 
-    def _on_stage_result(self, gen, name, results: StageResults):
+    def _on_stage_result(self, gen, name, results: StageResults, drawn=None):
+        """Show a stage's results; ``drawn`` (an Event) is set once a frame showing them
+        has been drawn (at once when the result is dropped or nothing is drawn)."""
+        if drawn is None:
+            drawn = threading.Event()
+        try:
+            self._show_stage_result(gen, name, results, drawn)
+        except BaseException:
+            drawn.set()  # nothing new to wait for
+            raise
+        if not self.draw_scene or gen != self.generation:
+            drawn.set()
+
+    def _show_stage_result(self, gen, name, results, drawn):
         if gen != self.generation:
             self.dropped_results += 1
             return
@@ -704,10 +737,17 @@ class ViewerApp:
         self._refresh()
         t_run = self._run_info["t0"]
         self.latency[name] = time.perf_counter() - t_run
-        if self._measure_frames and self.draw_scene:
-            def drawn(_img, name=name):
+        last = name == STAGES[-1]
+        if self.draw_scene and (not last or self._time_last_frame):
+            # A read-back is served by the next frame of the 3D view: the one showing
+            # this. It seems to cost a render of its own (the window's frame of the demo's
+            # surface took 7.7 s of rasterizer CPU with it, one offscreen frame 3.8 s), so
+            # after the last stage, which nothing waits for, only on request.
+            def on_frame(_img, name=name):
                 self.frame_latency.setdefault(name, time.perf_counter() - t_run)
-            self.scene.scene.scene.render_to_image(drawn)
+                drawn.set()
+            self.scene.scene.scene.render_to_image(on_frame)
+            self.request_redraw()
 
     def _on_run_record(self, gen, rec):
         if gen != self.generation:
@@ -791,7 +831,7 @@ class ViewerApp:
         if sc.has_geometry("probe"):
             sc.remove_geometry("probe")
         sc.add_geometry("probe", s, self.mat["probe"])
-        self.window.post_redraw()
+        self.request_redraw()
         return mean, std, grad
 
     def _set_probe(self, text):
@@ -807,31 +847,29 @@ class ViewerApp:
         return float(np.linalg.norm(np.ptp(s.points, axis=0))) or 1.0
 
     def reset_camera(self):
-        pts = compare_scene_points(self)
-        if pts is None:
+        v = scene_view(self)  # a street: along it from above; an object: oblique
+        if v is None:
             return
         import open3d as o3d
 
-        lo, hi = np.percentile(pts, 1, axis=0), np.percentile(pts, 99, axis=0)
-        bbox = o3d.geometry.AxisAlignedBoundingBox(lo, hi)
-        centre = 0.5 * (lo + hi)
-        self.scene.setup_camera(50.0, bbox, centre)
-        ext = float(np.linalg.norm(hi - lo))
-        # Oblique view from the side and above: street scans are long in x and z-up.
-        eye = centre + ext * np.array([0.25, -0.75, 0.55])
-        self.scene.look_at(centre, eye, [0.0, 0.0, 1.0])
+        from .gui_camera import sun_direction
+
+        bbox = o3d.geometry.AxisAlignedBoundingBox(v.lo, v.hi)
+        self.scene.setup_camera(50.0, bbox, v.centre)
+        self.scene.look_at(v.centre, v.eye, v.up)
+        set_lighting(self.scene.scene, self.rendering, sun_direction(v))
         self._camera_set = True
-        self.window.post_redraw()
+        self.request_redraw()
 
     def set_camera(self, center, eye, up=(0.0, 0.0, 1.0)):
         self.scene.look_at(np.asarray(center, float), np.asarray(eye, float),
                            np.asarray(up, float))
-        self.window.post_redraw()
+        self.request_redraw()
 
     def _refresh(self):
         self._refresh_scene()
         self._refresh_panel()
-        self.window.post_redraw()
+        self.request_redraw()
 
     def _display_points(self, pts):
         if len(pts) <= MAX_DRAWN_POINTS:
@@ -1089,6 +1127,7 @@ class ViewerApp:
                 "seconds": self.model.results.seconds, "errors": list(self.errors),
                 "kind": self.model.kind, "summary_label": self.summary_label.text,
                 "latency": dict(self.latency), "frame_latency": dict(self.frame_latency),
+                "frame_waits": [list(w) for w in self.frame_waits],
                 "previous": (None if self.previous is None else self.previous.counts()),
                 "selected_segment": self.selected_segment,
                 "segments_label": self.segments_label.text,

@@ -35,33 +35,36 @@ def materials(rendering, scaling: float = 1.0) -> dict:
             setattr(m, k, v)
         return m
 
+    # Many lines (the GP blocks' 12 edges each, the split nodes' wireframes) are drawn
+    # as the renderer's own 1-pixel lines ("defaultUnlit"), not as "unlitLine" wide
+    # lines (a quad per segment): 1280x800 on the CPU renderer, demo scan, rasterizer
+    # CPU per frame: the 58,595 GP blocks 17.3 s -> 1.3 s, the 187 split ellipsoids of
+    # HGMM level 3 1.06 s -> 0.22 s (scripts/bench_scene_frames.py).
     return {
         "points": mat("defaultUnlit", point_size=2.0 * scaling),
         "gp_points": mat("defaultUnlit", point_size=5.0 * scaling),
         "ellipsoids_leaf": mat("defaultLit"),
-        "ellipsoids_split": mat("unlitLine", line_width=1.5 * scaling),
-        "blocks": mat("unlitLine", line_width=1.0 * scaling),
+        "ellipsoids_split": mat("defaultUnlit"),
+        "blocks": mat("defaultUnlit"),
         "mesh": mat("defaultLit"),
         "probe": mat("defaultLit", base_color=[1.0, 0.1, 0.1, 1.0]),
         "segments": mat("unlitLine", line_width=2.5 * scaling),
         "compare_leaf": mat("defaultLit"),
-        "compare_split": mat("unlitLine", line_width=1.5 * scaling),
+        "compare_split": mat("defaultUnlit"),
         "compare_points": mat("defaultUnlit", point_size=2.0 * scaling),
         "compare_gp": mat("defaultUnlit", point_size=5.0 * scaling),
         "compare_mesh": mat("defaultLit"),
     }
 
 
-#: Direction the sun's light travels: from over the default camera's shoulder (the
-#: camera looks from -y and above, ``gui_screenshot.camera_pose``) down onto the scene,
-#: so faces turned to the viewer are lit. (The window and the screenshots used
-#: (0.577, -0.577, -0.577): light from behind the facades the camera sees.)
+#: Direction the sun's light travels before a scene is framed; once it is, the sun comes
+#: from over the default camera's shoulder (``gui_camera.sun_direction``).
 SUN_DIRECTION = (-0.3, 0.6, -0.75)
 #: Sun intensity (lux, Filament's unit): surfaces facing it at 0.75 grey render ~220/255.
 SUN_INTENSITY = 60000.0
 
 
-def set_lighting(open3d_scene, rendering) -> None:
+def set_lighting(open3d_scene, rendering, direction=SUN_DIRECTION) -> None:
     """Light an ``Open3DScene`` as the app does (window and offscreen frames).
 
     ``Open3DScene.set_lighting(NO_SHADOWS, direction)`` alone leaves the scene lit by
@@ -70,7 +73,7 @@ def set_lighting(open3d_scene, rendering) -> None:
     pixels for opposite directions). The sun is switched on here explicitly; no
     shadow-map pass (it costs every frame on a CPU renderer and adds nothing to
     reading the map)."""
-    d = np.asarray(SUN_DIRECTION, np.float32)
+    d = np.asarray(direction, np.float32)
     d /= np.linalg.norm(d)
     open3d_scene.set_lighting(rendering.Open3DScene.LightingProfile.NO_SHADOWS, d)
     open3d_scene.scene.set_sun_light(d, np.ones(3, np.float32), SUN_INTENSITY)
@@ -95,6 +98,16 @@ def _hgmm_level_geometry(hgmm, level, shift=0.0, prefix="ellipsoids"):
     return g
 
 
+def resolved_d_m(results) -> float:
+    """The d_m (m) a run used: the number set, or the value resolved from the scan for
+    "auto" (its summary), else the urban default."""
+    from ..config import concrete
+    from .gui_tuning import resolved_setting
+
+    v = resolved_setting(results, "gp.d_m")
+    return v if np.isfinite(v) else float(concrete(results.config.gp).d_m)
+
+
 def compare_scene_points(view):
     """The points the camera frames: the scan's, and their shifted copy when the
     previous run is drawn beside (None without a scan)."""
@@ -108,6 +121,17 @@ def compare_scene_points(view):
     from .gui_tuning import compare_shift
 
     return np.vstack([pts, pts + compare_shift(pts)])
+
+
+def scene_view(view):
+    """The default camera (:func:`gui_camera.default_view`) of what ``view`` shows: its
+    points and the compare copy framed, viewed as the scan alone (None without a scan)."""
+    from .gui_camera import default_view
+
+    pts = compare_scene_points(view)
+    if pts is None:
+        return None
+    return default_view(pts, like=view.model.results.scan.points)
 
 
 def _compare_geometry(view, r, stage):
@@ -188,7 +212,7 @@ def layer_geometry(view, name):
                     lambda: G.point_cloud(rows[idx, :3], G.row_colors(rows[idx, 3], s)[0]),
                     "points", ("d", -s, s))
         if stage == "gmr" and r.gmr_error is not None:
-            col, lo, hi = G.error_colors(r.gmr_error, r.config.gp.d_m)
+            col, lo, hi = G.error_colors(r.gmr_error, resolved_d_m(r))
             return (("gmr", id(r.gmr_error)), lambda: G.point_cloud(r.data.points, col),
                     "points", ("error", lo, hi))
         if r.scan is None:

@@ -30,7 +30,8 @@ from ..config import MappingConfig
 from ..types import HierarchicalGMM, Scan, SurfaceMesh, TrainingSet
 
 __all__ = ["STAGES", "STAGE_LABELS", "ViewerError", "StageResults",
-           "ViewerModel", "first_affected_stage"]
+           "ViewerModel", "first_affected_stage", "wait_for_frame", "FRAME_WAIT_S",
+           "ProgressThrottle"]
 
 #: Stages the app shows, in pipeline order; "surface" is marching cubes on the final field.
 STAGES = ("scan", "prepare", "hgmm", "gmr", "gp", "surface")
@@ -447,6 +448,71 @@ class ViewerModel:
             raise ViewerError("No map to save yet (the GP stage has not finished); wait for "
                               "the run to finish, then save.")
         return self.results.smap.save(directory)
+
+
+#: Seconds a run's worker waits for the window to draw a finished stage before it computes
+#: the next one (:func:`wait_for_frame`); past it the run goes on, the frame follows later.
+FRAME_WAIT_S = 5.0
+
+
+def wait_for_frame(drawn: threading.Event, cancelled: Callable[[], bool] = lambda: False,
+                   timeout: float = FRAME_WAIT_S, poll: float = 0.05) -> str:
+    """Block a run's worker until the frame showing its last stage is drawn.
+
+    The app's controller sets ``drawn`` once the 3D view has drawn the frame after a
+    stage's geometry was added (or at once when nothing is drawn). Waiting for it
+    before the next stage keeps the stages from competing with that frame: on Mesa's
+    CPU renderer the frame is rasterized on the same cores, and the stages' parallel
+    numba kernels hold the GIL while they run, so the window's Python callbacks (layout,
+    the read-back that marks the frame drawn) waited behind them; the frame showing new
+    HGMM levels came seconds after the levels were in the scene. The wait is bounded:
+    after ``timeout`` seconds (a frame stalled by the renderer) the run goes on.
+
+    Parameters
+    ----------
+    drawn : threading.Event
+    cancelled : callable() -> bool
+        Polled every ``poll`` seconds; True (the run was superseded or the window
+        closed) ends the wait.
+    timeout : float
+        Seconds.
+    poll : float
+        Seconds.
+
+    Returns
+    -------
+    "drawn", "cancelled" or "timeout".
+    """
+    t_end = time.monotonic() + max(float(timeout), 0.0)
+    while True:
+        left = t_end - time.monotonic()
+        if drawn.wait(min(poll, max(left, 0.0))):
+            return "drawn"
+        if cancelled():
+            return "cancelled"
+        if time.monotonic() >= t_end:
+            return "drawn" if drawn.is_set() else "timeout"
+
+
+class ProgressThrottle:
+    """Pass progress reports on at most every ``interval`` seconds (and the last one).
+
+    The surface stage reports once per block batch; each report posted to the GUI
+    thread redraws the window, and each callback needs the GIL the stages hold.
+    """
+
+    def __init__(self, interval: float = 0.25, clock: Callable[[], float] = time.monotonic):
+        self.interval, self.clock = float(interval), clock
+        self._last: dict = {}
+
+    def __call__(self, stage: str, frac: float) -> bool:
+        """Whether the report (``stage``, ``frac`` in [0, 1]) should be shown."""
+        now = self.clock()
+        last = self._last.get(stage)
+        if frac >= 1.0 or last is None or now - last >= self.interval:
+            self._last[stage] = now
+            return True
+        return False
 
 
 class _ProgressBar:

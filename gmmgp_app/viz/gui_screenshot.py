@@ -49,25 +49,19 @@ from typing import Optional
 
 import numpy as np
 
-from .gui_layers import (LAYERS, STAGE_LAYERS, compare_scene_points, layer_geometry,  # noqa: F401
-                         materials, set_lighting)
+from .gui_layers import (LAYERS, STAGE_LAYERS, layer_geometry,  # noqa: F401
+                         materials, scene_view, set_lighting)
 from .gui_model import STAGES, ViewerError, ViewerModel
 
 __all__ = ["STAGE_LAYERS", "materials", "camera_pose", "SceneState", "render_png",
            "screenshot_target"]
 
-#: Layers switched on when a stage is selected (the user may change them after).
 def camera_pose(points: np.ndarray):
-    """(lo, hi, centre, eye) of the default view: oblique, from the side and above.
+    """(lo, hi, centre, eye) of the default view (:func:`gui_camera.default_view`)."""
+    from .gui_camera import default_view
 
-    The box is the 1-99 % range of the points (a few far points do not shrink the
-    scene); street scans are long in x and z-up.
-    """
-    lo, hi = np.percentile(points, 1, axis=0), np.percentile(points, 99, axis=0)
-    centre = 0.5 * (lo + hi)
-    ext = float(np.linalg.norm(hi - lo)) or 1.0
-    eye = centre + ext * np.array([0.25, -0.75, 0.55])
-    return lo, hi, centre, eye
+    v = default_view(points)
+    return v.lo, v.hi, v.centre, v.eye
 
 
 class SceneState:
@@ -176,19 +170,21 @@ def render_png(model: ViewerModel, path, size=(1600, 1000), stage: Optional[str]
         parts = geom if isinstance(geom, dict) else {name: geom}
         for gname, g in parts.items():
             scene.add_geometry(gname, g, mats[gname if mat is None else mat])
-    pts = compare_scene_points(state)
+    v = scene_view(state)  # as the window's (ViewerApp.reset_camera)
     if segment is not None:
+        from .gui_camera import default_view
+
         sg = r.check.segments[segment]
         pts = np.vstack([sg["bbox_min"], sg["bbox_max"]])
         pad = max(float(np.linalg.norm(pts[1] - pts[0])), 0.3)
-        pts = np.vstack([pts - pad, pts + pad])
-    if pts is not None:
-        lo, hi, centre, eye = camera_pose(pts)
-        ext = float(np.linalg.norm(hi - lo)) or 1.0
-        dist = float(np.linalg.norm(eye - centre))
-        ren.setup_camera(50.0, centre.astype(np.float32), eye.astype(np.float32),
-                         np.array([0.0, 0.0, 1.0], np.float32),
-                         max(1e-3 * dist, 1e-4), dist + 4.0 * ext)
+        v = default_view(np.vstack([pts - pad, pts + pad]))
+    if v is not None:
+        from .gui_camera import sun_direction
+
+        ext, dist = v.extent, v.distance
+        ren.setup_camera(50.0, v.centre.astype(np.float32), v.eye.astype(np.float32),
+                         v.up.astype(np.float32), max(1e-3 * dist, 1e-4), dist + 4.0 * ext)
+        set_lighting(scene, rendering, sun_direction(v))
     img = ren.render_to_image()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

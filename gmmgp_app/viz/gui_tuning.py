@@ -79,7 +79,7 @@ def field_change(prev: StageResults, new: StageResults,
     return float(np.sqrt(np.mean((b - a) ** 2)))
 
 
-def _resolved(results: StageResults, dotted: str) -> float:
+def resolved_setting(results: StageResults, dotted: str) -> float:
     """A config value of a run: the number set, or for ``"auto"`` the value the run
     resolved from the scan (its summary's "auto" table); NaN when neither is known."""
     sec, _, name = dotted.partition(".")
@@ -95,21 +95,24 @@ def run_record(prev: Optional[StageResults], new: StageResults) -> RunRecord:
     c = new.counts()
     change = field_change(prev, new) if prev is not None else None
     return RunRecord(threshold=float(new.config.hgmm.split_threshold),
-                     d_m=_resolved(new, "gp.d_m"), leaves=c.get("leaves"),
+                     d_m=resolved_setting(new, "gp.d_m"), leaves=c.get("leaves"),
                      gp_points=c.get("gp_points"), field_change_rms=change)
 
 
 def compare_shift(points: np.ndarray, gap: float = 0.15) -> np.ndarray:
     """(3,) translation placing the previous run's geometry beside the new one.
 
-    Along x, the axis across the default view (the camera looks from -y, see
-    ``gui_screenshot.camera_pose``), by the points' x range plus ``gap`` of it, so the
-    two copies stand side by side in the picture and never overlap. (Along y, the
-    narrower axis of a street, the copy stood behind the facades and read as floating
-    above them.)
+    Along the horizontal axis across the default view (:func:`gui_camera.across_axis`:
+    x for a compact scene seen from -y, the short side of a street seen along its long
+    side), by the points' range on that axis plus ``gap`` of it, so the two copies
+    stand side by side in the picture and never overlap (along the line of sight one
+    copy stood behind the other).
     """
+    from .gui_camera import across_axis
+
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     out = np.zeros(3)
     if len(pts):
-        out[0] = (1.0 + gap) * max(float(np.ptp(pts[:, 0])), 1e-6)
+        ax = across_axis(pts)
+        out[ax] = (1.0 + gap) * max(float(np.ptp(pts[:, ax])), 1e-6)
     return out
