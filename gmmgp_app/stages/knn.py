@@ -113,6 +113,21 @@ def _slot(tk, key, mask):
     return s if tk[s] != -1 else -1
 
 
+@nb.njit(cache=True, inline="always")
+def _cell_slot(tk, mask, dims, a, b, c):
+    """The table slot of the cell at box coordinates (a, b, c), or -1 when it is empty."""
+    return _slot(tk, (a * dims[1] + b) * dims[2] + c, mask)
+
+
+@nb.njit(cache=True, inline="always")
+def _sq_dist(x, q, pts, j):
+    """Squared distance between query ``x[q]`` and point ``pts[j]``."""
+    d0 = x[q, 0] - pts[j, 0]
+    d1 = x[q, 1] - pts[j, 1]
+    d2 = x[q, 2] - pts[j, 2]
+    return d0 * d0 + d1 * d1 + d2 * d2
+
+
 def _cell_table(p, c, lo, dims):
     """The points ``p`` bucketed by their cells ``c`` (int64 cell coordinates, keyed in
     the box of ``dims`` cells from ``lo``): (order, the points in that order, and the
@@ -192,15 +207,11 @@ def _knn_grid(x, k, cell, lo, dims, tk, ts, te, pts, order, max_ring):
                                 gg = g0 * g0 + g1 * g1 + g2 * g2
                                 if gg > bd[k - 1] * (1.0 + 1e-9) + slack:
                                     continue
-                            key = (qa * dims[1] + qb) * dims[2] + qc
-                            s = _slot(tk, key, mask)
+                            s = _cell_slot(tk, mask, dims, qa, qb, qc)
                             if s < 0:
                                 continue
                             for j in range(ts[s], te[s]):
-                                d0 = x[q, 0] - pts[j, 0]
-                                d1 = x[q, 1] - pts[j, 1]
-                                d2 = x[q, 2] - pts[j, 2]
-                                dd = d0 * d0 + d1 * d1 + d2 * d2
+                                dd = _sq_dist(x, q, pts, j)
                                 if cnt < k or dd < bd[k - 1]:
                                     m = cnt if cnt < k else k - 1
                                     while m > 0 and bd[m - 1] > dd:
@@ -280,15 +291,11 @@ def _ball_pass(x, r, cell, lo, dims, tk, ts, te, pts, order, ptr, idx, fill):
                 for c in range(c2 - 1, c2 + 2):
                     if c < 0 or c >= dims[2]:
                         continue
-                    key = (a * dims[1] + b) * dims[2] + c
-                    s = _slot(tk, key, mask)
+                    s = _cell_slot(tk, mask, dims, a, b, c)
                     if s < 0:
                         continue
                     for j in range(ts[s], te[s]):
-                        d0 = x[q, 0] - pts[j, 0]
-                        d1 = x[q, 1] - pts[j, 1]
-                        d2 = x[q, 2] - pts[j, 2]
-                        if d0 * d0 + d1 * d1 + d2 * d2 <= r2:
+                        if _sq_dist(x, q, pts, j) <= r2:
                             if fill:
                                 idx[at + n] = order[j]
                             n += 1
