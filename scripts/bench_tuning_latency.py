@@ -10,6 +10,15 @@ the first full run, alternates the threshold between 0.01 and 0.03 and d_m betwe
 values, each followed by Run; reads the per-stage latencies from the app's state
 (``latency``: result in the scene; ``frame_latency``: the next frame read back).
 
+Before each change the script sleeps ``--look`` seconds (default 5), as a user who
+looks at the result before moving a slider. With ``--look 0`` Run comes as soon as the
+previous run's last stage is in the scene, while the frame showing it (the surface:
+~3.8 s of rasterizer CPU on Mesa's llvmpipe at 1280x800) is still being drawn, and the
+new stage's frame waits behind it (a frame in flight is not cancelled; waiting for that
+frame through a read-back does not help either, a read-back is followed by one more
+frame of the same scene). Quiet machine, medians of 3: look 5 s: HGMM levels on
+screen 0.40 s, GP points 0.86 s; look 0: 1.85 s and 2.39 s.
+
     python scripts/bench_tuning_latency.py [SCAN] --model [--repeat 3]
 
 measures the same without the window: the model's re-run from the affected stage until
@@ -38,6 +47,9 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--size", default="1280x800")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--look", type=float, default=5.0,
+                    help="seconds between a run's end and the next change (a user looking "
+                         "at the result; 0: back to back)")
     ap.add_argument("--model", action="store_true",
                     help="measure the model and the geometry builders, no window")
     a = ap.parse_args(argv)
@@ -46,12 +58,13 @@ def main(argv=None) -> int:
         return _emit(out, a.out)
     work = Path(tempfile.mkdtemp(prefix="tuning-"))
     steps, names = [], []
+    look = [{"sleep": a.look}] if a.look > 0 else []  # the user looks at the result
     for i in range(a.repeat):
         t = 0.03 if i % 2 == 0 else 0.01
-        steps += [{"threshold": t}, {"run": True}, {"state": str(work / f"t{i}.json")}]
+        steps += look + [{"threshold": t}, {"run": True}, {"state": str(work / f"t{i}.json")}]
         names.append(("threshold", f"t{i}.json"))
         dm = 0.03 if i % 2 == 0 else 0.015
-        steps += [{"d_m": dm}, {"run": True}, {"state": str(work / f"d{i}.json")}]
+        steps += look + [{"d_m": dm}, {"run": True}, {"state": str(work / f"d{i}.json")}]
         names.append(("d_m", f"d{i}.json"))
     steps.append({"quit": True})
     (work / "steps.json").write_text(json.dumps(steps))
@@ -70,6 +83,7 @@ def main(argv=None) -> int:
         res[key].append(st["latency"].get(stage))
         res[key + "_frame"].append(st["frame_latency"].get(stage))
     out = {"scan": a.scan, "size": a.size, "load": os.getloadavg(),
+           "look_seconds": a.look,
            "seconds": res,
            "median": {k: statistics.median([x for x in v if x is not None])
                       if any(x is not None for x in v) else None for k, v in res.items()}}
