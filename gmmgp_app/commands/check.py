@@ -24,7 +24,7 @@ import numpy as np
 
 from .options import add_command, check_writable, add_reader_options, read_scan_args
 
-__all__ = ["add_parser", "run", "load_any_map", "write_points_ply", "write_z_histogram",
+__all__ = ["add_parser", "run", "write_points_ply", "write_z_histogram",
            "output_files", "PLY_FIELDS"]
 
 EXAMPLES = """examples:
@@ -66,23 +66,6 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--rrd", help="also write a rerun recording, points coloured by z")
     add_reader_options(p, classes=False)
     return p
-
-
-def load_any_map(directory):
-    """A SurfaceMap or a TiledMap from ``directory`` (or ``directory/map``)."""
-    from ..pipeline import MapFormatError, load_map
-    from ..tiling import load_tiled_map
-
-    d = Path(directory)
-    if not d.is_dir():
-        raise MapFormatError(f"Map folder '{d}' does not exist; create one with "
-                             "'gmmgp run SCAN --out DIR' and pass --map DIR/map.")
-    if not (d / "map.json").is_file() and not (d / "tiled.json").is_file() \
-            and (d / "map").is_dir():
-        d = d / "map"
-    if (d / "tiled.json").is_file():
-        return load_tiled_map(d, load_points=False)
-    return load_map(d)
 
 
 def write_points_ply(path, positions, fields: dict) -> Path:
@@ -173,6 +156,8 @@ def run(args) -> int:
     if args.rrd:
         check_writable(Path(args.rrd).parent, "--rrd", what="")
     init = load_transform(args.init) if args.init else None
+    from ..tiling import load_any_map
+
     smap = load_any_map(args.map)
     t1 = time.perf_counter()
     scan = read_scan_args([args.scan], args)

@@ -73,20 +73,16 @@ def run(args) -> int:
     out = Path(args.out) if args.out else directory / "eval"
 
     from ..datasets import read_scan
-    from ..pipeline import load_map
+    from ..tiling import load_any_map
 
-    if (directory / "map" / "tiled.json").is_file():
-        from ..tiling import load_tiled_map
-
-        smap = load_tiled_map(directory / "map", load_points=False)
+    smap = load_any_map(directory)
+    if is_tiled(smap):
         provided = tiled_methods(smap)
         if args.methods is None:  # the default: what the tiled map can answer for
             methods = provided
             log(f"tiled map: evaluating {','.join(provided)} (the other methods need an "
                 "untiled run)")
         check_tiled_methods(methods, provided)
-    else:
-        smap = load_map(directory / "map")
     scan_paths = args.scan or smap.summary.get("scan", {}).get("paths")
     if not scan_paths:
         raise EvalInputError(

@@ -337,6 +337,24 @@ def build_tiled_map(scan: Scan, cfg: Optional[MappingConfig] = None,
 
 
 
+def load_any_map(directory, *, load_points: bool = False):
+    """A single map (:class:`~gmmgp_app.pipeline.SurfaceMap`) or a :class:`TiledMap` from
+    ``directory``: a map folder (``map.json`` or ``tiled.json``) or a run folder of
+    ``gmmgp run`` holding one in ``map/``. ``load_points`` as in :func:`load_tiled_map`."""
+    from ..pipeline import MapFormatError, load_map
+
+    d = Path(directory)
+    if not d.is_dir():
+        raise MapFormatError(f"Map folder '{d}' does not exist; make one with 'gmmgp run "
+                             "SCAN --out DIR' (the map is DIR/map; DIR works too).")
+    if not (d / "map.json").is_file() and not (d / "tiled.json").is_file() \
+            and (d / "map").is_dir():
+        d = d / "map"
+    if (d / "tiled.json").is_file():
+        return load_tiled_map(d, load_points=load_points)
+    return load_map(d)
+
+
 def load_tiled_map(directory, cache_tiles: int = 4, *, load_points: bool = True) -> TiledMap:
     """Open a tiled map written by :meth:`TiledMap.save`; it predicts identically.
 
