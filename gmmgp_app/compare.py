@@ -155,8 +155,8 @@ def run_evaluation(scan, smap, reference, methods, *, bins, n_queries: int = 200
                "n_scan_points": int(len(scan)), "n_training_points": int(len(data.points)),
                "config_toml": cfg.to_toml(), "methods": {}}
     vs = cfg.surface.voxel_size if voxel_size is None else float(voxel_size)
-    if isinstance(vs, str) and hasattr(smap, "surface_voxel"):
-        vs = smap.surface_voxel()  # a tiled map's 'auto': the median of its tiles' voxels
+    known = _resolved_voxel(vs, smap)  # a tiled map's 'auto': the median of its tiles'
+    vs = vs if known is None else known
     for method in methods:
         log(f"{method}: building")
         saved = {k: float(v) for k, v in (smap.summary.get("seconds", {}) if smap else {})
@@ -306,14 +306,18 @@ class _PriorOnly:
         return self.smap.prior_surface(voxel_size)
 
 
+def _resolved_voxel(v, tmap):
+    """A surface voxel setting ``v`` in metres: a number as it is, 'auto' of a tiled map
+    ``tmap`` the median of its tiles' voxels; None when it cannot be known here."""
+    if not isinstance(v, str):
+        return float(v)
+    return tmap.surface_voxel() if hasattr(tmap, "surface_voxel") else None
+
+
 def _model_voxel(model):
     """The surface voxel the model's saved mesh was made with (a tiled map's 'auto':
     the median of its tiles'), None when it cannot be known."""
-    v = model.config.surface.voxel_size
-    if not isinstance(v, str):
-        return float(v)
-    tmap = getattr(model, "tmap", None)
-    return tmap.surface_voxel() if hasattr(tmap, "surface_voxel") else None
+    return _resolved_voxel(model.config.surface.voxel_size, getattr(model, "tmap", None))
 
 
 def _surface_metrics(model, method, reference, scan, voxel_size, run_dir, n, seed, log):
