@@ -169,9 +169,8 @@ class SurfaceMap:
         grad : (K, 3) float64, only if ``return_grad``
         """
         xyz = as_queries(xyz)
-        field_ = self.gp if self.gp is not None else self.prior
         if self.far is None or not far:
-            return field_.predict(xyz, return_grad=return_grad)
+            return self._near_field.predict(xyz, return_grad=return_grad)
         return self._blended().predict(xyz, return_grad=return_grad)
 
     def predict_mean(self, xyz) -> np.ndarray:
@@ -179,12 +178,17 @@ class SurfaceMap:
         lattice needs: the variance model is skipped where it does not feed the mean)."""
         xyz = as_queries(xyz)
         if self.far is None:
-            return (self.gp if self.gp is not None else self.prior).predict(xyz)[0]
+            return self._near_field.predict(xyz)[0]
         return self._blended().predict(xyz, mean_only=True)
 
+    @property
+    def _near_field(self):
+        """The field the far field is blended with: the local GPs, or the prior alone
+        for a map without them."""
+        return self.gp if self.gp is not None else self.prior
+
     def _blended(self):
-        field_ = self.gp if self.gp is not None else self.prior
-        return _farfield.BlendedField(field_, self.far, self.config.far.calibrated,
+        return _farfield.BlendedField(self._near_field, self.far, self.config.far.calibrated,
                             self.config.far.gp_growth,
                             self.config.far.disagreement_weight,
                             None if is_auto(self.config.gp.length_scale)
