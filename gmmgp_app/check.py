@@ -787,11 +787,12 @@ def _information(smap, x, T, *, noise2, known_std, c_robust, loss, share_cell,
     else:
         y, m, var, g = last["y"], last["m"], last["var"], last["g"]
     factor = None if last is None else last.get("factor")
-    if cell_factors and factor is None:
-        factor = _factors_here(y, m, var, g, noise2, known_std,
-                               _share_counts(y, share_cell, return_cells=True)[1])
-    n_share = _share_counts(y, share_cell) if last is None or "n_share" not in last \
-        else last["n_share"]
+    n_share = None if last is None else last.get("n_share")
+    if n_share is None or (cell_factors and factor is None):
+        counts, cells = _share_counts(y, share_cell, return_cells=True)
+        n_share = counts if n_share is None else n_share
+        if cell_factors and factor is None:
+            factor = _factors_here(y, m, var, g, noise2, known_std, cells)
     w, scale = _weights(m, var, noise2, np.sqrt(var) < known_std, c_robust, loss, n_share,
                         factor)
     pivot = (w[:, None] * y).sum(0) / w.sum()
