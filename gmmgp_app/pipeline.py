@@ -146,7 +146,7 @@ class SurfaceMap:
         self.summary = dict(summary or {})
 
     # ------------------------------------------------------------------ predict
-    def predict(self, xyz, return_grad: bool = False, far: bool = True):
+    def predict(self, xyz, return_grad: bool = False, far: bool = True, near=None):
         """Signed distance mean and variance at query points.
 
         Parameters
@@ -159,6 +159,10 @@ class SurfaceMap:
             Blend in the far field (the default). ``False``: the GP field (or the prior)
             alone, whose gradient is the exact derivative of its mean and which has no
             far-field texture along the surface; what the scan check registers against.
+        near : tuple, optional
+            ``predict(xyz, return_grad, far=False)`` at the same points when the caller
+            has it (the scan check after its registration): the blend uses it instead
+            of computing the near field again. Ignored with ``far=False``.
 
         Returns
         -------
@@ -169,9 +173,14 @@ class SurfaceMap:
         grad : (K, 3) float64, only if ``return_grad``
         """
         xyz = as_queries(xyz)
+        if near is not None and len(near) != (3 if return_grad else 2):
+            raise ValueError(f"Expected near = (mean, var{', grad' if return_grad else ''}), "
+                             f"found {len(near)} arrays.")
         if self.far is None or not far:
+            if near is not None:
+                return tuple(near)
             return self._near_field.predict(xyz, return_grad=return_grad)
-        return self._blended().predict(xyz, return_grad=return_grad)
+        return self._blended().predict(xyz, return_grad=return_grad, base_out=near)
 
     def predict_mean(self, xyz) -> np.ndarray:
         """(K,) the mean of :meth:`predict` alone (the same values; what the surface

@@ -513,10 +513,13 @@ class BlendedField:
         # the GP's length scale l (auto rule 1.75 h_t when not given)
         self.length_scale = float(length_scale) if length_scale else 1.75 * far.rho0
 
-    def predict(self, xyz, return_grad: bool = False, mean_only: bool = False):
+    def predict(self, xyz, return_grad: bool = False, mean_only: bool = False, base_out=None):
         """Mean, variance[, gradient]; ``mean_only``: the mean alone (the same values;
-        the variance model, which the mean does not use, is skipped)."""
-        out = self.base.predict(xyz, return_grad=return_grad)
+        the variance model, which the mean does not use, is skipped). ``base_out``:
+        the base field's ``predict(xyz, return_grad)`` when the caller has it (not
+        computed again)."""
+        out = self.base.predict(xyz, return_grad=return_grad) if base_out is None \
+            else tuple(base_out)
         c = self.far.components(xyz, return_grad)
         # the GP's weight fades with the distance to the data: beyond a length scale
         # its mean is the HGMM prior, whose variance does not know how far it is
