@@ -59,7 +59,9 @@ constrained direction shrink geometrically and are extrapolated (Aitken, see
 :func:`_aitken`). On a loaded map 75-90 % of the time is the map's ``predict``:
 the GMR prior (its kernel and the per-cell candidate lists built for the cells the
 moving points enter), the block cover and posteriors and, in the final check, the
-far field's neighbour query and weights.
+far field's neighbour query and weights (the check after an alignment blends the far
+field with the dense stage's last prediction of the GP field at the same points,
+``predict(near=...)``, instead of predicting the GP field again).
 
 Degenerate directions: the normal matrix ``H = sum w_i J_i^T J_i`` (with the
 per-point weights ``1 / (s_i^2 + noise^2)``: whether the geometry constrains a
