@@ -15,6 +15,13 @@ bench pair of scripts/bench_check.py (36 m street, default map; second drive thr
   points where the difference and the analytic gradient differ by more than 0.5, the
   mean jumping at a block's region boundary, left out).
 
+``--foot`` (bench pair, check_scan's weights, all points, at the truth): the weights from
+the std at each point's foot on the zero level set (one Newton projection) or at the
+noise-free point (an oracle), residuals against the foot (``m / |g|``, the distance to
+the two-step foot), a 7th parameter for a common offset of some faces' distances, and
+the noise-free drive's error split by the faces' orientation (the gradient's dominant
+axis and sign) with their weight share and weighted mean residual.
+
 ``--decompose`` (bench pair) splits the error instead, with check_scan's weights (shared
 1 m counts, cell variance factors, Tukey), all points, at the truth; rotation vectors in
 deg x 1e-3 (x is the street's axis), translation at the points' weighted centre in mm:
@@ -32,6 +39,7 @@ deg x 1e-3 (x is the street's axis), translation at the points' weighted centre 
     PYTHONPATH=$PWD .venv/bin/python scripts/check_error_budget.py --out out/budget.json
     PYTHONPATH=$PWD .venv/bin/python scripts/check_error_budget.py --scene street2
     PYTHONPATH=$PWD .venv/bin/python scripts/check_error_budget.py --decompose
+    PYTHONPATH=$PWD .venv/bin/python scripts/check_error_budget.py --foot --cache out/maps
 """
 
 from __future__ import annotations
@@ -287,6 +295,17 @@ def foot(args) -> int:
                      "xi": step(yn, rgeo, g / gn[:, None], w0)[0]})
         rows.append({"seed": seed, "what": "residual: distance to the 2-step foot, foot std",
                      "xi": step(yn, rgeo, g / gn[:, None], W(vf))[0]})
+        # a 7th parameter: a common offset of the map's distances on some faces
+        ax_n = np.argmax(np.abs(g), axis=1)
+        Jn, _, _ = _normal_matrix(yn, g, w0, m, pivot)
+        for name, col in (("facades (x- and y-facing)", ax_n < 2), ("y-facing faces", ax_n == 1),
+                          ("all faces", np.ones(len(yn), bool))):
+            J7 = np.c_[Jn, col.astype(float)]
+            Jw = J7 * w0[:, None]
+            x7 = np.linalg.solve(Jw.T @ J7, -Jw.T @ m)
+            rows.append({"seed": seed, "what": f"7th parameter: offset of the {name} (offset mm)",
+                         "xi": np.r_[1e3 * x7[:3], 1e3 * np.degrees(x7[3:6])],
+                         "extra": f"{1e3 * x7[6]:+.2f}"})
         # which faces carry the map's bias: the noise-free residuals' score split by the
         # gradient's dominant axis and sign, mapped through the same normal matrix
         ax = np.argmax(np.abs(gc), axis=1)
