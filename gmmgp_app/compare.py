@@ -180,8 +180,11 @@ def run_evaluation(scan, smap, reference, methods, *, bins, n_queries: int = 200
             train = {k: float(v) for k, v in model.summary["seconds"].items()}
         signed = getattr(model, "signed", True)
         log(f"{method}: predicting")
+        # the predictive distribution where the model has one (SurfaceMap.distribution)
         field = evaluate_field(model.predict, reference, queries, data.points, bins,
-                               signed=signed, truth=truth)
+                               signed=signed, truth=truth,
+                               distribution=getattr(model, "distribution", None)
+                               if signed else None)
         entry = {"train_seconds": train, "test_seconds": field.pop("test_seconds"),
                  "signed": bool(signed), "field": field, "surface": None}
         if method == "loggpis":

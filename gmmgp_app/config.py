@@ -355,6 +355,18 @@ class FarFieldConfig:
         "the interval otherwise; 0.15 (p = 0.93) chosen on the street and sphere among "
         "0 / 0.15 / 0.25 / 0.35 / 0.5 (scripts/sweep_unseen.py, docs/field.md); 0.5 "
         "covers the whole interval at 2 sigma")
+    unseen_predictive: str = _f(
+        "mixture", "Predictive distribution where the unseen-geometry widths are non-zero: "
+        "'mixture' (eq. unseen_mixture in stages/unseen.py): the observed surface's "
+        "Gaussian with probability 1 - q, a Gaussian of the unseen error's second moment "
+        "(v + w^2 / 3) with probability q = 3 lambda^2; the reported std is its central "
+        "68.27 % half-width and the map scores itself by its log density; 'gaussian' "
+        "(eq. unseen_var): one Gaussian of the same total variance, what maps saved before "
+        "the mixture load with.", choices=("mixture", "gaussian"),
+        source="chosen on the street and sphere (scripts/fit_variance.py --mixture, "
+        "docs/field.md 'The predictive behind the located surface'): street 1-sigma "
+        "coverage at 0.1-1 m 0.81-0.83 -> 0.69-0.76, mean LL 0.2-0.3 m 2.75 -> 3.50 "
+        "(hgmm 2.82)")
     min_thickness: float = _f(
         2.0, "Least thickness t_min of hidden matter behind a located surface, in units "
         "of the kernel floor h (the training spacing): behind the surface by more than "

@@ -502,8 +502,13 @@ class BlendedField:
     def __init__(self, base, far: FarField, calibrated: bool = True, gp_growth: float = 2.0,
                  disagreement_weight: float = 1.0, length_scale: float | None = None,
                  unseen_weight: float = 0.0, min_thickness: float = 2.0,
-                 edge_gap: float = 1.0):
+                 edge_gap: float = 1.0, unseen_predictive: str = "gaussian"):
         self.base, self.far, self.calibrated = base, far, bool(calibrated)
+        if unseen_predictive not in ("gaussian", "mixture"):
+            raise FarFieldError(f"Expected unseen_predictive 'gaussian' or 'mixture', found "
+                                f"{unseen_predictive!r}.")
+        # eq. unseen_var (its moment-matched Gaussian) or eq. unseen_mixture (stages/unseen.py)
+        self.unseen_predictive = unseen_predictive
         self.gp_growth = float(gp_growth)
         self.disagreement_weight = float(disagreement_weight)
         # eq. unseen_var: lambda, and t_min and the edge gap in units of h (rho0)
@@ -515,7 +520,21 @@ class BlendedField:
 
     def predict(self, xyz, return_grad: bool = False, mean_only: bool = False):
         """Mean, variance[, gradient]; ``mean_only``: the mean alone (the same values;
-        the variance model, which the mean does not use, is skipped)."""
+        the variance model, which the mean does not use, is skipped). With
+        ``unseen_predictive="mixture"`` the variance is the square of the central
+        68.27 % half-width of eq. unseen_mixture (:meth:`distribution`)."""
+        res, dist = self._predict(xyz, return_grad, mean_only)
+        return res
+
+    def distribution(self, xyz):
+        """The predictive distribution at ``xyz``: an :class:`~.unseen.UnseenMixture`
+        (eq. unseen_mixture; a Gaussian where both unseen widths are zero, everywhere
+        when ``unseen_predictive="gaussian"`` or the field is not calibrated)."""
+        return self._predict(xyz, False, False)[1]
+
+    def _predict(self, xyz, return_grad, mean_only):
+        from .unseen import UnseenMixture
+
         out = self.base.predict(xyz, return_grad=return_grad)
         c = self.far.components(xyz, return_grad)
         # the GP's weight fades with the distance to the data: beyond a length scale
@@ -524,7 +543,8 @@ class BlendedField:
         res = blend_fields(out[0], v_gp, c["mean"], c["var"],
                            *((out[2], c["grad"]) if return_grad else ()))
         if mean_only:
-            return res[0]
+            return res[0], None
+        dist = None
         if self.calibrated:
             d2 = (out[0] - c["mean"]) ** 2
             # within a length scale of the data the GP mean is the data's (beyond, it is
@@ -534,8 +554,14 @@ class BlendedField:
             var = calibrated_variance(self.far.rho0, self.far.noise, c["r"], c["spread2"],
                                       d2, out[1], disagreement_weight=kappa)
             if self.unseen_weight > 0:
-                var = var + unseen_variance(behind_width(res[0], self.min_thickness),
-                                            extent_width(res[0], c["r"], self.edge_gap),
-                                            self.unseen_weight)
+                wb = behind_width(res[0], self.min_thickness)
+                we = extent_width(res[0], c["r"], self.edge_gap)
+                if self.unseen_predictive == "mixture":
+                    dist = UnseenMixture(res[0], var, wb, we, self.unseen_weight)
+                    var = dist.var
+                else:
+                    var = var + unseen_variance(wb, we, self.unseen_weight)
             res = (res[0], var) + tuple(res[2:])
-        return res
+        if dist is None:
+            dist = UnseenMixture(res[0], res[1])
+        return res, dist
