@@ -183,3 +183,44 @@ def test_map_behind_a_thin_wall_and_old_maps_load_with_the_gaussian(tmp_path):
     ob, ovb = old.predict(qb)
     np.testing.assert_array_equal(ob, gb)
     np.testing.assert_allclose(ovb, gvb, rtol=1e-12)
+
+
+def test_evaluation_scores_the_predictive_distribution():
+    """binned_metrics / reliability with a predictive distribution: its log density, its
+    std and its central 95.45 % interval; the Gaussian case equals the Gaussian path; on
+    truths drawn from the mixture every reliability level is met."""
+    from gmmgp_app.evaluation import TWO_SIGMA, binned_metrics, reliability
+
+    rng = np.random.default_rng(5)
+    n, lam = 60_000, 0.15
+    m = rng.normal(size=n)
+    s = rng.uniform(0.005, 0.02, n)
+    wb = np.where(rng.uniform(size=n) < 0.5, rng.uniform(0.1, 0.5, n), 0.0)
+    e = rng.normal(scale=s)
+    on = (wb > 0) & (rng.uniform(size=n) < unseen_prior(lam))
+    e[on] += rng.normal(scale=wb[on] / math.sqrt(3.0))
+    y, dist = m + e, rng.uniform(0.0, 0.3, n)
+    bins = (0.0, 0.1, 0.3)
+    mix = UnseenMixture(m, s * s, wb, 0.0, lam)
+    res = binned_metrics(mix.mean, mix.var, y, dist, bins, distribution=mix)
+    sel = dist < 0.1
+    ll = mix.logpdf(y)
+    assert res["ll_sdf"][0] == pytest.approx(ll[sel].mean(), rel=1e-12)
+    assert res["ll_edf"][0] == pytest.approx(np.logaddexp(
+        mix.logpdf(np.abs(y)), mix.logpdf(-np.abs(y)))[sel].mean(), rel=1e-12)
+    err = np.abs(y - m)
+    assert res["cov1_sdf"][0] == pytest.approx(np.mean(err[sel] <= mix.std[sel]))
+    assert res["cov2_sdf"][0] == pytest.approx(np.mean(err[sel] <= mix.half_width(TWO_SIGMA)[sel]))
+    assert res["cov2sig_sdf"][0] == pytest.approx(np.mean(err[sel] <= 2 * mix.std[sel]))
+    # calibrated by construction: within the Monte-Carlo error at every level
+    rel = reliability(y, mix.mean, mix.var, distribution=mix)
+    for p, o in zip(rel["expected"], rel["observed"]):
+        assert abs(o - p) < 4 * math.sqrt(p * (1 - p) / n), (p, o)
+    # without unseen widths the distribution is the Gaussian: the same numbers
+    g = UnseenMixture(m, s * s)
+    a = binned_metrics(m, s * s, y, dist, bins)
+    b = binned_metrics(m, s * s, y, dist, bins, distribution=g)
+    for key in ("ll_sdf", "ll_edf", "cov1_sdf", "cov2_sdf"):
+        np.testing.assert_allclose(b[key], a[key], rtol=1e-9)
+    np.testing.assert_allclose(reliability(y, m, s * s, distribution=g)["observed"],
+                               reliability(y, m, s * s)["observed"], atol=1e-12)
