@@ -68,11 +68,12 @@ def scene_case(name, seed, cache: Path):
     mean, var = smap.predict(q)[:2]
     base = smap.gp if smap.gp is not None else smap.prior
     m_gp, v_gp = base.predict(q)[:2]
-    c = smap.far.components(q)
+    c = smap.far.components(q, True)
     f = smap.config.far
     d = dict(y=y, bin=np.digitize(dist, [b * spec["scale"] for b in B.BINS]) - 1,
              mean=mean, var=var, m_gp=m_gp, v_gp=v_gp, m_far=c["mean"], r=c["r"],
              spread2=c["spread2"], h=smap.far.rho0, noise=smap.far.noise,
+             disp=1.0 - np.linalg.norm(c["grad"], axis=1),  # the normals' dispersion
              length_scale=concrete(smap.config.gp).length_scale,
              kappa=f.disagreement_weight, lam=f.unseen_weight,
              t_min=f.min_thickness * smap.far.rho0, gap=f.edge_gap * smap.far.rho0)

@@ -12,7 +12,12 @@ widths. Here the behind and the extent widths get their own Gaussian components,
   interval per bin with [bins within 0.95 +- 0.03], mean LL per bin, bins with LL
   above hgmm, gpis and loggpis and the least margin);
 * ``--ml``: q_e by maximum likelihood on the queries with w_e > 0, per scene and on
-  the tuned scenes together.
+  the tuned scenes together;
+* ``--dispersion``: q_e per query from the neighbours' normal dispersion
+  D = 1 - |n_bar| (planes ~0, corners and curved surfaces more),
+  ``q_e = q + (q_max - q) D / (D + d_half)``, (q_max <= 0.9, d_half) by maximum
+  likelihood on the tuned scenes, then scored on every scene as ``--sweep`` does
+  (needs a cache written with the dispersion: ``fit_variance.py`` since field-15e).
 
 Reads the per-query cache of ``scripts/fit_variance.py`` (same protocol; built there
 when missing).
@@ -80,14 +85,46 @@ def scored(d, qe):
     return a <= half_width(ONE), a <= half_width(TWO), ll
 
 
-def sweep(names, cache, baselines, seed=0):
+def dispersion_prior(D, q_max, d_half):
+    return Q_B + (q_max - Q_B) * D / (D + d_half)
+
+
+def fit_dispersion(names, cache, seed=0):
+    from scipy.optimize import minimize
+
+    packs = []
+    for n in names:
+        d = FV.scene_case(n, seed, cache)
+        v, comps, wb2, we2 = components(d, 0.0)
+        e2 = (d["y"] - d["mean"]) ** 2
+        on = we2 > 0
+
+        def N(vv):
+            return np.exp(-0.5 * e2[on] / vv[on]) / np.sqrt(2 * np.pi * vv[on])
+        packs.append((N(v), N(v + wb2 / 3), N(v + we2 / 3), comps[0][0][on], d["disp"][on]))
+
+    def nll(th):
+        q_max, d_half = 0.9 / (1 + np.exp(-th[0])), np.exp(th[1])
+        return -sum(np.log(np.maximum((1 - qb - dispersion_prior(D, q_max, d_half)) * n0
+                                      + qb * nb + dispersion_prior(D, q_max, d_half) * ne,
+                                      1e-300)).sum() for n0, nb, ne, qb, D in packs)
+
+    best = min((minimize(nll, x0, method="Nelder-Mead",
+                         options=dict(xatol=1e-4, fatol=1e-6, maxiter=2000))
+                for x0 in ([0.0, np.log(0.01)], [2.0, np.log(0.001)], [-1.0, np.log(0.05)])),
+               key=lambda r: r.fun)
+    return 0.9 / (1 + np.exp(-best.x[0])), float(np.exp(best.x[1]))
+
+
+def sweep(names, cache, baselines, seed=0, rules=None):
     base = {r["scene"]: r for r in json.loads(Path(baselines).read_text())["results"]}
     lines = []
-    for qe in (Q_B, 0.15, 0.3, 0.5):
-        lines.append(f"\nq_e = {qe:g}\n")
+    rules = rules or [(f"q_e = {qe:g}", (lambda d, qe=qe: qe)) for qe in (Q_B, 0.15, 0.3, 0.5)]
+    for label, rule in rules:
+        lines.append(f"\n{label}\n")
         for n in names:
             d = FV.scene_case(n, seed, cache)
-            c1, c2, ll = scored(d, qe)
+            c1, c2, ll = scored(d, rule(d))
             ms = base[n]["methods"]
             r1, r2, rl, mg = [], [], [], []
             for i in range(len(B.BINS) - 1):
@@ -139,16 +176,26 @@ def main(argv=None) -> int:
     p.add_argument("--scenes", default=",".join(B.SCENES))
     p.add_argument("--sweep", default=None, metavar="BASELINES_JSON")
     p.add_argument("--ml", action="store_true")
+    p.add_argument("--dispersion", default=None, metavar="BASELINES_JSON")
     p.add_argument("--cache", default="out/calib")
     a = p.parse_args(argv)
     names = [n for n in a.scenes.split(",") if n != "bunny" or B.BUNNY.is_dir()]
-    if not (a.sweep or a.ml):
-        print("error: nothing to do; give --sweep and/or --ml", file=sys.stderr)
+    if not (a.sweep or a.ml or a.dispersion):
+        print("error: nothing to do; give --sweep, --ml and/or --dispersion", file=sys.stderr)
         return 2
     if a.sweep:
         print(sweep(names, Path(a.cache), a.sweep))
     if a.ml:
         print(ml(names, Path(a.cache)))
+    if a.dispersion:
+        tuned = [n for n in names if B.SCENES[n]["tuned"]]
+        qm, dh = fit_dispersion(tuned, Path(a.cache))
+        print(f"\nq_e from the dispersion: q_max = {qm:.4f}, d_half = {dh:.5f} (ML on "
+              f"{', '.join(tuned)})")
+        print(sweep(names, Path(a.cache), a.dispersion, rules=[
+            (f"q_e = {Q_B:g} (the default)", lambda d: Q_B),
+            (f"q_e from the dispersion ({qm:.3f}, {dh:.5f})",
+             lambda d: dispersion_prior(d["disp"], qm, dh))]))
     return 0
 
 
