@@ -450,7 +450,10 @@ def sample_queries(points: np.ndarray, normals: np.ndarray, n: int, *,
 
 
 # --------------------------------------------------------------------------- metrics
-_KEYS = ("n", "rmse_sdf", "rmse_edf", "ll_sdf", "ll_edf", "cov1_sdf", "cov2_sdf")
+_KEYS = ("n", "rmse_sdf", "rmse_edf", "ll_sdf", "ll_edf", "cov1_sdf", "cov2_sdf",
+         "cov2sig_sdf")
+#: Central probability of a Gaussian's +-2 sigma interval, erf(2 / sqrt 2).
+TWO_SIGMA = 0.9544997361036416
 #: Central probability levels of the reliability diagram (0.1, 0.2, ..., 0.95, 0.99 would
 #: also do; ten equal steps keep the diagram readable).
 RELIABILITY_LEVELS = tuple(round(0.1 * k, 1) for k in range(1, 10)) + (0.95,)
@@ -476,11 +479,14 @@ def coverage(y, mean, var, k: float = 1.0) -> np.ndarray:
     return np.abs(y - mean) <= k * np.sqrt(np.maximum(var, 0.0))
 
 
-def reliability(y, mean, var, levels: Sequence[float] = RELIABILITY_LEVELS) -> dict:
-    """Expected against observed coverage of central Gaussian intervals.
+def reliability(y, mean, var, levels: Sequence[float] = RELIABILITY_LEVELS,
+                distribution=None) -> dict:
+    """Expected against observed coverage of central intervals.
 
     For each level ``p`` the interval ``mean +- z_p sigma`` with
-    ``z_p = Phi^-1((1 + p) / 2)`` should hold a fraction ``p`` of the truths.
+    ``z_p = Phi^-1((1 + p) / 2)`` (Gaussian), or ``mean +- distribution.half_width(p)``
+    when a predictive ``distribution`` is given (:meth:`SurfaceMap.distribution`),
+    should hold a fraction ``p`` of the truths.
 
     Returns
     -------
@@ -489,9 +495,16 @@ def reliability(y, mean, var, levels: Sequence[float] = RELIABILITY_LEVELS) -> d
     from scipy.stats import norm
 
     y, mean, var = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (y, mean, var))
-    z = np.abs(y - mean) / np.sqrt(np.maximum(var, 1e-300))
-    obs = [float(np.mean(z <= norm.ppf(0.5 + 0.5 * p))) if len(z) else float("nan")
-           for p in levels]
+    err = np.abs(y - mean)
+    sd = np.sqrt(np.maximum(var, 1e-300))
+    obs = []
+    for p in levels:
+        if not len(err):
+            obs.append(float("nan"))
+            continue
+        half = sd * norm.ppf(0.5 + 0.5 * p) if distribution is None \
+            else distribution.half_width(p)
+        obs.append(float(np.mean(err <= half)))
     return {"expected": [float(p) for p in levels], "observed": obs}
 
 
@@ -521,7 +534,8 @@ def plot_reliability(curves: dict, path, title: str = "") -> Path:
 
 
 def binned_metrics(mean, var, truth, dist, bins: Sequence[float] = DEFAULT_BINS, *,
-                   signed_prediction: bool = True, signed_truth: bool = True) -> dict:
+                   signed_prediction: bool = True, signed_truth: bool = True,
+                   distribution=None) -> dict:
     """RMSE and mean log-likelihood of the SDF and the EDF per distance bin.
 
     Parameters
@@ -538,6 +552,13 @@ def binned_metrics(mean, var, truth, dist, bins: Sequence[float] = DEFAULT_BINS,
         SDF metrics need both; otherwise they are NaN. The EDF of a signed
         prediction is ``|mean|`` scored by the folded normal; an unsigned
         prediction is scored by a Gaussian on ``|truth|``.
+    distribution : optional
+        The signed prediction's predictive distribution (:meth:`SurfaceMap.distribution`:
+        ``logpdf``, ``half_width``, ``std``) when it is not the Gaussian N(mean, var):
+        the log-likelihoods are its log density (the EDF's folded: ``p(t) + p(-t)``),
+        the 1-sigma coverage uses its ``std`` and the 2-sigma one its central 95.45 %
+        interval (a Gaussian's +-2 sigma); ``cov2sig_sdf`` is then ``|y - mean| <= 2
+        std`` as it stands.
 
     Returns
     -------
@@ -563,13 +584,20 @@ def binned_metrics(mean, var, truth, dist, bins: Sequence[float] = DEFAULT_BINS,
     else:
         err_edf = (mean - np.abs(truth)) ** 2
         ll_edf = gaussian_loglik(np.abs(truth), mean, var)
+    if signed_prediction and distribution is not None:
+        a = np.abs(truth)
+        ll_edf = np.logaddexp(distribution.logpdf(a), distribution.logpdf(-a))
     if signed_prediction and signed_truth:
         err_sdf, ll_sdf = (mean - truth) ** 2, gaussian_loglik(truth, mean, var)
         c1 = coverage(truth, mean, var, 1.0).astype(np.float64)
         c2 = coverage(truth, mean, var, 2.0).astype(np.float64)
+        c2s = c2
+        if distribution is not None:
+            ll_sdf = distribution.logpdf(truth)
+            c2 = (np.abs(truth - mean) <= distribution.half_width(TWO_SIGMA)).astype(np.float64)
     else:
-        err_sdf, ll_sdf, c1, c2 = nan, nan, nan, nan
-    per = (err_sdf, err_edf, ll_sdf, ll_edf, c1, c2)
+        err_sdf, ll_sdf, c1, c2, c2s = nan, nan, nan, nan, nan
+    per = (err_sdf, err_edf, ll_sdf, ll_edf, c1, c2, c2s)
     out = {"bins": [[float(a), float(b)] for a, b in zip(bins[:-1], bins[1:])]}
     out.update({key: [] for key in _KEYS})
     for lo, hi in out["bins"]:
@@ -580,7 +608,7 @@ def binned_metrics(mean, var, truth, dist, bins: Sequence[float] = DEFAULT_BINS,
     return out
 
 
-def _append(out, sel, err_sdf, err_edf, ll_sdf, ll_edf, c1, c2):
+def _append(out, sel, err_sdf, err_edf, ll_sdf, ll_edf, c1, c2, c2s):
     n = int(sel.sum())
     out["n"].append(n)
     nan = float("nan")
@@ -590,12 +618,13 @@ def _append(out, sel, err_sdf, err_edf, ll_sdf, ll_edf, c1, c2):
     out["ll_edf"].append(float(np.mean(ll_edf[sel])) if n else nan)
     out["cov1_sdf"].append(float(np.mean(c1[sel])) if n else nan)
     out["cov2_sdf"].append(float(np.mean(c2[sel])) if n else nan)
+    out["cov2sig_sdf"].append(float(np.mean(c2s[sel])) if n else nan)
 
 
 def evaluate_field(predict: Callable, reference: Reference, queries: np.ndarray,
                    train_points: np.ndarray, bins: Sequence[float] = DEFAULT_BINS, *,
                    signed: bool = True, truth: Optional[np.ndarray] = None,
-                   batch: int = 100_000) -> dict:
+                   batch: int = 100_000, distribution: Optional[Callable] = None) -> dict:
     """Predict at ``queries``, compare with the reference, bin by distance to training.
 
     Parameters
@@ -613,6 +642,10 @@ def evaluate_field(predict: Callable, reference: Reference, queries: np.ndarray,
         Precomputed ``reference.sdf(queries)`` (to share it between methods).
     batch : int
         Queries per ``predict`` call.
+    distribution : callable, optional
+        ``distribution(xyz) -> predictive`` (:meth:`SurfaceMap.distribution`): scored by
+        its log density and central intervals (:func:`binned_metrics`); instead of
+        ``predict`` then.
 
     Returns
     -------
@@ -628,12 +661,18 @@ def evaluate_field(predict: Callable, reference: Reference, queries: np.ndarray,
     truth = reference.sdf(queries) if truth is None else np.asarray(truth, dtype=np.float64)
     mean, var = np.empty(len(queries)), np.empty(len(queries))
     t0 = time.perf_counter()
+    parts = []
     for s in range(0, len(queries), batch):
-        out = predict(queries[s:s + batch])
+        if distribution is not None:
+            parts.append(distribution(queries[s:s + batch]))
+            out = parts[-1].mean, parts[-1].var
+        else:
+            out = predict(queries[s:s + batch])
         mean[s:s + batch], var[s:s + batch] = out[0], out[1]
     seconds = time.perf_counter() - t0
     res = binned_metrics(mean, var, truth, dist, bins, signed_prediction=signed,
-                         signed_truth=reference.signed)
+                         signed_truth=reference.signed,
+                         distribution=_Batched(parts) if parts else None)
     res["test_seconds"] = seconds
     res["n_queries"] = int(len(queries))
     return res
@@ -690,3 +729,19 @@ def surface_distances(vertices, faces, reference: Reference, *, n_samples: int =
         "hausdorff95": float(max(np.quantile(d_ab, 0.95), np.quantile(d_ba, 0.95))),
         "n_samples": [int(len(a)), int(len(b))],
     }
+
+
+class _Batched:
+    """Predictive distributions of consecutive query batches read as one."""
+
+    def __init__(self, parts):
+        self.parts = parts
+        self.sizes = np.cumsum([0] + [len(p.mean) for p in parts])
+
+    def logpdf(self, y):
+        y = np.asarray(y, dtype=np.float64).reshape(-1)
+        return np.concatenate([p.logpdf(y[a:b]) for p, a, b in
+                               zip(self.parts, self.sizes[:-1], self.sizes[1:])])
+
+    def half_width(self, level):
+        return np.concatenate([p.half_width(level) for p in self.parts])

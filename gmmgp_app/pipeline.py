@@ -41,6 +41,7 @@ from .stages import loggpis as _loggpis
 from .stages import octree as _octree
 from .stages import prepare as _prepare
 from .stages import surface as _surface
+from .stages import unseen as _unseen
 from .types import GaussianMixture, HGMMLevel, HierarchicalGMM, Scan, SurfaceMesh
 
 __all__ = ["build_map", "SurfaceMap", "load_map", "update_map", "run_stages", "Stage",
@@ -173,6 +174,23 @@ class SurfaceMap:
             return self._near_field.predict(xyz, return_grad=return_grad)
         return self._blended().predict(xyz, return_grad=return_grad)
 
+    def distribution(self, xyz):
+        """The predictive distribution of the signed distance at query points (what
+        :meth:`predict` summarises by a mean and a variance): an object with ``mean``,
+        ``var`` and ``std`` (K,), ``logpdf(y)`` (the log density of values ``y``, (K,))
+        and ``half_width(level)`` (the central interval holding ``level`` of it).
+        Where the scan saw the surface (and for maps without the far field, or built
+        with ``far.unseen_predictive = "gaussian"``) it is the Gaussian N(mean, var);
+        behind the located surface and past the end of the data, the mixture of
+        eq. unseen_mixture (stages/unseen.py), whose ``std`` is its central 68.27 %
+        half-width.
+        """
+        xyz = as_queries(xyz)
+        if self.far is None:
+            mean, var = self._near_field.predict(xyz)[:2]
+            return _unseen.UnseenMixture(mean, var)
+        return self._blended().distribution(xyz)
+
     def predict_mean(self, xyz) -> np.ndarray:
         """(K,) the mean of :meth:`predict` alone (the same values; what the surface
         lattice needs: the variance model is skipped where it does not feed the mean)."""
@@ -194,7 +212,7 @@ class SurfaceMap:
                             None if is_auto(self.config.gp.length_scale)
                             else self.config.gp.length_scale,
                             self.config.far.unseen_weight, self.config.far.min_thickness,
-                            self.config.far.edge_gap)
+                            self.config.far.edge_gap, self.config.far.unseen_predictive)
 
     @property
     def signed(self) -> bool:
@@ -296,7 +314,12 @@ def load_map(directory) -> SurfaceMap:
             f"Map format version {meta.get('format_version')} in '{directory}' is not "
             f"supported (expected {MAP_FORMAT_VERSION}); rebuild the map with this version."
         )
-    cfg = MappingConfig.from_dict(tomllib.loads(meta["config_toml"]))
+    cfg_dict = tomllib.loads(meta["config_toml"])
+    far_cfg = cfg_dict.setdefault("far", {})
+    if isinstance(far_cfg, dict) and "unseen_predictive" not in far_cfg:
+        # saved before eq. unseen_mixture: the map predicts as it did (eq. unseen_var)
+        far_cfg["unseen_predictive"] = "gaussian"
+    cfg = MappingConfig.from_dict(cfg_dict)
     with np.load(arr_path, allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files}
     hgmm = _hgmm_from_arrays(arrays) if "hgmm/leaves/weights" in arrays else None
