@@ -54,6 +54,23 @@ def test_ellipsoid_mesh_vertices_lie_on_the_two_sigma_surface():
         assert uv.shape == (3 * len(mesh.triangles), 2) and not uv.any()
 
 
+def test_probe_marker_is_a_lit_sphere_around_the_point():
+    """The probe's marker (built in gui_geometry, where the meshes drawn lit get their
+    zero texture coordinates): Open3D's sphere of resolution 10 moved to the point."""
+    import open3d as o3d
+
+    xyz, r = np.array([1.0, -2.0, 0.5]), 0.03
+    m = G.probe_marker(xyz, r)
+    v = np.asarray(m.vertices)
+    np.testing.assert_allclose(np.linalg.norm(v - xyz, axis=1), r, rtol=1e-12)
+    ref = o3d.geometry.TriangleMesh.create_sphere(radius=r, resolution=10)
+    np.testing.assert_array_equal(v, np.asarray(ref.vertices) + xyz)
+    np.testing.assert_array_equal(np.asarray(m.triangles), np.asarray(ref.triangles))
+    assert m.has_vertex_normals()
+    uv = np.asarray(m.triangle_uvs)
+    assert uv.shape == (3 * len(m.triangles), 2) and not uv.any()
+
+
 def test_ellipsoid_wireframe_lines_join_points_on_the_surface():
     means, cov = _random_gaussians(k=3, seed=1)
     ls = G.ellipsoid_wireframe(means, cov, np.ones((3, 3)), n_sigma=1.0, resolution=5)

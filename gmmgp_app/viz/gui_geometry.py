@@ -16,7 +16,8 @@ from .rerun_observer import C_MAX, ERROR_SATURATION_DM, ellipsoid_params
 
 __all__ = ["colormap", "colorbar_rgb", "point_cloud", "ellipsoid_mesh", "ellipsoid_wireframe",
            "block_boxes", "triangle_mesh", "scan_colors", "row_colors", "error_colors",
-           "complexity_colors", "std_colors", "z_colors", "aabb_boxes", "LEGENDS"]
+           "complexity_colors", "std_colors", "z_colors", "aabb_boxes", "probe_marker",
+           "LEGENDS"]
 
 #: Colour map and value range of each colouring: (title, colour map, lo, hi, scale note).
 LEGENDS = {
@@ -141,6 +142,17 @@ def ellipsoid_mesh(means, covariances, colors, n_sigma: float = 2.0, resolution:
     m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts.reshape(-1, 3)),
                                   o3d.utility.Vector3iVector(faces.astype(np.int32)))
     m.vertex_colors = o3d.utility.Vector3dVector(np.repeat(np.asarray(colors, float), nv, 0))
+    m.compute_vertex_normals()
+    _zero_uvs(m)
+    return m
+
+
+def probe_marker(xyz, radius: float):
+    """The lit sphere marking a probed point: radius ``radius`` (m) around ``xyz`` (3,)."""
+    import open3d as o3d
+
+    m = o3d.geometry.TriangleMesh.create_sphere(radius=float(radius), resolution=10)
+    m.translate(np.asarray(xyz, dtype=np.float64).reshape(3))
     m.compute_vertex_normals()
     _zero_uvs(m)
     return m
