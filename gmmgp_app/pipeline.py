@@ -48,8 +48,9 @@ __all__ = ["build_map", "SurfaceMap", "load_map", "update_map", "run_stages", "S
            "MapFormatError", "PipelineError", "StagePayload", "auto_reasons", "format_auto"]
 
 MAP_FORMAT_VERSION = 1
-#: The GPIS baseline's constant prior (the paper's setup): distance 0.2 m, variance 0.2^2.
-GPIS_PRIOR = {"distance": 0.2, "variance": 0.2 ** 2}
+#: The GPIS baseline's constant prior distance and standard deviation, in virtual
+#: spacings s: the paper's setup (distance 0.2 m, variance 0.2^2) at its s = 0.25 m.
+GPIS_PRIOR_SPACINGS = 0.8
 
 
 class MapFormatError(ValueError):
@@ -415,9 +416,19 @@ def _select_stage(ctx, data, gmr_error):
     return {"gp_points": data.points[mask], "gp_normals": data.normals[mask]}
 
 
+def gpis_prior(spacing: float):
+    """The GPIS baseline's constant prior for virtual spacing ``spacing`` (m): distance
+    and standard deviation ``GPIS_PRIOR_SPACINGS * s`` (0.2 m at the paper's s = 0.25 m).
+    A length of the scan like the map's automatic ones: a scan scaled by a gets a prior
+    scaled by a (variance by a^2), where a fixed 0.2 m would dwarf a small object's
+    field or vanish beside a large one's."""
+    d = GPIS_PRIOR_SPACINGS * float(spacing)
+    return _gp.ConstantPrior(distance=d, variance=d * d)
+
+
 def _constant_prior_stage(ctx, data):
     mask = np.ones(len(data.points), dtype=bool)  # the GPIS baseline trains on every point
-    return {"prior": _gp.ConstantPrior(**GPIS_PRIOR), "gp_points": data.points[mask],
+    return {"prior": gpis_prior(data.spacing), "gp_points": data.points[mask],
             "gp_normals": data.normals[mask]}
 
 
@@ -512,7 +523,9 @@ def far_field(data, cfg: MappingConfig):
 def _map_stage(ctx, scan, summary=None, prior=None, hgmm=None, gp=None, gp_points=None,
                gp_normals=None, far=None):
     if prior is None and ctx.method != "loggpis":  # stopped before the prior
-        prior = _gp.ConstantPrior(**GPIS_PRIOR)
+        from .config import concrete
+
+        prior = gpis_prior(concrete(ctx.cfg.prepare).virtual_spacing)
     return {"smap": SurfaceMap(ctx.method, ctx.cfg, scan.offset, prior, hgmm=hgmm, gp=gp,
                                gp_points=gp_points, gp_normals=gp_normals,
                                seed_points=surface_seeds(scan, ctx.cfg), summary=summary,
