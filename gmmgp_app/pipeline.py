@@ -397,8 +397,10 @@ class Stage:
     when: Optional[Callable] = None
 
 
-def _prepare_stage(ctx, scan):
-    return {"data": _prepare.prepare(scan, ctx.cfg)}
+def _prepare_stage(ctx, scan, tree=None):
+    # the scan's k-d tree (build_map's, shared with the scale measurement) is used here
+    # last: handed on as None, so that the run does not keep it while fitting
+    return {"data": _prepare.prepare(scan, ctx.cfg, tree=tree), "tree": None}
 
 
 def _hgmm_stage(ctx, data):
@@ -571,7 +573,7 @@ def _gmr_counts(out, ctx):
 
 #: The recipe table: every stage, the function computing it, what it takes and gives.
 STAGES = {s.name: s for s in (
-    Stage("prepare", _prepare_stage, ("scan",), ("data",),
+    Stage("prepare", _prepare_stage, ("scan",), ("data", "tree"), optional=("tree",),
           counts=lambda o, c: {"hit_points": len(o["data"].points), "rows": len(o["data"].rows),
                                "dropped_virtual": o["data"].n_dropped_virtual}),
     Stage("hgmm", _hgmm_stage, ("data",), ("hgmm",),
@@ -682,7 +684,8 @@ def run_stages(names, state: dict, ctx: RunContext, *, observer=None,
 # --------------------------------------------------------------------------- recipe
 def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gmmgp",
               observer=None, *, stop_after: Optional[str] = None, executor=None,
-              progress=None, loggpis_lambda: Optional[float] = None) -> SurfaceMap:
+              progress=None, loggpis_lambda: Optional[float] = None,
+              check_grid: bool = False) -> SurfaceMap:
     """Map a scan into a probabilistic signed distance field.
 
     Parameters
@@ -707,6 +710,9 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
         Called as GP block tasks finish.
     loggpis_lambda : float, optional
         Log-GPIS lambda (1/m).
+    check_grid : bool
+        Refuse an impossible surface grid (:func:`check_surface_grid`) once the
+        configuration is resolved, before any fitting (``gmmgp run`` when it meshes).
 
     Returns
     -------
@@ -723,15 +729,18 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
         recipe = recipe[:recipe.index(stop_after) + 1]
     observer = observer or NullObserver()
     summary: dict = {"method": method, "n_scan_points": len(scan), "seconds": {}, "counts": {}}
-    cfg, summary["auto"] = resolve_config(cfg, scan)
+    # one k-d tree of the scan for the scale measurement and the prepare stage
+    state = {"scan": scan, "summary": summary, "tree": scan_tree(scan)}
+    cfg, summary["auto"] = resolve_config(cfg, scan, tree=state["tree"])
+    if check_grid:
+        _surface.check_surface_grid(scan.points, cfg.surface)
     on_config = getattr(observer, "on_config", None)
     if on_config is not None:   # observers that show the configuration get the resolved one
         on_config(cfg, summary["auto"])
     observer.on_stage("scan", StagePayload(scan, 0.0))
     ctx = RunContext(cfg, method, executor=executor, progress=progress,
                      loggpis_lambda=loggpis_lambda, auto_fields=auto_fields(summary["auto"]))
-    state = run_stages(recipe + ("map",), {"scan": scan, "summary": summary}, ctx,
-                       observer=observer, summary=summary)
+    state = run_stages(recipe + ("map",), state, ctx, observer=observer, summary=summary)
     return state["smap"]
 
 
@@ -774,9 +783,10 @@ def with_map_values(cfg: MappingConfig, map_cfg: MappingConfig) -> MappingConfig
 _RESOLVED: list = []   # [(key of the scan's arrays, cfg, result)]
 
 
-def resolve_config(cfg: MappingConfig, scan: Scan) -> tuple:
+def resolve_config(cfg: MappingConfig, scan: Scan, *, tree=None) -> tuple:
     """``cfg`` with every ``"auto"`` field computed from ``scan`` (stages/autoscale.py),
     and the record of the chosen values and their reasons (empty when nothing was auto).
+    ``tree``: the k-d tree of ``scan.points`` (:func:`scan_tree`) when the caller has it.
 
     The last result is remembered for the same point and origin arrays (the same
     objects, still alive, with the same sampled contents) and an equal ``cfg``:
@@ -789,7 +799,7 @@ def resolve_config(cfg: MappingConfig, scan: Scan) -> tuple:
         if key0[0]() is key[0]() and key0[1]() is key[1]() and key0[2:] == key[2:] \
                 and cfg0 == cfg:
             return cfg1, dict(auto1)
-    cfg1, auto1 = _resolve_config(cfg, scan)
+    cfg1, auto1 = _resolve_config(cfg, scan, tree)
     _RESOLVED[:] = [] if key is None else [(key, cfg, (cfg1, dict(auto1)))]
     return cfg1, auto1
 
@@ -809,7 +819,19 @@ def _arrays_key(scan: Scan):
     return (*refs, scan.points.shape, hash(tuple(sample)))
 
 
-def _resolve_config(cfg: MappingConfig, scan: Scan) -> tuple:
+def scan_tree(scan: Scan):
+    """The k-d tree of the scan's points, shared by the scale measurement
+    (stages/autoscale.py) and the prepare stage; None for a scan prepare refuses (too
+    few or non-finite points: it raises the one-line error)."""
+    from scipy.spatial import cKDTree
+
+    pts = scan.points
+    if len(pts) < _prepare.MIN_POINTS or not np.isfinite(pts).all():
+        return None
+    return cKDTree(pts)
+
+
+def _resolve_config(cfg: MappingConfig, scan: Scan, tree=None) -> tuple:
     from .config import concrete
     from .stages.autoscale import AutoScaleError
     from .stages.autoscale import resolve_config as _resolve
@@ -819,7 +841,7 @@ def _resolve_config(cfg: MappingConfig, scan: Scan) -> tuple:
     if len(pts) < MIN_POINTS or not np.isfinite(pts).all():
         return cfg, {}          # prepare raises the one-line error for such scans
     try:
-        return _resolve(cfg, pts, scan.origins)
+        return _resolve(cfg, pts, scan.origins, tree=tree)
     except AutoScaleError as exc:
         # too few or coincident points to measure: the urban values, and prepare
         # gives its own one-line error if the scan cannot be mapped at all
