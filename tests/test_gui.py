@@ -639,6 +639,34 @@ def test_default_view_looks_along_a_street_from_above_and_at_an_object_obliquely
     assert default_view(np.zeros((0, 3))).extent > 0  # nothing to frame: no crash
 
 
+def test_default_view_of_y_up_data_is_the_z_up_view_turned():
+    """Data whose up axis is y (the Stanford scan sets) is viewed as the same data with
+    z up would be: eye, centre, up, framed box and sun turned by the same rotation;
+    the bunny-sized blob is seen obliquely from above, not lying on its side."""
+    from gmmgp_app.viz.gui_camera import default_view, sun_direction, up_frame
+
+    rng = np.random.default_rng(2)
+    for pts in (_street(), rng.normal(size=(2000, 3)) * [0.08, 0.06, 0.07]):
+        for up in ((0.0, 1.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 0.0, -1.0)):
+            M = up_frame(up).T                       # z-up data -> data with ``up`` up
+            np.testing.assert_allclose(M @ [0.0, 0.0, 1.0], up, atol=1e-15)
+            v, w = default_view(pts), default_view(pts @ M.T, up=up)
+            assert w.along == v.along
+            for a, b in ((w.eye, v.eye), (w.centre, v.centre), (w.up, v.up)):
+                np.testing.assert_allclose(a, M @ b, atol=1e-9)
+            corners = np.stack([v.lo, v.hi]) @ M.T
+            np.testing.assert_allclose(w.lo, corners.min(0), atol=1e-9)
+            np.testing.assert_allclose(w.hi, corners.max(0), atol=1e-9)
+            np.testing.assert_allclose(sun_direction(w), M @ sun_direction(v), atol=1e-12)
+    # z up given explicitly: the view as before, bit for bit
+    pts = _street()
+    a, b = default_view(pts), default_view(pts, up=(0, 0, 1))
+    assert all(np.array_equal(getattr(a, k), getattr(b, k)) for k in ("lo", "hi", "eye",
+                                                                       "centre", "up"))
+    with pytest.raises(ValueError, match="up axis along x, y or z"):
+        default_view(pts, up=(0.0, 0.6, 0.8))
+
+
 def test_wait_for_frame_returns_when_drawn_cancelled_or_after_its_timeout():
     """The run's worker waits for the frame showing a stage; it never hangs."""
     import threading

@@ -131,7 +131,8 @@ def scene_view(view):
     pts = compare_scene_points(view)
     if pts is None:
         return None
-    return default_view(pts, like=view.model.results.scan.points)
+    return default_view(pts, like=view.model.results.scan.points,
+                        up=getattr(view.model, "up", None))
 
 
 def _compare_geometry(view, r, stage):

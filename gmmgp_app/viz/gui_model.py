@@ -180,6 +180,8 @@ class ViewerModel:
         self.hgmm_cache = None
         self._cache_lock = threading.Lock()
         self._resolved = None   # (scan, what the resolution depends on, cfg, record)
+        #: (3,) the data's up axis (datasets.registry.up_axis): the default view's
+        self.up = np.array([0.0, 0.0, 1.0])
 
     # ------------------------------------------------------------------ opening
     @classmethod
@@ -207,12 +209,14 @@ class ViewerModel:
             except T.TargetError as e:
                 raise ViewerError(str(e)) from None
         from ..datasets import read_scan
+        from ..datasets.registry import up_axis
 
         scan = read_scan(path)
         cfg = MappingConfig() if cfg is None else cfg
         m = cls(StageResults(config=cfg, voxel_size=voxel_size, scan=scan),
                 source=str(path))
         m.kind = "scan"
+        m.up = up_axis(path)
         return m
 
     @classmethod
