@@ -727,3 +727,40 @@ def test_gmr_colours_use_the_d_m_the_run_resolved():
     key, build, _, legend = SceneState(ViewerModel(r, "x"), "gmr").layer_geometry("points")
     assert key[0] == "gmr" and legend[0] == "error" and legend[2] > 0
     assert len(build().points) == 50
+
+
+
+def test_the_apps_first_run_builds_one_kd_tree_of_the_scan(monkeypatch):
+    """The app's run from 'prepare' shares one k-d tree of the scan between the scale
+    measurement and the prepare stage, as build_map does, with the same training set."""
+    import scipy.spatial
+
+    import gmmgp_app as gm
+    import gmmgp_app.pipeline as P
+    from gmmgp_app.stages import autoscale, prepare
+    from gmmgp_app.synth import scan_scene
+    from gmmgp_app.viz.gui_model import Cancelled, StageResults, ViewerModel
+
+    scan, _ = scan_scene("sphere", density=0.05, seed=0)
+    built = []
+    real = scipy.spatial.cKDTree
+
+    def counting(data, *a, **k):
+        built.append(data is scan.points)
+        return real(data, *a, **k)
+
+    for mod in (scipy.spatial, autoscale, prepare):
+        monkeypatch.setattr(mod, "cKDTree", counting)
+    P._RESOLVED.clear()
+    cfg = gm.MappingConfig()
+    model = ViewerModel(StageResults(config=cfg, voxel_size=0.1, scan=scan))
+    shown = []
+    with pytest.raises(Cancelled):   # stopped once the prepare stage is shown
+        model.compute("prepare", cfg, 0.1, on_stage=lambda st, r: shown.append(r),
+                      cancelled=lambda: bool(shown))
+    assert sum(built) == 1, built
+    data = shown[0].data
+    P._RESOLVED.clear()
+    ref = gm.prepare(scan, P.resolve_config(cfg, scan)[0])
+    for k in ("rows", "kinds", "points", "normals", "groups"):
+        np.testing.assert_array_equal(getattr(data, k), getattr(ref, k))
