@@ -54,6 +54,17 @@ def test_ellipsoid_mesh_vertices_lie_on_the_two_sigma_surface():
         assert uv.shape == (3 * len(mesh.triangles), 2) and not uv.any()
 
 
+def test_scan_colours_follow_the_up_axis():
+    """Height colours by z, or along the data's up axis (y for the Stanford sets)."""
+    pts = np.random.default_rng(4).normal(size=(500, 3))
+    z = G.scan_colors(pts)
+    assert all(np.array_equal(a, b) for a, b in zip(z, G.scan_colors(pts, (0, 0, 1))))
+    y = G.scan_colors(pts, (0.0, 1.0, 0.0))
+    assert all(np.array_equal(a, b) for a, b in zip(y, G.scan_colors(pts[:, [0, 2, 1]])))
+    down = G.scan_colors(pts, (0.0, 0.0, -1.0))
+    assert down[1] == pytest.approx(-z[2]) and down[2] == pytest.approx(-z[1])
+
+
 def test_probe_marker_is_a_lit_sphere_around_the_point():
     """The probe's marker (built in gui_geometry, where the meshes drawn lit get their
     zero texture coordinates): Open3D's sphere of resolution 10 moved to the point."""

@@ -21,7 +21,7 @@ __all__ = ["colormap", "colorbar_rgb", "point_cloud", "ellipsoid_mesh", "ellipso
 
 #: Colour map and value range of each colouring: (title, colour map, lo, hi, scale note).
 LEGENDS = {
-    "height": ("height z (m)", "turbo"),
+    "height": ("height (m)", "turbo"),
     "d": ("signed distance d of rows (m)", "coolwarm"),
     "error": ("GMR error |m(x)| at hits (m)", "RdYlGn_r"),
     "c": ("complexity c (sqrt scale)", "plasma"),
@@ -44,9 +44,11 @@ def colorbar_rgb(name: str, width: int = 256, height: int = 14) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- colourings
-def scan_colors(points: np.ndarray):
-    """Height colours; returns (colours (N,3), lo, hi) with lo/hi the 2-98 % z range."""
-    z = points[:, 2]
+def scan_colors(points: np.ndarray, up=None):
+    """Height colours; returns (colours (N,3), lo, hi) with lo/hi the 2-98 % range of
+    the height: z, or the coordinate along ``up`` (3,), the data's up axis."""
+    u = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, dtype=np.float64)
+    z = points[:, 2] if np.array_equal(u, [0.0, 0.0, 1.0]) else np.asarray(points) @ u
     lo, hi = (np.percentile(z, [2, 98]) if len(z) else (0.0, 1.0))
     hi = max(hi, lo + 1e-6)
     return colormap((z - lo) / (hi - lo), "turbo"), float(lo), float(hi)
