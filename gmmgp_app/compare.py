@@ -306,6 +306,10 @@ class _PriorOnly:
         return self.smap.prior.predict(np.asarray(xyz, dtype=np.float64),
                                        return_grad=return_grad)
 
+    def predict_mean(self, xyz):
+        """(K,) the prior's mean (what a stitched surface's lattice asks each tile)."""
+        return self.predict(xyz)[0]
+
     def extract_surface(self, voxel_size=None):
         return self.smap.prior_surface(voxel_size)
 

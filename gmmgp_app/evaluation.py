@@ -26,7 +26,8 @@ from scipy.spatial import cKDTree
 __all__ = [
     "EvaluationError", "DEFAULT_BINS", "Reference", "sample_queries", "gaussian_loglik",
     "folded_normal_loglik", "binned_metrics", "evaluate_field", "closest_point_on_triangles",
-    "TriangleDistance", "sample_mesh_surface", "surface_distances", "MESH_SUFFIXES",
+    "TriangleDistance", "sample_mesh_surface", "surface_distances",
+    "surface_distance_samples", "MESH_SUFFIXES",
     "coverage", "reliability", "plot_reliability", "RELIABILITY_LEVELS",
 ]
 
@@ -678,6 +679,46 @@ def evaluate_field(predict: Callable, reference: Reference, queries: np.ndarray,
     return res
 
 
+def surface_distance_samples(vertices, faces, reference: Reference, *,
+                             n_samples: int = 100_000,
+                             crop_points: Optional[np.ndarray] = None,
+                             crop_radius: float = 0.1,
+                             rng: Optional[np.random.Generator] = None,
+                             oversample: int = 4) -> tuple:
+    """The two sets of distances behind :func:`surface_distances`.
+
+    ``n_samples`` area-weighted samples of the mesh, each with its exact distance to
+    the reference (``|reference.sdf|``), and samples of the reference surface, each
+    with its exact distance to the mesh (point to triangles). With ``crop_points``,
+    ``oversample * n_samples`` reference samples are drawn and those within
+    ``crop_radius`` of a crop point kept (at most ``n_samples``), so that surfaces the
+    scan never saw do not count as missing.
+
+    Returns
+    -------
+    d_ab : (n_samples,) mesh -> reference (m)
+    d_ba : (n,) reference -> mesh (m), n <= n_samples
+    """
+    rng = np.random.default_rng(0) if rng is None else rng
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    if len(f) == 0:
+        raise EvaluationError("Expected a surface mesh with faces, found none; the field "
+                              "may have no zero crossing near the data.")
+    a = sample_mesh_surface(v, f, n_samples, rng)
+    d_ab = np.abs(reference.sdf(a))  # every kind of reference gives |distance| this way
+    b = reference.sample_surface(n_samples * oversample if crop_points is not None
+                                 else n_samples, rng)
+    if crop_points is not None:
+        near = cKDTree(np.asarray(crop_points, dtype=np.float64)).query(
+            b, k=1, distance_upper_bound=crop_radius)[0] < np.inf
+        b = b[near][:n_samples]
+        if len(b) == 0:
+            raise EvaluationError(f"No reference surface lies within {crop_radius} m of the "
+                                  "scan; check that the reference and the scan share a frame.")
+    return d_ab, TriangleDistance(v, f)(b, signed=False)
+
+
 def surface_distances(vertices, faces, reference: Reference, *, n_samples: int = 100_000,
                       crop_points: Optional[np.ndarray] = None, crop_radius: float = 0.1,
                       rng: Optional[np.random.Generator] = None) -> dict:
@@ -687,7 +728,7 @@ def surface_distances(vertices, faces, reference: Reference, *, n_samples: int =
     distance to the *other* surface is exact (point to triangles; point to the
     nearest reference point for a cloud). The reference is cropped to within
     ``crop_radius`` of ``crop_points`` (the scan) so that surfaces the scan never saw
-    do not count as missing.
+    do not count as missing (:func:`surface_distance_samples`).
 
     Parameters
     ----------
@@ -704,30 +745,16 @@ def surface_distances(vertices, faces, reference: Reference, *, n_samples: int =
     maxima), ``accuracy`` (mean mesh -> reference), ``completeness`` (mean
     reference -> mesh), ``hausdorff95`` (95th percentile, symmetric max), in metres.
     """
-    rng = np.random.default_rng(0) if rng is None else rng
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    if len(f) == 0:
-        raise EvaluationError("Expected a surface mesh with faces, found none; the field "
-                              "may have no zero crossing near the data.")
-    a = sample_mesh_surface(v, f, n_samples, rng)
-    d_ab = np.abs(reference.sdf(a))  # every kind of reference gives |distance| this way
-    b = reference.sample_surface(n_samples * 4 if crop_points is not None else n_samples, rng)
-    if crop_points is not None:
-        near = cKDTree(np.asarray(crop_points, dtype=np.float64)).query(
-            b, k=1, distance_upper_bound=crop_radius)[0] < np.inf
-        b = b[near][:n_samples]
-        if len(b) == 0:
-            raise EvaluationError(f"No reference surface lies within {crop_radius} m of the "
-                                  "scan; check that the reference and the scan share a frame.")
-    d_ba = TriangleDistance(v, f)(b, signed=False)
+    d_ab, d_ba = surface_distance_samples(vertices, faces, reference, n_samples=n_samples,
+                                          crop_points=crop_points, crop_radius=crop_radius,
+                                          rng=rng)
     return {
         "accuracy": float(d_ab.mean()),
         "completeness": float(d_ba.mean()),
         "chamfer": float(0.5 * (d_ab.mean() + d_ba.mean())),
         "hausdorff": float(max(d_ab.max(), d_ba.max())),
         "hausdorff95": float(max(np.quantile(d_ab, 0.95), np.quantile(d_ba, 0.95))),
-        "n_samples": [int(len(a)), int(len(b))],
+        "n_samples": [int(len(d_ab)), int(len(d_ba))],
     }
 
 

@@ -49,8 +49,9 @@ __all__ = ["build_map", "SurfaceMap", "load_map", "update_map", "run_stages", "S
            "MapFormatError", "PipelineError", "StagePayload", "auto_reasons", "format_auto"]
 
 MAP_FORMAT_VERSION = 1
-#: The GPIS baseline's constant prior (the paper's setup): distance 0.2 m, variance 0.2^2.
-GPIS_PRIOR = {"distance": 0.2, "variance": 0.2 ** 2}
+#: The GPIS baseline's constant prior distance and standard deviation, in virtual
+#: spacings s: the paper's setup (distance 0.2 m, variance 0.2^2) at its s = 0.25 m.
+GPIS_PRIOR_SPACINGS = 0.8
 
 
 class MapFormatError(ValueError):
@@ -419,8 +420,10 @@ class Stage:
     when: Optional[Callable] = None
 
 
-def _prepare_stage(ctx, scan):
-    return {"data": _prepare.prepare(scan, ctx.cfg)}
+def _prepare_stage(ctx, scan, tree=None):
+    # the scan's k-d tree (build_map's, shared with the scale measurement) is used here
+    # last: handed on as None, so that the run does not keep it while fitting
+    return {"data": _prepare.prepare(scan, ctx.cfg, tree=tree), "tree": None}
 
 
 def _hgmm_stage(ctx, data):
@@ -438,9 +441,19 @@ def _select_stage(ctx, data, gmr_error):
     return {"gp_points": data.points[mask], "gp_normals": data.normals[mask]}
 
 
+def gpis_prior(spacing: float):
+    """The GPIS baseline's constant prior for virtual spacing ``spacing`` (m): distance
+    and standard deviation ``GPIS_PRIOR_SPACINGS * s`` (0.2 m at the paper's s = 0.25 m).
+    A length of the scan like the map's automatic ones: a scan scaled by a gets a prior
+    scaled by a (variance by a^2), where a fixed 0.2 m would dwarf a small object's
+    field or vanish beside a large one's."""
+    d = GPIS_PRIOR_SPACINGS * float(spacing)
+    return _gp.ConstantPrior(distance=d, variance=d * d)
+
+
 def _constant_prior_stage(ctx, data):
     mask = np.ones(len(data.points), dtype=bool)  # the GPIS baseline trains on every point
-    return {"prior": _gp.ConstantPrior(**GPIS_PRIOR), "gp_points": data.points[mask],
+    return {"prior": gpis_prior(data.spacing), "gp_points": data.points[mask],
             "gp_normals": data.normals[mask]}
 
 
@@ -535,7 +548,9 @@ def far_field(data, cfg: MappingConfig):
 def _map_stage(ctx, scan, summary=None, prior=None, hgmm=None, gp=None, gp_points=None,
                gp_normals=None, far=None):
     if prior is None and ctx.method != "loggpis":  # stopped before the prior
-        prior = _gp.ConstantPrior(**GPIS_PRIOR)
+        from .config import concrete
+
+        prior = gpis_prior(concrete(ctx.cfg.prepare).virtual_spacing)
     return {"smap": SurfaceMap(ctx.method, ctx.cfg, scan.offset, prior, hgmm=hgmm, gp=gp,
                                gp_points=gp_points, gp_normals=gp_normals,
                                seed_points=surface_seeds(scan, ctx.cfg), summary=summary,
@@ -581,7 +596,7 @@ def _gmr_counts(out, ctx):
 
 #: The recipe table: every stage, the function computing it, what it takes and gives.
 STAGES = {s.name: s for s in (
-    Stage("prepare", _prepare_stage, ("scan",), ("data",),
+    Stage("prepare", _prepare_stage, ("scan",), ("data", "tree"), optional=("tree",),
           counts=lambda o, c: {"hit_points": len(o["data"].points), "rows": len(o["data"].rows),
                                "dropped_virtual": o["data"].n_dropped_virtual}),
     Stage("hgmm", _hgmm_stage, ("data",), ("hgmm",),
@@ -692,7 +707,8 @@ def run_stages(names, state: dict, ctx: RunContext, *, observer=None,
 # --------------------------------------------------------------------------- recipe
 def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gmmgp",
               observer=None, *, stop_after: Optional[str] = None, executor=None,
-              progress=None, loggpis_lambda: Optional[float] = None) -> SurfaceMap:
+              progress=None, loggpis_lambda: Optional[float] = None,
+              check_grid: bool = False) -> SurfaceMap:
     """Map a scan into a probabilistic signed distance field.
 
     Parameters
@@ -717,6 +733,9 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
         Called as GP block tasks finish.
     loggpis_lambda : float, optional
         Log-GPIS lambda (1/m).
+    check_grid : bool
+        Refuse an impossible surface grid (:func:`check_surface_grid`) once the
+        configuration is resolved, before any fitting (``gmmgp run`` when it meshes).
 
     Returns
     -------
@@ -733,15 +752,18 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
         recipe = recipe[:recipe.index(stop_after) + 1]
     observer = observer or NullObserver()
     summary: dict = {"method": method, "n_scan_points": len(scan), "seconds": {}, "counts": {}}
-    cfg, summary["auto"] = resolve_config(cfg, scan)
+    # one k-d tree of the scan for the scale measurement and the prepare stage
+    state = {"scan": scan, "summary": summary, "tree": scan_tree(scan)}
+    cfg, summary["auto"] = resolve_config(cfg, scan, tree=state["tree"])
+    if check_grid:
+        _surface.check_surface_grid(scan.points, cfg.surface)
     on_config = getattr(observer, "on_config", None)
     if on_config is not None:   # observers that show the configuration get the resolved one
         on_config(cfg, summary["auto"])
     observer.on_stage("scan", StagePayload(scan, 0.0))
     ctx = RunContext(cfg, method, executor=executor, progress=progress,
                      loggpis_lambda=loggpis_lambda, auto_fields=auto_fields(summary["auto"]))
-    state = run_stages(recipe + ("map",), {"scan": scan, "summary": summary}, ctx,
-                       observer=observer, summary=summary)
+    state = run_stages(recipe + ("map",), state, ctx, observer=observer, summary=summary)
     return state["smap"]
 
 
@@ -784,9 +806,10 @@ def with_map_values(cfg: MappingConfig, map_cfg: MappingConfig) -> MappingConfig
 _RESOLVED: list = []   # [(key of the scan's arrays, cfg, result)]
 
 
-def resolve_config(cfg: MappingConfig, scan: Scan) -> tuple:
+def resolve_config(cfg: MappingConfig, scan: Scan, *, tree=None) -> tuple:
     """``cfg`` with every ``"auto"`` field computed from ``scan`` (stages/autoscale.py),
     and the record of the chosen values and their reasons (empty when nothing was auto).
+    ``tree``: the k-d tree of ``scan.points`` (:func:`scan_tree`) when the caller has it.
 
     The last result is remembered for the same point and origin arrays (the same
     objects, still alive, with the same sampled contents) and an equal ``cfg``:
@@ -799,7 +822,7 @@ def resolve_config(cfg: MappingConfig, scan: Scan) -> tuple:
         if key0[0]() is key[0]() and key0[1]() is key[1]() and key0[2:] == key[2:] \
                 and cfg0 == cfg:
             return cfg1, dict(auto1)
-    cfg1, auto1 = _resolve_config(cfg, scan)
+    cfg1, auto1 = _resolve_config(cfg, scan, tree)
     _RESOLVED[:] = [] if key is None else [(key, cfg, (cfg1, dict(auto1)))]
     return cfg1, auto1
 
@@ -819,7 +842,19 @@ def _arrays_key(scan: Scan):
     return (*refs, scan.points.shape, hash(tuple(sample)))
 
 
-def _resolve_config(cfg: MappingConfig, scan: Scan) -> tuple:
+def scan_tree(scan: Scan):
+    """The k-d tree of the scan's points, shared by the scale measurement
+    (stages/autoscale.py) and the prepare stage; None for a scan prepare refuses (too
+    few or non-finite points: it raises the one-line error)."""
+    from scipy.spatial import cKDTree
+
+    pts = scan.points
+    if len(pts) < _prepare.MIN_POINTS or not np.isfinite(pts).all():
+        return None
+    return cKDTree(pts)
+
+
+def _resolve_config(cfg: MappingConfig, scan: Scan, tree=None) -> tuple:
     from .config import concrete
     from .stages.autoscale import AutoScaleError
     from .stages.autoscale import resolve_config as _resolve
@@ -829,7 +864,7 @@ def _resolve_config(cfg: MappingConfig, scan: Scan) -> tuple:
     if len(pts) < MIN_POINTS or not np.isfinite(pts).all():
         return cfg, {}          # prepare raises the one-line error for such scans
     try:
-        return _resolve(cfg, pts, scan.origins)
+        return _resolve(cfg, pts, scan.origins, tree=tree)
     except AutoScaleError as exc:
         # too few or coincident points to measure: the urban values, and prepare
         # gives its own one-line error if the scan cannot be mapped at all
