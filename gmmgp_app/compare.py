@@ -180,8 +180,11 @@ def run_evaluation(scan, smap, reference, methods, *, bins, n_queries: int = 200
             train = {k: float(v) for k, v in model.summary["seconds"].items()}
         signed = getattr(model, "signed", True)
         log(f"{method}: predicting")
+        # the predictive distribution where the model has one (SurfaceMap.distribution)
         field = evaluate_field(model.predict, reference, queries, data.points, bins,
-                               signed=signed, truth=truth)
+                               signed=signed, truth=truth,
+                               distribution=getattr(model, "distribution", None)
+                               if signed else None)
         entry = {"train_seconds": train, "test_seconds": field.pop("test_seconds"),
                  "signed": bool(signed), "field": field, "surface": None}
         if method == "loggpis":
@@ -194,7 +197,8 @@ def run_evaluation(scan, smap, reference, methods, *, bins, n_queries: int = 200
         log(f"{method}: RMSE SDF {a['rmse_sdf']:.4f} m, EDF {a['rmse_edf']:.4f} m, "
             f"LL SDF {a['ll_sdf']:.2f}, EDF {a['ll_edf']:.2f}")
         if "cov1_sdf" in field and not np.isnan(a["cov1_sdf"]):
-            log(f"{method}: coverage |y-mu|<=1/2 sigma per bin (target 0.68/0.95): " + ", ".join(
+            log(f"{method}: coverage |y-mu|<=1 sigma / in the central 95.45 % interval "
+                "(a Gaussian's 2 sigma) per bin (target 0.68/0.95): " + ", ".join(
                 f"{lo:g}-{hi:g} m {c1:.2f}/{c2:.2f}" for (lo, hi), c1, c2 in zip(
                     field["bins"], field["cov1_sdf"], field["cov2_sdf"]) if c1 == c1))
     results["prepare_seconds_eval"] = prep_s
@@ -301,6 +305,10 @@ class _PriorOnly:
         far field; TiledMap.predict passes it to every tile)."""
         return self.smap.prior.predict(np.asarray(xyz, dtype=np.float64),
                                        return_grad=return_grad)
+
+    def predict_mean(self, xyz):
+        """(K,) the prior's mean (what a stitched surface's lattice asks each tile)."""
+        return self.predict(xyz)[0]
 
     def extract_surface(self, voxel_size=None):
         return self.smap.prior_surface(voxel_size)

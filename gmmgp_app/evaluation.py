@@ -26,7 +26,8 @@ from scipy.spatial import cKDTree
 __all__ = [
     "EvaluationError", "DEFAULT_BINS", "Reference", "sample_queries", "gaussian_loglik",
     "folded_normal_loglik", "binned_metrics", "evaluate_field", "closest_point_on_triangles",
-    "TriangleDistance", "sample_mesh_surface", "surface_distances", "MESH_SUFFIXES",
+    "TriangleDistance", "sample_mesh_surface", "surface_distances",
+    "surface_distance_samples", "MESH_SUFFIXES",
     "coverage", "reliability", "plot_reliability", "RELIABILITY_LEVELS",
 ]
 
@@ -450,7 +451,10 @@ def sample_queries(points: np.ndarray, normals: np.ndarray, n: int, *,
 
 
 # --------------------------------------------------------------------------- metrics
-_KEYS = ("n", "rmse_sdf", "rmse_edf", "ll_sdf", "ll_edf", "cov1_sdf", "cov2_sdf")
+_KEYS = ("n", "rmse_sdf", "rmse_edf", "ll_sdf", "ll_edf", "cov1_sdf", "cov2_sdf",
+         "cov2sig_sdf")
+#: Central probability of a Gaussian's +-2 sigma interval, erf(2 / sqrt 2).
+TWO_SIGMA = 0.9544997361036416
 #: Central probability levels of the reliability diagram (0.1, 0.2, ..., 0.95, 0.99 would
 #: also do; ten equal steps keep the diagram readable).
 RELIABILITY_LEVELS = tuple(round(0.1 * k, 1) for k in range(1, 10)) + (0.95,)
@@ -476,11 +480,14 @@ def coverage(y, mean, var, k: float = 1.0) -> np.ndarray:
     return np.abs(y - mean) <= k * np.sqrt(np.maximum(var, 0.0))
 
 
-def reliability(y, mean, var, levels: Sequence[float] = RELIABILITY_LEVELS) -> dict:
-    """Expected against observed coverage of central Gaussian intervals.
+def reliability(y, mean, var, levels: Sequence[float] = RELIABILITY_LEVELS,
+                distribution=None) -> dict:
+    """Expected against observed coverage of central intervals.
 
     For each level ``p`` the interval ``mean +- z_p sigma`` with
-    ``z_p = Phi^-1((1 + p) / 2)`` should hold a fraction ``p`` of the truths.
+    ``z_p = Phi^-1((1 + p) / 2)`` (Gaussian), or ``mean +- distribution.half_width(p)``
+    when a predictive ``distribution`` is given (:meth:`SurfaceMap.distribution`),
+    should hold a fraction ``p`` of the truths.
 
     Returns
     -------
@@ -489,9 +496,16 @@ def reliability(y, mean, var, levels: Sequence[float] = RELIABILITY_LEVELS) -> d
     from scipy.stats import norm
 
     y, mean, var = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (y, mean, var))
-    z = np.abs(y - mean) / np.sqrt(np.maximum(var, 1e-300))
-    obs = [float(np.mean(z <= norm.ppf(0.5 + 0.5 * p))) if len(z) else float("nan")
-           for p in levels]
+    err = np.abs(y - mean)
+    sd = np.sqrt(np.maximum(var, 1e-300))
+    obs = []
+    for p in levels:
+        if not len(err):
+            obs.append(float("nan"))
+            continue
+        half = sd * norm.ppf(0.5 + 0.5 * p) if distribution is None \
+            else distribution.half_width(p)
+        obs.append(float(np.mean(err <= half)))
     return {"expected": [float(p) for p in levels], "observed": obs}
 
 
@@ -521,7 +535,8 @@ def plot_reliability(curves: dict, path, title: str = "") -> Path:
 
 
 def binned_metrics(mean, var, truth, dist, bins: Sequence[float] = DEFAULT_BINS, *,
-                   signed_prediction: bool = True, signed_truth: bool = True) -> dict:
+                   signed_prediction: bool = True, signed_truth: bool = True,
+                   distribution=None) -> dict:
     """RMSE and mean log-likelihood of the SDF and the EDF per distance bin.
 
     Parameters
@@ -538,6 +553,13 @@ def binned_metrics(mean, var, truth, dist, bins: Sequence[float] = DEFAULT_BINS,
         SDF metrics need both; otherwise they are NaN. The EDF of a signed
         prediction is ``|mean|`` scored by the folded normal; an unsigned
         prediction is scored by a Gaussian on ``|truth|``.
+    distribution : optional
+        The signed prediction's predictive distribution (:meth:`SurfaceMap.distribution`:
+        ``logpdf``, ``half_width``, ``std``) when it is not the Gaussian N(mean, var):
+        the log-likelihoods are its log density (the EDF's folded: ``p(t) + p(-t)``),
+        the 1-sigma coverage uses its ``std`` and the 2-sigma one its central 95.45 %
+        interval (a Gaussian's +-2 sigma); ``cov2sig_sdf`` is then ``|y - mean| <= 2
+        std`` as it stands.
 
     Returns
     -------
@@ -563,13 +585,20 @@ def binned_metrics(mean, var, truth, dist, bins: Sequence[float] = DEFAULT_BINS,
     else:
         err_edf = (mean - np.abs(truth)) ** 2
         ll_edf = gaussian_loglik(np.abs(truth), mean, var)
+    if signed_prediction and distribution is not None:
+        a = np.abs(truth)
+        ll_edf = np.logaddexp(distribution.logpdf(a), distribution.logpdf(-a))
     if signed_prediction and signed_truth:
         err_sdf, ll_sdf = (mean - truth) ** 2, gaussian_loglik(truth, mean, var)
         c1 = coverage(truth, mean, var, 1.0).astype(np.float64)
         c2 = coverage(truth, mean, var, 2.0).astype(np.float64)
+        c2s = c2
+        if distribution is not None:
+            ll_sdf = distribution.logpdf(truth)
+            c2 = (np.abs(truth - mean) <= distribution.half_width(TWO_SIGMA)).astype(np.float64)
     else:
-        err_sdf, ll_sdf, c1, c2 = nan, nan, nan, nan
-    per = (err_sdf, err_edf, ll_sdf, ll_edf, c1, c2)
+        err_sdf, ll_sdf, c1, c2, c2s = nan, nan, nan, nan, nan
+    per = (err_sdf, err_edf, ll_sdf, ll_edf, c1, c2, c2s)
     out = {"bins": [[float(a), float(b)] for a, b in zip(bins[:-1], bins[1:])]}
     out.update({key: [] for key in _KEYS})
     for lo, hi in out["bins"]:
@@ -580,7 +609,7 @@ def binned_metrics(mean, var, truth, dist, bins: Sequence[float] = DEFAULT_BINS,
     return out
 
 
-def _append(out, sel, err_sdf, err_edf, ll_sdf, ll_edf, c1, c2):
+def _append(out, sel, err_sdf, err_edf, ll_sdf, ll_edf, c1, c2, c2s):
     n = int(sel.sum())
     out["n"].append(n)
     nan = float("nan")
@@ -590,12 +619,13 @@ def _append(out, sel, err_sdf, err_edf, ll_sdf, ll_edf, c1, c2):
     out["ll_edf"].append(float(np.mean(ll_edf[sel])) if n else nan)
     out["cov1_sdf"].append(float(np.mean(c1[sel])) if n else nan)
     out["cov2_sdf"].append(float(np.mean(c2[sel])) if n else nan)
+    out["cov2sig_sdf"].append(float(np.mean(c2s[sel])) if n else nan)
 
 
 def evaluate_field(predict: Callable, reference: Reference, queries: np.ndarray,
                    train_points: np.ndarray, bins: Sequence[float] = DEFAULT_BINS, *,
                    signed: bool = True, truth: Optional[np.ndarray] = None,
-                   batch: int = 100_000) -> dict:
+                   batch: int = 100_000, distribution: Optional[Callable] = None) -> dict:
     """Predict at ``queries``, compare with the reference, bin by distance to training.
 
     Parameters
@@ -613,6 +643,10 @@ def evaluate_field(predict: Callable, reference: Reference, queries: np.ndarray,
         Precomputed ``reference.sdf(queries)`` (to share it between methods).
     batch : int
         Queries per ``predict`` call.
+    distribution : callable, optional
+        ``distribution(xyz) -> predictive`` (:meth:`SurfaceMap.distribution`): scored by
+        its log density and central intervals (:func:`binned_metrics`); instead of
+        ``predict`` then.
 
     Returns
     -------
@@ -628,15 +662,61 @@ def evaluate_field(predict: Callable, reference: Reference, queries: np.ndarray,
     truth = reference.sdf(queries) if truth is None else np.asarray(truth, dtype=np.float64)
     mean, var = np.empty(len(queries)), np.empty(len(queries))
     t0 = time.perf_counter()
+    parts = []
     for s in range(0, len(queries), batch):
-        out = predict(queries[s:s + batch])
+        if distribution is not None:
+            parts.append(distribution(queries[s:s + batch]))
+            out = parts[-1].mean, parts[-1].var
+        else:
+            out = predict(queries[s:s + batch])
         mean[s:s + batch], var[s:s + batch] = out[0], out[1]
     seconds = time.perf_counter() - t0
     res = binned_metrics(mean, var, truth, dist, bins, signed_prediction=signed,
-                         signed_truth=reference.signed)
+                         signed_truth=reference.signed,
+                         distribution=_Batched(parts) if parts else None)
     res["test_seconds"] = seconds
     res["n_queries"] = int(len(queries))
     return res
+
+
+def surface_distance_samples(vertices, faces, reference: Reference, *,
+                             n_samples: int = 100_000,
+                             crop_points: Optional[np.ndarray] = None,
+                             crop_radius: float = 0.1,
+                             rng: Optional[np.random.Generator] = None,
+                             oversample: int = 4) -> tuple:
+    """The two sets of distances behind :func:`surface_distances`.
+
+    ``n_samples`` area-weighted samples of the mesh, each with its exact distance to
+    the reference (``|reference.sdf|``), and samples of the reference surface, each
+    with its exact distance to the mesh (point to triangles). With ``crop_points``,
+    ``oversample * n_samples`` reference samples are drawn and those within
+    ``crop_radius`` of a crop point kept (at most ``n_samples``), so that surfaces the
+    scan never saw do not count as missing.
+
+    Returns
+    -------
+    d_ab : (n_samples,) mesh -> reference (m)
+    d_ba : (n,) reference -> mesh (m), n <= n_samples
+    """
+    rng = np.random.default_rng(0) if rng is None else rng
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    if len(f) == 0:
+        raise EvaluationError("Expected a surface mesh with faces, found none; the field "
+                              "may have no zero crossing near the data.")
+    a = sample_mesh_surface(v, f, n_samples, rng)
+    d_ab = np.abs(reference.sdf(a))  # every kind of reference gives |distance| this way
+    b = reference.sample_surface(n_samples * oversample if crop_points is not None
+                                 else n_samples, rng)
+    if crop_points is not None:
+        near = cKDTree(np.asarray(crop_points, dtype=np.float64)).query(
+            b, k=1, distance_upper_bound=crop_radius)[0] < np.inf
+        b = b[near][:n_samples]
+        if len(b) == 0:
+            raise EvaluationError(f"No reference surface lies within {crop_radius} m of the "
+                                  "scan; check that the reference and the scan share a frame.")
+    return d_ab, TriangleDistance(v, f)(b, signed=False)
 
 
 def surface_distances(vertices, faces, reference: Reference, *, n_samples: int = 100_000,
@@ -648,7 +728,7 @@ def surface_distances(vertices, faces, reference: Reference, *, n_samples: int =
     distance to the *other* surface is exact (point to triangles; point to the
     nearest reference point for a cloud). The reference is cropped to within
     ``crop_radius`` of ``crop_points`` (the scan) so that surfaces the scan never saw
-    do not count as missing.
+    do not count as missing (:func:`surface_distance_samples`).
 
     Parameters
     ----------
@@ -665,28 +745,30 @@ def surface_distances(vertices, faces, reference: Reference, *, n_samples: int =
     maxima), ``accuracy`` (mean mesh -> reference), ``completeness`` (mean
     reference -> mesh), ``hausdorff95`` (95th percentile, symmetric max), in metres.
     """
-    rng = np.random.default_rng(0) if rng is None else rng
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    if len(f) == 0:
-        raise EvaluationError("Expected a surface mesh with faces, found none; the field "
-                              "may have no zero crossing near the data.")
-    a = sample_mesh_surface(v, f, n_samples, rng)
-    d_ab = np.abs(reference.sdf(a))  # every kind of reference gives |distance| this way
-    b = reference.sample_surface(n_samples * 4 if crop_points is not None else n_samples, rng)
-    if crop_points is not None:
-        near = cKDTree(np.asarray(crop_points, dtype=np.float64)).query(
-            b, k=1, distance_upper_bound=crop_radius)[0] < np.inf
-        b = b[near][:n_samples]
-        if len(b) == 0:
-            raise EvaluationError(f"No reference surface lies within {crop_radius} m of the "
-                                  "scan; check that the reference and the scan share a frame.")
-    d_ba = TriangleDistance(v, f)(b, signed=False)
+    d_ab, d_ba = surface_distance_samples(vertices, faces, reference, n_samples=n_samples,
+                                          crop_points=crop_points, crop_radius=crop_radius,
+                                          rng=rng)
     return {
         "accuracy": float(d_ab.mean()),
         "completeness": float(d_ba.mean()),
         "chamfer": float(0.5 * (d_ab.mean() + d_ba.mean())),
         "hausdorff": float(max(d_ab.max(), d_ba.max())),
         "hausdorff95": float(max(np.quantile(d_ab, 0.95), np.quantile(d_ba, 0.95))),
-        "n_samples": [int(len(a)), int(len(b))],
+        "n_samples": [int(len(d_ab)), int(len(d_ba))],
     }
+
+
+class _Batched:
+    """Predictive distributions of consecutive query batches read as one."""
+
+    def __init__(self, parts):
+        self.parts = parts
+        self.sizes = np.cumsum([0] + [len(p.mean) for p in parts])
+
+    def logpdf(self, y):
+        y = np.asarray(y, dtype=np.float64).reshape(-1)
+        return np.concatenate([p.logpdf(y[a:b]) for p, a, b in
+                               zip(self.parts, self.sizes[:-1], self.sizes[1:])])
+
+    def half_width(self, level):
+        return np.concatenate([p.half_width(level) for p in self.parts])

@@ -41,6 +41,7 @@ from .stages import loggpis as _loggpis
 from .stages import octree as _octree
 from .stages import prepare as _prepare
 from .stages import surface as _surface
+from .stages import unseen as _unseen
 from .types import GaussianMixture, HGMMLevel, HierarchicalGMM, Scan, SurfaceMesh
 
 __all__ = ["build_map", "SurfaceMap", "load_map", "update_map", "run_stages", "Stage",
@@ -48,8 +49,9 @@ __all__ = ["build_map", "SurfaceMap", "load_map", "update_map", "run_stages", "S
            "MapFormatError", "PipelineError", "StagePayload", "auto_reasons", "format_auto"]
 
 MAP_FORMAT_VERSION = 1
-#: The GPIS baseline's constant prior (the paper's setup): distance 0.2 m, variance 0.2^2.
-GPIS_PRIOR = {"distance": 0.2, "variance": 0.2 ** 2}
+#: The GPIS baseline's constant prior distance and standard deviation, in virtual
+#: spacings s: the paper's setup (distance 0.2 m, variance 0.2^2) at its s = 0.25 m.
+GPIS_PRIOR_SPACINGS = 0.8
 
 
 class MapFormatError(ValueError):
@@ -182,6 +184,23 @@ class SurfaceMap:
             return self._near_field.predict(xyz, return_grad=return_grad)
         return self._blended().predict(xyz, return_grad=return_grad, base_out=near)
 
+    def distribution(self, xyz):
+        """The predictive distribution of the signed distance at query points (what
+        :meth:`predict` summarises by a mean and a variance): an object with ``mean``,
+        ``var`` and ``std`` (K,), ``logpdf(y)`` (the log density of values ``y``, (K,))
+        and ``half_width(level)`` (the central interval holding ``level`` of it).
+        Where the scan saw the surface (and for maps without the far field, or built
+        with ``far.unseen_predictive = "gaussian"``) it is the Gaussian N(mean, var);
+        behind the located surface and past the end of the data, the mixture of
+        eq. unseen_mixture (stages/unseen.py), whose ``std`` is its central 68.27 %
+        half-width.
+        """
+        xyz = as_queries(xyz)
+        if self.far is None:
+            mean, var = self._near_field.predict(xyz)[:2]
+            return _unseen.UnseenMixture(mean, var)
+        return self._blended().distribution(xyz)
+
     def predict_mean(self, xyz) -> np.ndarray:
         """(K,) the mean of :meth:`predict` alone (the same values; what the surface
         lattice needs: the variance model is skipped where it does not feed the mean)."""
@@ -203,7 +222,7 @@ class SurfaceMap:
                             None if is_auto(self.config.gp.length_scale)
                             else self.config.gp.length_scale,
                             self.config.far.unseen_weight, self.config.far.min_thickness,
-                            self.config.far.edge_gap)
+                            self.config.far.edge_gap, self.config.far.unseen_predictive)
 
     @property
     def signed(self) -> bool:
@@ -305,7 +324,12 @@ def load_map(directory) -> SurfaceMap:
             f"Map format version {meta.get('format_version')} in '{directory}' is not "
             f"supported (expected {MAP_FORMAT_VERSION}); rebuild the map with this version."
         )
-    cfg = MappingConfig.from_dict(tomllib.loads(meta["config_toml"]))
+    cfg_dict = tomllib.loads(meta["config_toml"])
+    far_cfg = cfg_dict.setdefault("far", {})
+    if isinstance(far_cfg, dict) and "unseen_predictive" not in far_cfg:
+        # saved before eq. unseen_mixture: the map predicts as it did (eq. unseen_var)
+        far_cfg["unseen_predictive"] = "gaussian"
+    cfg = MappingConfig.from_dict(cfg_dict)
     with np.load(arr_path, allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files}
     hgmm = _hgmm_from_arrays(arrays) if "hgmm/leaves/weights" in arrays else None
@@ -405,8 +429,10 @@ class Stage:
     when: Optional[Callable] = None
 
 
-def _prepare_stage(ctx, scan):
-    return {"data": _prepare.prepare(scan, ctx.cfg)}
+def _prepare_stage(ctx, scan, tree=None):
+    # the scan's k-d tree (build_map's, shared with the scale measurement) is used here
+    # last: handed on as None, so that the run does not keep it while fitting
+    return {"data": _prepare.prepare(scan, ctx.cfg, tree=tree), "tree": None}
 
 
 def _hgmm_stage(ctx, data):
@@ -424,9 +450,19 @@ def _select_stage(ctx, data, gmr_error):
     return {"gp_points": data.points[mask], "gp_normals": data.normals[mask]}
 
 
+def gpis_prior(spacing: float):
+    """The GPIS baseline's constant prior for virtual spacing ``spacing`` (m): distance
+    and standard deviation ``GPIS_PRIOR_SPACINGS * s`` (0.2 m at the paper's s = 0.25 m).
+    A length of the scan like the map's automatic ones: a scan scaled by a gets a prior
+    scaled by a (variance by a^2), where a fixed 0.2 m would dwarf a small object's
+    field or vanish beside a large one's."""
+    d = GPIS_PRIOR_SPACINGS * float(spacing)
+    return _gp.ConstantPrior(distance=d, variance=d * d)
+
+
 def _constant_prior_stage(ctx, data):
     mask = np.ones(len(data.points), dtype=bool)  # the GPIS baseline trains on every point
-    return {"prior": _gp.ConstantPrior(**GPIS_PRIOR), "gp_points": data.points[mask],
+    return {"prior": gpis_prior(data.spacing), "gp_points": data.points[mask],
             "gp_normals": data.normals[mask]}
 
 
@@ -521,7 +557,9 @@ def far_field(data, cfg: MappingConfig):
 def _map_stage(ctx, scan, summary=None, prior=None, hgmm=None, gp=None, gp_points=None,
                gp_normals=None, far=None):
     if prior is None and ctx.method != "loggpis":  # stopped before the prior
-        prior = _gp.ConstantPrior(**GPIS_PRIOR)
+        from .config import concrete
+
+        prior = gpis_prior(concrete(ctx.cfg.prepare).virtual_spacing)
     return {"smap": SurfaceMap(ctx.method, ctx.cfg, scan.offset, prior, hgmm=hgmm, gp=gp,
                                gp_points=gp_points, gp_normals=gp_normals,
                                seed_points=surface_seeds(scan, ctx.cfg), summary=summary,
@@ -567,7 +605,7 @@ def _gmr_counts(out, ctx):
 
 #: The recipe table: every stage, the function computing it, what it takes and gives.
 STAGES = {s.name: s for s in (
-    Stage("prepare", _prepare_stage, ("scan",), ("data",),
+    Stage("prepare", _prepare_stage, ("scan",), ("data", "tree"), optional=("tree",),
           counts=lambda o, c: {"hit_points": len(o["data"].points), "rows": len(o["data"].rows),
                                "dropped_virtual": o["data"].n_dropped_virtual}),
     Stage("hgmm", _hgmm_stage, ("data",), ("hgmm",),
@@ -678,7 +716,8 @@ def run_stages(names, state: dict, ctx: RunContext, *, observer=None,
 # --------------------------------------------------------------------------- recipe
 def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gmmgp",
               observer=None, *, stop_after: Optional[str] = None, executor=None,
-              progress=None, loggpis_lambda: Optional[float] = None) -> SurfaceMap:
+              progress=None, loggpis_lambda: Optional[float] = None,
+              check_grid: bool = False) -> SurfaceMap:
     """Map a scan into a probabilistic signed distance field.
 
     Parameters
@@ -703,6 +742,9 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
         Called as GP block tasks finish.
     loggpis_lambda : float, optional
         Log-GPIS lambda (1/m).
+    check_grid : bool
+        Refuse an impossible surface grid (:func:`check_surface_grid`) once the
+        configuration is resolved, before any fitting (``gmmgp run`` when it meshes).
 
     Returns
     -------
@@ -719,15 +761,18 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
         recipe = recipe[:recipe.index(stop_after) + 1]
     observer = observer or NullObserver()
     summary: dict = {"method": method, "n_scan_points": len(scan), "seconds": {}, "counts": {}}
-    cfg, summary["auto"] = resolve_config(cfg, scan)
+    # one k-d tree of the scan for the scale measurement and the prepare stage
+    state = {"scan": scan, "summary": summary, "tree": scan_tree(scan)}
+    cfg, summary["auto"] = resolve_config(cfg, scan, tree=state["tree"])
+    if check_grid:
+        _surface.check_surface_grid(scan.points, cfg.surface)
     on_config = getattr(observer, "on_config", None)
     if on_config is not None:   # observers that show the configuration get the resolved one
         on_config(cfg, summary["auto"])
     observer.on_stage("scan", StagePayload(scan, 0.0))
     ctx = RunContext(cfg, method, executor=executor, progress=progress,
                      loggpis_lambda=loggpis_lambda, auto_fields=auto_fields(summary["auto"]))
-    state = run_stages(recipe + ("map",), {"scan": scan, "summary": summary}, ctx,
-                       observer=observer, summary=summary)
+    state = run_stages(recipe + ("map",), state, ctx, observer=observer, summary=summary)
     return state["smap"]
 
 
@@ -770,9 +815,10 @@ def with_map_values(cfg: MappingConfig, map_cfg: MappingConfig) -> MappingConfig
 _RESOLVED: list = []   # [(key of the scan's arrays, cfg, result)]
 
 
-def resolve_config(cfg: MappingConfig, scan: Scan) -> tuple:
+def resolve_config(cfg: MappingConfig, scan: Scan, *, tree=None) -> tuple:
     """``cfg`` with every ``"auto"`` field computed from ``scan`` (stages/autoscale.py),
     and the record of the chosen values and their reasons (empty when nothing was auto).
+    ``tree``: the k-d tree of ``scan.points`` (:func:`scan_tree`) when the caller has it.
 
     The last result is remembered for the same point and origin arrays (the same
     objects, still alive, with the same sampled contents) and an equal ``cfg``:
@@ -785,7 +831,7 @@ def resolve_config(cfg: MappingConfig, scan: Scan) -> tuple:
         if key0[0]() is key[0]() and key0[1]() is key[1]() and key0[2:] == key[2:] \
                 and cfg0 == cfg:
             return cfg1, dict(auto1)
-    cfg1, auto1 = _resolve_config(cfg, scan)
+    cfg1, auto1 = _resolve_config(cfg, scan, tree)
     _RESOLVED[:] = [] if key is None else [(key, cfg, (cfg1, dict(auto1)))]
     return cfg1, auto1
 
@@ -805,7 +851,19 @@ def _arrays_key(scan: Scan):
     return (*refs, scan.points.shape, hash(tuple(sample)))
 
 
-def _resolve_config(cfg: MappingConfig, scan: Scan) -> tuple:
+def scan_tree(scan: Scan):
+    """The k-d tree of the scan's points, shared by the scale measurement
+    (stages/autoscale.py) and the prepare stage; None for a scan prepare refuses (too
+    few or non-finite points: it raises the one-line error)."""
+    from scipy.spatial import cKDTree
+
+    pts = scan.points
+    if len(pts) < _prepare.MIN_POINTS or not np.isfinite(pts).all():
+        return None
+    return cKDTree(pts)
+
+
+def _resolve_config(cfg: MappingConfig, scan: Scan, tree=None) -> tuple:
     from .config import concrete
     from .stages.autoscale import AutoScaleError
     from .stages.autoscale import resolve_config as _resolve
@@ -815,7 +873,7 @@ def _resolve_config(cfg: MappingConfig, scan: Scan) -> tuple:
     if len(pts) < MIN_POINTS or not np.isfinite(pts).all():
         return cfg, {}          # prepare raises the one-line error for such scans
     try:
-        return _resolve(cfg, pts, scan.origins)
+        return _resolve(cfg, pts, scan.origins, tree=tree)
     except AutoScaleError as exc:
         # too few or coincident points to measure: the urban values, and prepare
         # gives its own one-line error if the scan cannot be mapped at all

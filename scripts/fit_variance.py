@@ -14,6 +14,11 @@ changing the field's mean). Then:
 * ``--sweep``: candidate fits (least squares on log e^2, Gaussian and Student-t
   likelihood, the 0.68 quantile; street or both tuned scenes; all or observed queries)
   scored on every scene;
+* ``--mixture BASELINES_JSON``: the predictive where the scan cannot see, eq.
+  unseen_var (its moment-matched Gaussian) against eq. unseen_mixture (stages/unseen.py:
+  the design's own mixture, scored by its log density, sigma its central 68.27 %
+  half-width) for several lambda, per scene and bin; ``--categories`` with
+  ``--predictive mixture`` splits the mixture's figures by category;
 * ``--categories``: per bin and per query category the count, coverage within 1 and
   2 sigma, mean log-likelihood, median and 99th percentile of |z| and which variance
   term dominates. Categories (exclusive): ``near`` |m| <= h (at the located surface),
@@ -44,6 +49,7 @@ import bench_accuracy as B  # noqa: E402
 import gmmgp_app as gm  # noqa: E402
 from gmmgp_app.config import concrete  # noqa: E402
 from gmmgp_app.stages import farfield as F  # noqa: E402
+from gmmgp_app.stages.unseen import UnseenMixture  # noqa: E402
 
 CATEGORIES = ("near", "front", "front_ext", "beh_solid", "beh_thin")
 
@@ -62,11 +68,12 @@ def scene_case(name, seed, cache: Path):
     mean, var = smap.predict(q)[:2]
     base = smap.gp if smap.gp is not None else smap.prior
     m_gp, v_gp = base.predict(q)[:2]
-    c = smap.far.components(q)
+    c = smap.far.components(q, True)
     f = smap.config.far
     d = dict(y=y, bin=np.digitize(dist, [b * spec["scale"] for b in B.BINS]) - 1,
              mean=mean, var=var, m_gp=m_gp, v_gp=v_gp, m_far=c["mean"], r=c["r"],
              spread2=c["spread2"], h=smap.far.rho0, noise=smap.far.noise,
+             disp=1.0 - np.linalg.norm(c["grad"], axis=1),  # the normals' dispersion
              length_scale=concrete(smap.config.gp).length_scale,
              kappa=f.disagreement_weight, lam=f.unseen_weight,
              t_min=f.min_thickness * smap.far.rho0, gap=f.edge_gap * smap.far.rho0)
@@ -97,12 +104,33 @@ def categories(d, t):
     return c
 
 
-def category_table(name, d, coef=F.VARIANCE_COEF) -> str:
+TWO_SIGMA = 0.9544997361036416  # erf(2 / sqrt 2): a Gaussian's +-2 sigma
+
+
+def scored(d, coef=F.VARIANCE_COEF, predictive="gaussian", lam=None, two_sigma=False):
+    """Per query: reported variance v (sigma^2), |z| = |y - m| / sigma and the log
+    density of the truth, for eq. unseen_var (``gaussian``) or eq. unseen_mixture."""
     t = terms(d, coef)
-    v = t["ll"] + t["kap"] + t["beh"] + t["ext"]
+    lam = d["lam"] if lam is None else lam
+    if predictive == "gaussian":
+        v = t["ll"] + t["kap"] + lam ** 2 * (t["w_b"] ** 2 + t["w_e"] ** 2)
+        z = np.abs(d["y"] - d["mean"]) / np.sqrt(v)
+        ll = -0.5 * np.log(2 * np.pi * v) - 0.5 * z * z
+    else:
+        mix = UnseenMixture(d["mean"], t["ll"] + t["kap"], t["w_b"], t["w_e"], lam)
+        v = mix.var
+        z = np.abs(d["y"] - d["mean"]) / np.sqrt(v)
+        ll = mix.logpdf(d["y"])
+        if two_sigma:
+            return t, v, z, ll, np.abs(d["y"] - d["mean"]) <= mix.half_width(TWO_SIGMA)
+    if two_sigma:
+        return t, v, z, ll, z <= 2
+    return t, v, z, ll
+
+
+def category_table(name, d, coef=F.VARIANCE_COEF, predictive="gaussian") -> str:
+    t, v, z, ll = scored(d, coef, predictive)
     e = d["y"] - d["mean"]
-    z = np.abs(e) / np.sqrt(v)
-    ll = -0.5 * np.log(2 * np.pi * v) - 0.5 * z * z
     cat = categories(d, t)
     dom = np.array(["ll", "kap", "beh", "ext"])[np.argmax(
         np.stack([t["ll"], t["kap"], t["beh"], t["ext"]]), axis=0)]
@@ -245,6 +273,50 @@ def sweep(seed, cache, baselines) -> str:
     return "\n".join(lines)
 
 
+def mixture_sweep(seed, cache, baselines, names, lams=(0.05, 0.1, 0.15, 0.25, 0.35)) -> str:
+    """Eq. unseen_var against eq. unseen_mixture for several lambda, every scene and bin:
+    1-sigma coverage per bin [bins within 0.68 +- 0.05], bins within 0.95 +- 0.03 at 2
+    sigma, bins with mean LL above hgmm, gpis and loggpis, and the least LL margin."""
+    import json
+
+    base = {r["scene"]: r for r in json.loads(Path(baselines).read_text())["results"]}
+    cases = {n: scene_case(n, seed, cache) for n in names}
+    rows = [("gaussian (eq. unseen_var)", "gaussian", lam) for lam in (0.15,)] + \
+        [("mixture (eq. unseen_mixture)", "mixture", lam) for lam in lams]
+    lines = ["Per scene: 1-sigma coverage per bin [bins within 0.68 +- 0.05] / bins within "
+             "0.95 +- 0.03 at 2 sigma / bins with mean LL above hgmm, gpis and loggpis (of 7) "
+             "/ least LL margin; then the 2-sigma coverage and the mean LL per bin.\n",
+             "| predictive | lambda | " + " | ".join(
+                 f"{n} ({'tuned' if B.SCENES[n]['tuned'] else 'held out'})" for n in names)
+             + " |", "|---|---|" + "---|" * len(names)]
+    for label, pred, lam in rows:
+        cells = []
+        for n in names:
+            d = cases[n]
+            _, _, z, ll, in2 = scored(d, predictive=pred, lam=lam, two_sigma=True)
+            ms = base[n]["methods"]
+            c1, c2, i2, lls, margins = [], [], [], [], []
+            for i in range(len(B.BINS) - 1):
+                s = d["bin"] == i
+                c1.append(np.mean(z[s] <= 1))
+                c2.append(np.mean(z[s] <= 2))
+                i2.append(np.mean(in2[s]))
+                lls.append(ll[s].mean())
+                best = max(ms[k]["ll_sdf" if k != "loggpis" else "ll_edf"][i]
+                           for k in ("hgmm", "gpis", "loggpis") if k in ms)
+                margins.append(lls[-1] - best)
+            n1 = sum(abs(c - 0.68) <= 0.05 for c in c1)
+            n2 = sum(abs(c - 0.95) <= 0.03 for c in c2)
+            ni = sum(abs(c - 0.95) <= 0.03 for c in i2)
+            ok = sum(m > 0 for m in margins)
+            cells.append(" ".join(f"{c:.2f}" for c in c1) + f" [{n1}] / {n2} / {ok} / "
+                         f"{min(margins):+.2f}<br>2s " + " ".join(f"{c:.2f}" for c in c2)
+                         + f"<br>95.45 % interval [{ni}] " + " ".join(f"{c:.2f}" for c in i2)
+                         + "<br>LL " + " ".join(f"{x:+.2f}" for x in lls))
+        lines.append(f"| {label} | {lam:g} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -254,6 +326,11 @@ def main(argv=None) -> int:
     p.add_argument("--sweep", default=None, metavar="BASELINES_JSON",
                    help="score candidate fits on every scene; LL margins against the "
                    "hgmm/gpis/loggpis rows of this bench_accuracy.py JSON (same seed)")
+    p.add_argument("--mixture", default=None, metavar="BASELINES_JSON",
+                   help="eq. unseen_var against eq. unseen_mixture for several lambda; LL "
+                   "margins against this bench_accuracy.py JSON (same seed)")
+    p.add_argument("--predictive", default="gaussian", choices=("gaussian", "mixture"),
+                   help="predictive of --categories (default: gaussian, eq. unseen_var)")
     p.add_argument("--tau", type=float, default=0.68)
     p.add_argument("--coef", default=None,
                    help="t0,...,t4 for --categories (default: VARIANCE_COEF)")
@@ -267,8 +344,9 @@ def main(argv=None) -> int:
         print(f"error: unknown scene(s) {', '.join(bad)}; expected some of "
               f"{', '.join(B.SCENES)}", file=sys.stderr)
         return 2
-    if not (a.fit or a.categories or a.sweep):
-        print("error: nothing to do; give --fit, --categories and/or --sweep", file=sys.stderr)
+    if not (a.fit or a.categories or a.sweep or a.mixture):
+        print("error: nothing to do; give --fit, --categories, --sweep and/or --mixture",
+              file=sys.stderr)
         return 2
     cache = Path(a.cache)
     text = []
@@ -283,9 +361,12 @@ def main(argv=None) -> int:
             if n == "bunny" and not B.BUNNY.is_dir():
                 print("bunny: skipped, ../shared not found", file=sys.stderr)
                 continue
-            text.append(category_table(n, scene_case(n, a.seed, cache), coef))
+            text.append(category_table(n, scene_case(n, a.seed, cache), coef, a.predictive))
     if a.sweep:
         text.append(sweep(a.seed, cache, a.sweep))
+    if a.mixture:
+        have = [n for n in names if n != "bunny" or B.BUNNY.is_dir()]
+        text.append(mixture_sweep(a.seed, cache, a.mixture, have))
     out = "\n".join(text) + "\n"
     print(out)
     if a.out:

@@ -116,7 +116,8 @@ def test_loggpis_errors():
 
 @pytest.mark.slow
 def test_gpis_is_the_papers_stationary_setup():
-    """GPIS = constant prior 0.2 m (sd 0.2 m), every prepared hit point, same blocks."""
+    """GPIS = constant prior 0.2 m (sd 0.2 m) at s = 0.25 m, every prepared hit point,
+    same blocks."""
     from gmmgp_app import MappingConfig
     from gmmgp_app.pipeline import build_map
     from gmmgp_app.stages.gp import ConstantPrior
@@ -130,8 +131,9 @@ def test_gpis_is_the_papers_stationary_setup():
     # l = 0.15 m and 0.2 m blocks ('auto' takes l = 1.75 x the median nearest-neighbour
     # distance of the 30 % subset, 0.03 m, about the mean gap of random samples, so the
     # constant prior shows between the points: 7 mm at the surface)
+    # (and the paper's s = 0.25 m, whose GPIS prior is 0.8 s = 0.2 m)
     cfg = MappingConfig().replace({"prepare.subsample_rate": 0.3, "gp.length_scale": 0.15,
-                                   "gp.block_size": 0.2})
+                                   "gp.block_size": 0.2, "prepare.virtual_spacing": 0.25})
     smap = build_map(scan, cfg, method="gpis")
     assert isinstance(smap.prior, ConstantPrior)
     assert smap.prior.distance == 0.2 and smap.prior.variance == pytest.approx(0.04)
@@ -151,3 +153,39 @@ def test_gpis_is_the_papers_stationary_setup():
     # far away the constant prior stands
     m, v = smap.predict(np.array([[0.0, 0.0, 5.0]]))
     assert m[0] == pytest.approx(0.2) and v[0] == pytest.approx(0.04)
+
+
+@pytest.fixture(scope="module")
+def _box():
+    from gmmgp_app.synth import scan_scene
+
+    return scan_scene("box", density=0.02, seed=3)[0]
+
+
+@pytest.mark.parametrize("a", [10.0, 0.1])
+def test_gpis_is_scale_equivariant_like_the_map(_box, a):
+    """The GPIS baseline's prior is a length of the scan (0.8 s, s the virtual spacing
+    the scan's spacing sets), not a fixed 0.2 m: a scan scaled by a gives a prior
+    scaled by a (variance a^2) and a field scaled by a within 1 % (the criterion of
+    test_autoscale's equivariance test of the map)."""
+    import warnings
+
+    from gmmgp_app.pipeline import GPIS_PRIOR_SPACINGS
+    from gmmgp_app.types import Scan
+
+    q = np.random.default_rng(0).uniform(-1.4, 1.4, (400, 3))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        m1 = build_map(_box, method="gpis")
+        m2 = build_map(Scan(_box.points * a, origins=_box.origins * a), method="gpis")
+    s1 = m1.config.prepare.virtual_spacing
+    assert m1.prior.distance == pytest.approx(GPIS_PRIOR_SPACINGS * s1, rel=1e-12)
+    assert m2.prior.distance == pytest.approx(a * m1.prior.distance, rel=1e-6)
+    assert m2.prior.variance == pytest.approx(a * a * m1.prior.variance, rel=1e-6)
+    f1, v1 = m1.predict(q)
+    f2, v2 = m2.predict(q * a)
+    # beyond the blocks the prior stands: the check covers it as well as the GP's part
+    assert np.mean(f1 == m1.prior.distance) > 0.05
+    scale = np.maximum(np.abs(f1), m1.summary["auto"]["train_spacing"]["value"])
+    assert np.max(np.abs(f2 / a - f1) / scale) < 0.01
+    assert np.median(np.abs(v2 / a ** 2 - v1) / v1) < 0.01

@@ -778,3 +778,17 @@ def test_write_las_round_trip_with_origins_labels_intensity(tmp_path):
     np.testing.assert_array_equal(back.intensity, np.round(scan.intensity))
     with pytest.raises(ValueError, match="Expected a .las or .laz path"):
         write_las(tmp_path / "s.ply", scan)
+
+
+def test_up_axis_is_y_for_a_stanford_scan_set_and_z_otherwise(tmp_path):
+    """The registry says which way is up: y for a ``.conf`` scan set (the file or its
+    folder), z for every other input (the GUI's default view stands the data on it)."""
+    from gmmgp_app.datasets.registry import up_axis
+
+    conf = tmp_path / "set" / "bun.conf"
+    conf.parent.mkdir()
+    conf.write_text("bmesh bun000.ply 0 0 0 0 0 0 1\n")
+    np.testing.assert_array_equal(up_axis(conf), [0, 1, 0])
+    np.testing.assert_array_equal(up_axis(conf.parent), [0, 1, 0])
+    for other in (tmp_path / "scan.ply", tmp_path / "scan.laz", tmp_path):
+        np.testing.assert_array_equal(up_axis(other), [0, 0, 1])

@@ -97,3 +97,26 @@ def test_kitti_folder_with_poses(shared_data):
     with pytest.warns(ScanWarning, match=r"Only 3 of 6 scans have labels"):
         everything = read_scan(seq)
     assert everything.labels is None and everything.origins is not None
+
+
+def test_the_bunny_stands_along_y_and_the_app_views_it_so(shared_data):
+    """The Stanford bunny's up axis is y (datasets.registry.up_axis): its height (15 cm,
+    as long as it is from nose to tail along x) runs along y and the open holes of the
+    reference mesh, at its bottom, lie near the lowest y; the app's model of the scan
+    set carries that up axis to its view."""
+    from gmmgp_app.viz.gui_model import ViewerModel
+
+    bunny = shared_data / "stanford_bunny"
+    mesh = read_scan(bunny / "reconstruction" / "bun_zipper.ply").points
+    ext = np.ptp(mesh, axis=0)
+    assert 0.14 < ext[1] < 0.17 and ext[2] < 0.8 * ext[1]
+    import open3d as o3d
+
+    m = o3d.io.read_triangle_mesh(str(bunny / "reconstruction" / "bun_zipper.ply"))
+    v, f = np.asarray(m.vertices), np.asarray(m.triangles)
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    u, c = np.unique(e, axis=0, return_counts=True)
+    hole = v[np.unique(u[c == 1])]
+    assert hole[:, 1].max() - v[:, 1].min() < 0.2 * ext[1]     # the holes: at the bottom
+    model = ViewerModel.open(bunny / "raw_scans" / "bun.conf")
+    np.testing.assert_array_equal(model.up, [0, 1, 0])

@@ -220,6 +220,37 @@ def test_smooth_blend_has_no_seam(street, tiled):
     assert np.median(err) < 0.05
 
 
+def test_tiled_predict_mean_is_predicts_mean_and_the_mesh_is_unchanged(street, tiled):
+    """TiledMap.predict_mean (each tile's mean alone, stitched by the same weights,
+    which depend on the position only) returns predict's mean bit for bit: inside
+    tiles, across borders in the blend band, and beyond every tile (the nearest
+    tile answers); with smooth and core blending, and for the tiled prior (the hgmm
+    baseline of compare). The stitched surface, whose lattice now takes the mean
+    alone, is the mesh of the full predict, array for array."""
+    from gmmgp_app.compare import _tiled_priors
+    from gmmgp_app.pipeline import mesh_field
+
+    scan, _ = street
+    rng = np.random.default_rng(3)
+    q = np.concatenate([scan.points[::11] + rng.normal(0, 0.05, (len(scan.points[::11]), 3)),
+                        np.c_[np.full(50, 24.0) + rng.uniform(-1.5, 1.5, 50),
+                              rng.uniform(10, 30, 50), rng.uniform(-0.5, 3, 50)],
+                        np.c_[rng.uniform(-20, 80, 50), rng.uniform(-20, 80, 50),
+                              rng.uniform(-1, 5, 50)]])
+    core = TiledMap(TileSpec(size=8.0, overlap=2.0, blend="core"), tiled.tiles,
+                    tiled.config, tiled.method)
+    for tm in (tiled, core, _tiled_priors(tiled)):
+        assert np.array_equal(tm.predict_mean(q), tm.predict(q)[0])
+    seeds = tiled.stitched_seeds()
+    full = mesh_field(tiled.predict, seeds, tiled.config.surface, 0.1, None, None,
+                      tiled.surface_reach(seeds))
+    mesh = tiled.extract_surface(voxel_size=0.1)
+    assert len(mesh.faces) > 1000
+    for a, b in ((mesh.vertices, full.vertices), (mesh.faces, full.faces),
+                 (mesh.vertex_variance, full.vertex_variance)):
+        assert np.array_equal(a, b)
+
+
 def test_tiled_gradient_matches_finite_differences(street):
     """The blend's gradient (tiles' gradients plus the weights' gradient) is exact.
 
@@ -436,6 +467,8 @@ def test_points_of_small_tiles_are_mapped_by_their_owner():
     strip = pts[:, 0] > 8.6  # beyond every big tile's margin, 0.3-0.5 m up
     m = tm.predict(pts[strip])[0]
     assert np.median(np.abs(m)) < 0.02, np.median(np.abs(m))  # measured 7 mm
+    # squares answered by their owner: the lattice's mean (predict_mean) is predict's
+    assert np.array_equal(tm.predict_mean(pts[strip]), m)
     v = tm.extract_surface(voxel_size=0.05).vertices
     end = v[v[:, 0] > 8.6]
     assert len(end) > 50

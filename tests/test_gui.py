@@ -54,6 +54,34 @@ def test_ellipsoid_mesh_vertices_lie_on_the_two_sigma_surface():
         assert uv.shape == (3 * len(mesh.triangles), 2) and not uv.any()
 
 
+def test_scan_colours_follow_the_up_axis():
+    """Height colours by z, or along the data's up axis (y for the Stanford sets)."""
+    pts = np.random.default_rng(4).normal(size=(500, 3))
+    z = G.scan_colors(pts)
+    assert all(np.array_equal(a, b) for a, b in zip(z, G.scan_colors(pts, (0, 0, 1))))
+    y = G.scan_colors(pts, (0.0, 1.0, 0.0))
+    assert all(np.array_equal(a, b) for a, b in zip(y, G.scan_colors(pts[:, [0, 2, 1]])))
+    down = G.scan_colors(pts, (0.0, 0.0, -1.0))
+    assert down[1] == pytest.approx(-z[2]) and down[2] == pytest.approx(-z[1])
+
+
+def test_probe_marker_is_a_lit_sphere_around_the_point():
+    """The probe's marker (built in gui_geometry, where the meshes drawn lit get their
+    zero texture coordinates): Open3D's sphere of resolution 10 moved to the point."""
+    import open3d as o3d
+
+    xyz, r = np.array([1.0, -2.0, 0.5]), 0.03
+    m = G.probe_marker(xyz, r)
+    v = np.asarray(m.vertices)
+    np.testing.assert_allclose(np.linalg.norm(v - xyz, axis=1), r, rtol=1e-12)
+    ref = o3d.geometry.TriangleMesh.create_sphere(radius=r, resolution=10)
+    np.testing.assert_array_equal(v, np.asarray(ref.vertices) + xyz)
+    np.testing.assert_array_equal(np.asarray(m.triangles), np.asarray(ref.triangles))
+    assert m.has_vertex_normals()
+    uv = np.asarray(m.triangle_uvs)
+    assert uv.shape == (3 * len(m.triangles), 2) and not uv.any()
+
+
 def test_ellipsoid_wireframe_lines_join_points_on_the_surface():
     means, cov = _random_gaussians(k=3, seed=1)
     ls = G.ellipsoid_wireframe(means, cov, np.ones((3, 3)), n_sigma=1.0, resolution=5)
@@ -622,6 +650,34 @@ def test_default_view_looks_along_a_street_from_above_and_at_an_object_obliquely
     assert default_view(np.zeros((0, 3))).extent > 0  # nothing to frame: no crash
 
 
+def test_default_view_of_y_up_data_is_the_z_up_view_turned():
+    """Data whose up axis is y (the Stanford scan sets) is viewed as the same data with
+    z up would be: eye, centre, up, framed box and sun turned by the same rotation;
+    the bunny-sized blob is seen obliquely from above, not lying on its side."""
+    from gmmgp_app.viz.gui_camera import default_view, sun_direction, up_frame
+
+    rng = np.random.default_rng(2)
+    for pts in (_street(), rng.normal(size=(2000, 3)) * [0.08, 0.06, 0.07]):
+        for up in ((0.0, 1.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 0.0, -1.0)):
+            M = up_frame(up).T                       # z-up data -> data with ``up`` up
+            np.testing.assert_allclose(M @ [0.0, 0.0, 1.0], up, atol=1e-15)
+            v, w = default_view(pts), default_view(pts @ M.T, up=up)
+            assert w.along == v.along
+            for a, b in ((w.eye, v.eye), (w.centre, v.centre), (w.up, v.up)):
+                np.testing.assert_allclose(a, M @ b, atol=1e-9)
+            corners = np.stack([v.lo, v.hi]) @ M.T
+            np.testing.assert_allclose(w.lo, corners.min(0), atol=1e-9)
+            np.testing.assert_allclose(w.hi, corners.max(0), atol=1e-9)
+            np.testing.assert_allclose(sun_direction(w), M @ sun_direction(v), atol=1e-12)
+    # z up given explicitly: the view as before, bit for bit
+    pts = _street()
+    a, b = default_view(pts), default_view(pts, up=(0, 0, 1))
+    assert all(np.array_equal(getattr(a, k), getattr(b, k)) for k in ("lo", "hi", "eye",
+                                                                       "centre", "up"))
+    with pytest.raises(ValueError, match="up axis along x, y or z"):
+        default_view(pts, up=(0.0, 0.6, 0.8))
+
+
 def test_wait_for_frame_returns_when_drawn_cancelled_or_after_its_timeout():
     """The run's worker waits for the frame showing a stage; it never hangs."""
     import threading
@@ -682,3 +738,40 @@ def test_gmr_colours_use_the_d_m_the_run_resolved():
     key, build, _, legend = SceneState(ViewerModel(r, "x"), "gmr").layer_geometry("points")
     assert key[0] == "gmr" and legend[0] == "error" and legend[2] > 0
     assert len(build().points) == 50
+
+
+
+def test_the_apps_first_run_builds_one_kd_tree_of_the_scan(monkeypatch):
+    """The app's run from 'prepare' shares one k-d tree of the scan between the scale
+    measurement and the prepare stage, as build_map does, with the same training set."""
+    import scipy.spatial
+
+    import gmmgp_app as gm
+    import gmmgp_app.pipeline as P
+    from gmmgp_app.stages import autoscale, prepare
+    from gmmgp_app.synth import scan_scene
+    from gmmgp_app.viz.gui_model import Cancelled, StageResults, ViewerModel
+
+    scan, _ = scan_scene("sphere", density=0.05, seed=0)
+    built = []
+    real = scipy.spatial.cKDTree
+
+    def counting(data, *a, **k):
+        built.append(data is scan.points)
+        return real(data, *a, **k)
+
+    for mod in (scipy.spatial, autoscale, prepare):
+        monkeypatch.setattr(mod, "cKDTree", counting)
+    P._RESOLVED.clear()
+    cfg = gm.MappingConfig()
+    model = ViewerModel(StageResults(config=cfg, voxel_size=0.1, scan=scan))
+    shown = []
+    with pytest.raises(Cancelled):   # stopped once the prepare stage is shown
+        model.compute("prepare", cfg, 0.1, on_stage=lambda st, r: shown.append(r),
+                      cancelled=lambda: bool(shown))
+    assert sum(built) == 1, built
+    data = shown[0].data
+    P._RESOLVED.clear()
+    ref = gm.prepare(scan, P.resolve_config(cfg, scan)[0])
+    for k in ("rows", "kinds", "points", "normals", "groups"):
+        np.testing.assert_array_equal(getattr(data, k), getattr(ref, k))

@@ -807,9 +807,11 @@ def test_surface_grid_too_large_is_refused_before_fitting(tmp_path, capsys, monk
     from gmmgp_app import pipeline
 
     def must_not_fit(*a, **k):
-        raise AssertionError("build_map ran although the surface grid was already too large")
+        raise AssertionError("stages ran although the surface grid was already too large")
 
-    monkeypatch.setattr(pipeline, "build_map", must_not_fit)
+    # build_map checks the grid once the scale is measured (one k-d tree of the scan
+    # for both), before its first stage
+    monkeypatch.setattr(pipeline, "run_stages", must_not_fit)
     path = _big_plane(tmp_path)
     out = tmp_path / "out"
     rc, _, err = _cli(capsys, "run", path, "--out", out, "-q", "--method", "hgmm",

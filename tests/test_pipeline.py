@@ -217,3 +217,43 @@ def test_map_surface_reach_is_the_auto_voxels_whatever_the_voxel(sphere):
     np.testing.assert_array_equal(c.faces, d.faces)
     assert surface_reach(smap.seed_points, ht) > smap.surface_reach()
     assert len(e.faces) >= len(c.faces)
+
+
+def test_build_map_builds_one_kd_tree_of_the_scan_with_the_same_fields(sphere, monkeypatch):
+    """The scale measurement (autoscale.measure_scan) and the prepare stage share the
+    k-d tree build_map makes of the scan's points (~1 s on a 1.3M-point street): one
+    tree of those points per run, where each built its own, and the same map bit for
+    bit as when each builds its own (pipeline.scan_tree giving None)."""
+    import scipy.spatial
+
+    import gmmgp_app.pipeline as P
+    from gmmgp_app.stages import autoscale, prepare
+
+    scan, _ = sphere
+    built = []
+    real = scipy.spatial.cKDTree
+
+    def counting(data, *a, **k):
+        built.append(data is scan.points)
+        return real(data, *a, **k)
+
+    for mod in (scipy.spatial, autoscale, prepare):
+        monkeypatch.setattr(mod, "cKDTree", counting)
+    P._RESOLVED.clear()        # measure the scan here, not from an earlier test's result
+    one = gm.build_map(scan, gm.MappingConfig(), method="hgmm")
+    assert sum(built) == 1, built
+    assert one.summary["auto"]                       # the scan was measured (auto fields)
+    monkeypatch.setattr(P, "scan_tree", lambda s: None)
+    built.clear()
+    P._RESOLVED.clear()
+    each = gm.build_map(scan, gm.MappingConfig(), method="hgmm")
+    assert sum(built) == 2, built                    # what each stage did on its own
+    assert one.config == each.config and one.summary["auto"] == each.summary["auto"]
+    q = np.random.default_rng(2).uniform(-1.5, 1.5, (3000, 3))
+    for x, y in zip(one.predict(q, return_grad=True), each.predict(q, return_grad=True)):
+        np.testing.assert_array_equal(x, y)
+    # prepare given the tree equals prepare building its own (auto fields resolved in it)
+    a = gm.prepare(scan, gm.MappingConfig(), tree=real(scan.points))
+    b = gm.prepare(scan, gm.MappingConfig())
+    for k in ("rows", "kinds", "points", "normals", "groups"):
+        np.testing.assert_array_equal(getattr(a, k), getattr(b, k))

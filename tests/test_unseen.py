@@ -58,20 +58,22 @@ def test_unseen_variance_is_lambda_squared_times_the_widths():
                                [0.0625 * 0.25, 0.0625 * 0.04], rtol=1e-15)
 
 
-def _wall_map(weight):
+def _wall_map(weight, predictive="gaussian"):
     # a 0.1 m wall (0 <= x <= 0.1, |y| <= 1, 0 <= z <= 2) seen from x = -3 only
     rng = np.random.default_rng(7)
     n = 4000
     yz = rng.uniform([-1.0, 0.0], [1.0, 2.0], (n, 2))
     pts = np.c_[rng.normal(0.0, 0.002, n), yz]
     origins = np.tile([-3.0, 0.0, 1.0], (n, 1))
-    cfg = gm.MappingConfig().with_overrides([f"far.unseen_weight={weight}"])
+    cfg = gm.MappingConfig().with_overrides([f"far.unseen_weight={weight}",
+                                             f"far.unseen_predictive={predictive}"])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return gm.build_map(Scan(pts, origins=origins), cfg)
 
 
 def test_thin_wall_seen_from_one_side_is_not_overconfident_behind():
+    # eq. unseen_var (the Gaussian; the mixture, the default: tests/test_unseen_mixture.py)
     smap = _wall_map(gm.MappingConfig().far.unseen_weight)     # the default, 0.15
     rng = np.random.default_rng(8)
     k = 400

@@ -107,19 +107,22 @@ def run(args) -> int:
     scan = read_scan_args(args.scan, args)
     read_s = time.perf_counter() - t0
     stop = None if args.stage == "all" else args.stage
-    if stop is None and not args.no_mesh and args.method != "loggpis":
-        from ..pipeline import check_surface_grid
-
-        check_surface_grid(scan, cfg)  # refuse an impossible grid before fitting
+    # refuse an impossible grid before fitting
+    check_grid = stop is None and not args.no_mesh and args.method != "loggpis"
     if spec is not None:
+        if check_grid:
+            from ..pipeline import check_surface_grid
+
+            check_surface_grid(scan, cfg)
         return _run_tiled(args, cfg, spec, scan, out, console, t0, read_s, fallback=fallback)
     from ..distributed import open_executor
 
     with open_executor(workers=args.workers or None, scheduler=args.scheduler,
                        kind="processes" if args.processes else "dask") as executor:
         bar = _TaskBar(console, "GP blocks")
+        # (build_map checks the grid once the scale is measured: one k-d tree of the scan)
         smap = build_map(scan, cfg, method=args.method, observer=observer, stop_after=stop,
-                         executor=executor, progress=bar)
+                         executor=executor, progress=bar, check_grid=check_grid)
         bar.close()
     del scan  # the map keeps what it needs (seeds, GP points): free the scan before meshing
     smap.summary["seconds"] = {"read": read_s, **smap.summary["seconds"]}

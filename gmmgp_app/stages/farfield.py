@@ -39,10 +39,10 @@ distance to the data:
 
 The map's mean mixes the GP field (paper eqs. gpm2, gpv2) and the far field with
 weights proportional to their inverse variances (eq. blend), the GP's variance
-raised by ``(g r(x))^2`` for the weights only (g = 2: beyond a length scale from its
-points the GP is the HGMM prior, whose variance does not grow with the distance). Its variance is a
-log-linear model of dimensionless features, so that it scales with the scan
-(eq. calibrated_var):
+raised by ``(g r(x))^2`` for the weights only (``FarFieldConfig.gp_growth`` g = 4:
+beyond a length scale from its points the GP is the HGMM prior, whose variance does not
+grow with the distance). Its variance is a log-linear model of dimensionless features,
+so that it scales with the scan (eq. calibrated_var):
 
     v(x) = h^2 exp(t0 + t1 log((r^2 + h^2)/h^2) + t2 log((s^2 + sigma^2)/h^2)
                    + t3 log(((m_gp - m_far)^2 + sigma^2)/h^2) + t4 log(v_gp/h^2))
@@ -96,7 +96,9 @@ that second moment has variance ``(1 - p) w^2 / 3``, so (eq. unseen_var)
 
       v = v_calibrated + lambda^2 (w_behind^2 + w_extent^2),  lambda = sqrt((1 - p) / 3)
 
-with ``lambda = 0.15`` (p = 0.93, chosen on the tuned scenes), ``t_min = 2 h`` and
+(the moment-matched Gaussian; the map's default predictive keeps the two cases apart,
+eq. unseen_mixture in stages/unseen.py) with ``lambda = 0.15`` (p = 0.93, chosen on
+the tuned scenes), ``t_min = 2 h`` and
 ``c = 1`` (fixed a priori; ``FarFieldConfig.unseen_weight``, ``min_thickness``,
 ``edge_gap``). The worst case of the interval then lies at 1 / lambda = 6.7 sigma;
 ``lambda = 0.5`` covers it at 2 sigma at the cost of the LL where hidden matter is
@@ -120,8 +122,9 @@ __all__ = ["FarField", "FarFieldError", "blend_fields", "BlendedField", "VARIANC
 
 #: (t0, ..., t4) of eq. calibrated_var: the 0.68-quantile regression (eq.
 #: variance_quantile_fit) on the tuned scenes' observed queries (synthetic street and
-#: sphere, 10 % handed, seed 0, with the robust far field; ``python scripts/fit_variance.py``).
-VARIANCE_COEF = (-0.4467, -0.2284, 1.0049, 0.1815, 0.1381)
+#: sphere, 10 % handed, seed 0, with the robust far field and ``far.gp_growth`` = 4;
+#: ``python scripts/fit_variance.py --fit``).
+VARIANCE_COEF = (-0.4745, -0.2282, 1.0088, 0.1706, 0.1404)
 
 
 class FarFieldError(ValueError):
@@ -496,14 +499,21 @@ def unseen_variance(w_behind, w_extent, weight):
 
 class BlendedField:
     """The GP field and the far field mixed (eq. blend), variance from eq.
-    calibrated_var plus the unseen-geometry term (eq. unseen_var; ``calibrated=False``:
-    the mixture's own variance, no added terms)."""
+    calibrated_var plus the unseen-geometry term: eq. unseen_var, or with
+    ``unseen_predictive="mixture"`` the predictive of eq. unseen_mixture
+    (stages/unseen.py; :meth:`distribution`), whose 68.27 % half-width squared is the
+    variance (``calibrated=False``: the mixture's own variance, no added terms)."""
 
     def __init__(self, base, far: FarField, calibrated: bool = True, gp_growth: float = 2.0,
                  disagreement_weight: float = 1.0, length_scale: float | None = None,
                  unseen_weight: float = 0.0, min_thickness: float = 2.0,
-                 edge_gap: float = 1.0):
+                 edge_gap: float = 1.0, unseen_predictive: str = "gaussian"):
         self.base, self.far, self.calibrated = base, far, bool(calibrated)
+        if unseen_predictive not in ("gaussian", "mixture"):
+            raise FarFieldError(f"Expected unseen_predictive 'gaussian' or 'mixture', found "
+                                f"{unseen_predictive!r}.")
+        # eq. unseen_var (its moment-matched Gaussian) or eq. unseen_mixture (stages/unseen.py)
+        self.unseen_predictive = unseen_predictive
         self.gp_growth = float(gp_growth)
         self.disagreement_weight = float(disagreement_weight)
         # eq. unseen_var: lambda, and t_min and the edge gap in units of h (rho0)
@@ -515,9 +525,23 @@ class BlendedField:
 
     def predict(self, xyz, return_grad: bool = False, mean_only: bool = False, base_out=None):
         """Mean, variance[, gradient]; ``mean_only``: the mean alone (the same values;
-        the variance model, which the mean does not use, is skipped). ``base_out``:
+        the variance model, which the mean does not use, is skipped). With
+        ``unseen_predictive="mixture"`` the variance is the square of the central
+        68.27 % half-width of eq. unseen_mixture (:meth:`distribution`). ``base_out``:
         the base field's ``predict(xyz, return_grad)`` when the caller has it (not
         computed again)."""
+        res, dist = self._predict(xyz, return_grad, mean_only, base_out)
+        return res
+
+    def distribution(self, xyz):
+        """The predictive distribution at ``xyz``: an :class:`~.unseen.UnseenMixture`
+        (eq. unseen_mixture; a Gaussian where both unseen widths are zero, everywhere
+        when ``unseen_predictive="gaussian"`` or the field is not calibrated)."""
+        return self._predict(xyz, False, False)[1]
+
+    def _predict(self, xyz, return_grad, mean_only, base_out=None):
+        from .unseen import UnseenMixture
+
         out = self.base.predict(xyz, return_grad=return_grad) if base_out is None \
             else tuple(base_out)
         c = self.far.components(xyz, return_grad)
@@ -527,7 +551,8 @@ class BlendedField:
         res = blend_fields(out[0], v_gp, c["mean"], c["var"],
                            *((out[2], c["grad"]) if return_grad else ()))
         if mean_only:
-            return res[0]
+            return res[0], None
+        dist = None
         if self.calibrated:
             d2 = (out[0] - c["mean"]) ** 2
             # within a length scale of the data the GP mean is the data's (beyond, it is
@@ -537,8 +562,14 @@ class BlendedField:
             var = calibrated_variance(self.far.rho0, self.far.noise, c["r"], c["spread2"],
                                       d2, out[1], disagreement_weight=kappa)
             if self.unseen_weight > 0:
-                var = var + unseen_variance(behind_width(res[0], self.min_thickness),
-                                            extent_width(res[0], c["r"], self.edge_gap),
-                                            self.unseen_weight)
+                wb = behind_width(res[0], self.min_thickness)
+                we = extent_width(res[0], c["r"], self.edge_gap)
+                if self.unseen_predictive == "mixture":
+                    dist = UnseenMixture(res[0], var, wb, we, self.unseen_weight)
+                    var = dist.var
+                else:
+                    var = var + unseen_variance(wb, we, self.unseen_weight)
             res = (res[0], var) + tuple(res[2:])
-        return res
+        if dist is None:
+            dist = UnseenMixture(res[0], res[1])
+        return res, dist

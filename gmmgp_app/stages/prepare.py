@@ -249,7 +249,8 @@ def inconsistent_virtual(virtual_xyz: np.ndarray, hit_tree: cKDTree, s: float,
 
 
 def prepare(scan: Scan, cfg: MappingConfig, *,
-            rng: Optional[np.random.Generator] = None) -> TrainingSet:
+            rng: Optional[np.random.Generator] = None,
+            tree: Optional[cKDTree] = None) -> TrainingSet:
     """4D training rows ``(x, y, z, d)`` from a scan (paper Sec. III-B, V-B).
 
     Parameters
@@ -262,6 +263,9 @@ def prepare(scan: Scan, cfg: MappingConfig, *,
         virtual points and its margin.
     rng : numpy Generator, optional
         Defaults to ``np.random.default_rng(cfg.prepare.seed)``.
+    tree : cKDTree of ``scan.points``, optional
+        Built here if not given (the pipeline builds one for the scale measurement
+        and this stage).
 
     Returns
     -------
@@ -282,7 +286,8 @@ def prepare(scan: Scan, cfg: MappingConfig, *,
             and np.isfinite(pts).all() and len(pts) >= MIN_POINTS:
         from gmmgp_app.stages.autoscale import resolve_config
 
-        cfg, _ = resolve_config(cfg, pts, scan.origins)
+        tree = cKDTree(pts) if tree is None else tree
+        cfg, _ = resolve_config(cfg, pts, scan.origins, tree=tree)
     p = cfg.prepare
     finite = np.isfinite(pts).all(axis=1)
     if not finite.all():
@@ -297,7 +302,7 @@ def prepare(scan: Scan, cfg: MappingConfig, *,
         )
     rng = np.random.default_rng(p.seed) if rng is None else rng
     keep = subsample(pts, p, rng)
-    tree = cKDTree(pts)
+    tree = cKDTree(pts) if tree is None else tree
     normals, valid = estimate_normals(pts, p.normal_radius, p.normal_max_nn, query=keep,
                                       tree=tree)
     if not valid.all():

@@ -87,27 +87,7 @@ class TiledMap:
         Wm2 = np.zeros(K)
         gW = np.zeros((K, 2))
         gWm = np.zeros((K, 3))
-        # weight of each mapped tile per query: its own square's plus those it owns
-        parts: dict = {}
-        for key_arr in self.spec.candidate_keys(x[:, :2]):
-            for key in map(tuple, np.unique(key_arr, axis=0).tolist()):
-                owner = self._owner(key)
-                if owner is None:
-                    continue
-                rows = np.flatnonzero(np.all(key_arr == np.array(key), axis=1))
-                w, dw = self.spec.weights(x[rows, :2], key)
-                keep = w > 0
-                if keep.any():
-                    parts.setdefault(owner, []).append((rows[keep], w[keep], dw[keep]))
-        for owner, pieces in sorted(parts.items()):
-            if len(pieces) == 1:
-                rows, w, dw = pieces[0]
-            else:  # one prediction per query even when several squares weigh it
-                rows, inv = np.unique(np.concatenate([r for r, _, _ in pieces]),
-                                      return_inverse=True)
-                w = np.bincount(inv, np.concatenate([q for _, q, _ in pieces]), len(rows))
-                dwc = np.concatenate([d for _, _, d in pieces])
-                dw = np.column_stack([np.bincount(inv, dwc[:, a], len(rows)) for a in (0, 1)])
+        for owner, rows, w, dw in self._tile_weights(x):
             out = self.tiles[owner].predict(x[rows], return_grad=return_grad, far=far)
             m, v = out[0], out[1]
             W[rows] += w
@@ -132,19 +112,76 @@ class TiledMap:
             self._nearest_tile(x, ~ok, mean, var, grad, return_grad, far)
         return (mean, var, grad) if return_grad else (mean, var)
 
-    def _nearest_tile(self, x, miss, mean, var, grad, return_grad, far=True):
+    def predict_mean(self, xyz) -> np.ndarray:
+        """(K,) the mean of :meth:`predict` alone, the same values bit for bit (what the
+        surface lattice needs): the stitching weights depend on the query's position
+        only, not on the tiles' variances, so the stitched mean ``sum w_t m_t / sum w_t``
+        needs each tile's mean alone (:meth:`SurfaceMap.predict_mean`)."""
+        from ..pipeline import as_queries
+
+        x = as_queries(xyz)
+        K = len(x)
+        W = np.zeros(K)
+        Wm = np.zeros(K)
+        for owner, rows, w, _ in self._tile_weights(x):
+            m = self.tiles[owner].predict_mean(x[rows])
+            W[rows] += w
+            Wm[rows] += w * m
+        mean = np.zeros(K)
+        ok = W > 0
+        mean[ok] = Wm[ok] / W[ok]
+        if (~ok).any() and self.tiles:
+            self._nearest_tile_mean(x, ~ok, mean)
+        return mean
+
+    def _tile_weights(self, x) -> list:
+        """``[(owner, rows, w, dw)]``, sorted by owner: the queries ``rows`` each mapped
+        tile weighs, with their weights (n,) and weight gradients (n, 2); the weight of
+        a mapped tile is its own square's plus those of the squares it owns."""
+        parts: dict = {}
+        for key_arr in self.spec.candidate_keys(x[:, :2]):
+            for key in map(tuple, np.unique(key_arr, axis=0).tolist()):
+                owner = self._owner(key)
+                if owner is None:
+                    continue
+                rows = np.flatnonzero(np.all(key_arr == np.array(key), axis=1))
+                w, dw = self.spec.weights(x[rows, :2], key)
+                keep = w > 0
+                if keep.any():
+                    parts.setdefault(owner, []).append((rows[keep], w[keep], dw[keep]))
+        out = []
+        for owner, pieces in sorted(parts.items()):
+            if len(pieces) == 1:
+                rows, w, dw = pieces[0]
+            else:  # one prediction per query even when several squares weigh it
+                rows, inv = np.unique(np.concatenate([r for r, _, _ in pieces]),
+                                      return_inverse=True)
+                w = np.bincount(inv, np.concatenate([q for _, q, _ in pieces]), len(rows))
+                dwc = np.concatenate([d for _, _, d in pieces])
+                dw = np.column_stack([np.bincount(inv, dwc[:, a], len(rows)) for a in (0, 1)])
+            out.append((owner, rows, w, dw))
+        return out
+
+    def _nearest_tiles(self, x, miss) -> list:
+        """``[(key, rows)]``: the queries ``miss`` no mapped tile weighs, grouped by the
+        mapped tile whose square's centre is nearest (which answers for them)."""
         keys = np.array(self.keys, dtype=np.float64)
         centres = (keys + 0.5) * self.spec.size
         rows = np.flatnonzero(miss)
         d = np.linalg.norm(x[rows, None, :2] - centres[None], axis=2)
         pick = np.argmin(d, axis=1)
-        for t in np.unique(pick):
-            r = rows[pick == t]
-            out = self.tiles[tuple(int(k) for k in keys[t])].predict(x[r], return_grad,
-                                                                     far=far)
+        return [(tuple(int(k) for k in keys[t]), rows[pick == t]) for t in np.unique(pick)]
+
+    def _nearest_tile(self, x, miss, mean, var, grad, return_grad, far=True):
+        for key, r in self._nearest_tiles(x, miss):
+            out = self.tiles[key].predict(x[r], return_grad, far=far)
             mean[r], var[r] = out[0], out[1]
             if return_grad:
                 grad[r] = out[2]
+
+    def _nearest_tile_mean(self, x, miss, mean):
+        for key, r in self._nearest_tiles(x, miss):
+            mean[r] = self.tiles[key].predict_mean(x[r])
 
     def _weighs(self, key, xyz) -> np.ndarray:
         """Where mapped tile ``key`` has a non-zero weight (its square or one it owns)."""
@@ -163,7 +200,8 @@ class TiledMap:
         if voxel_size is None:
             voxel_size = self.surface_voxel()
         return mesh_field(self.predict, seeds, self.config.surface, voxel_size, max_std,
-                          progress, self.surface_reach(seeds) if reach is None else reach)
+                          progress, self.surface_reach(seeds) if reach is None else reach,
+                          predict_mean=self.predict_mean)
 
     def stitched_seeds(self) -> np.ndarray:
         """Where the stitched surface is sought: every tile's seed points (with smooth

@@ -818,15 +818,9 @@ class ViewerApp:
                         f"SDF {mean:+.4f} +- {std:.4f} m\n"
                         f"grad ({grad[0]:+.2f}, {grad[1]:+.2f}, {grad[2]:+.2f}), "
                         f"|grad| {np.linalg.norm(grad):.2f}")
-        import open3d as o3d
+        from .gui_geometry import probe_marker
 
-        r = 0.01 * self._extent()
-        s = o3d.geometry.TriangleMesh.create_sphere(radius=r, resolution=10)
-        s.translate(xyz)
-        s.compute_vertex_normals()
-        from .gui_geometry import _zero_uvs
-
-        _zero_uvs(s)  # lit meshes without texture coordinates stall CPU frames (see there)
+        s = probe_marker(xyz, 0.01 * self._extent())
         sc = self.scene.scene
         if sc.has_geometry("probe"):
             sc.remove_geometry("probe")

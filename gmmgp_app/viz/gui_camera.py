@@ -5,7 +5,8 @@ Pure functions of the points (no Open3D), shared by the window
 (:func:`gmmgp_app.viz.gui_screenshot.render_png`) and the compare layer's shift
 (:func:`gmmgp_app.viz.gui_tuning.compare_shift`).
 
-Two kinds of scene (z is up):
+Two kinds of scene (z is up, unless the data says otherwise: ``up``, e.g. y for the
+Stanford scan sets, :func:`gmmgp_app.datasets.registry.up_axis`):
 
 * long in one horizontal direction (a street, a corridor: the longer horizontal side of
   the points' box at least :data:`ELONGATED` times the shorter): the camera stands
@@ -21,7 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ELONGATED", "DefaultView", "default_view", "across_axis", "sun_direction"]
+__all__ = ["ELONGATED", "DefaultView", "default_view", "up_frame", "across_axis",
+           "sun_direction"]
 
 #: Longer / shorter horizontal side of the points' 1-99 % box from which a scene is
 #: viewed along its long side (the demo street: 37.4 m x 16.4 m = 2.3).
@@ -52,7 +54,9 @@ class DefaultView:
     up : (3,) the up vector
     along : int or None
         The long horizontal axis (0: x, 1: y) an elongated scene is viewed along; None
-        for a compact one.
+        for a compact one (axes of the frame whose z is ``up``).
+    frame : (3, 3) rotation from the data's axes to a frame whose z is ``up`` (the
+        identity for z-up data)
     """
 
     lo: np.ndarray
@@ -61,6 +65,7 @@ class DefaultView:
     eye: np.ndarray
     up: np.ndarray
     along: object
+    frame: np.ndarray = None
 
     @property
     def extent(self) -> float:
@@ -88,12 +93,35 @@ def _long_axis(lo, hi):
     return None
 
 
-def default_view(points, like=None) -> DefaultView:
+def up_frame(up) -> np.ndarray:
+    """(3, 3) the rotation taking the coordinate axis ``up`` (+-x, +-y or +-z) to +z."""
+    u = np.asarray(up, dtype=np.float64).reshape(3)
+    if np.count_nonzero(u) != 1 or abs(float(u.sum())) != 1.0:
+        raise ValueError(f"Expected an up axis along x, y or z (e.g. (0, 1, 0)), found {up}.")
+    if u[2] == 1.0:
+        return np.eye(3)
+    if u[2] == -1.0:
+        return np.diag([1.0, -1.0, -1.0])
+    k = np.cross(u, [0.0, 0.0, 1.0])                   # a quarter turn about k
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + K + K @ K
+
+
+def default_view(points, like=None, up=None) -> DefaultView:
     """The default camera for ``points`` (N, 3) (see the module's docstring).
 
     ``like`` (M, 3), optional: the points whose box decides the kind of view (the
     compare layer frames the scan and its shifted copy, but views them as it views
-    the scan: a street along its long side, the copy beside it)."""
+    the scan: a street along its long side, the copy beside it). ``up`` (3,),
+    optional: the data's up axis (+-x, +-y or +-z; default z): the view is the one of
+    the points turned so that ``up`` is z, turned back."""
+    R = np.eye(3) if up is None else up_frame(up)
+    if not np.array_equal(R, np.eye(3)):
+        turn = lambda p: np.asarray(p, dtype=np.float64).reshape(-1, 3) @ R.T  # noqa: E731
+        v = default_view(turn(points), None if like is None else turn(like))
+        corners = np.stack([v.lo, v.hi]) @ R                 # back to the data's axes
+        return DefaultView(corners.min(0), corners.max(0), R.T @ v.centre, R.T @ v.eye,
+                           R.T @ v.up, v.along, R)
     lo, hi = _box(points)
     centre = 0.5 * (lo + hi)
     ext = float(np.linalg.norm(hi - lo)) or 1.0
@@ -127,9 +155,10 @@ def sun_direction(view: DefaultView) -> np.ndarray:
     """(3,) unit direction the sun's light travels for ``view``: from over the camera's
     shoulder (beside it, towards -y or -x, and above it) onto the scene, so the faces
     turned to the viewer, the ground and one side of a street are lit."""
-    to_eye = view.eye - view.centre
+    R = np.eye(3) if view.frame is None else view.frame   # in the frame whose z is up
+    to_eye = R @ (view.eye - view.centre)
     to_eye = to_eye / max(float(np.linalg.norm(to_eye)), 1e-12)
     side = np.zeros(3)
     side[0 if view.along == 1 else 1] = -1.0
     toward = to_eye + 0.45 * side + np.array([0.0, 0.0, 0.35])
-    return -toward / np.linalg.norm(toward)
+    return R.T @ (-toward / np.linalg.norm(toward))

@@ -16,11 +16,12 @@ from .rerun_observer import C_MAX, ERROR_SATURATION_DM, ellipsoid_params
 
 __all__ = ["colormap", "colorbar_rgb", "point_cloud", "ellipsoid_mesh", "ellipsoid_wireframe",
            "block_boxes", "triangle_mesh", "scan_colors", "row_colors", "error_colors",
-           "complexity_colors", "std_colors", "z_colors", "aabb_boxes", "LEGENDS"]
+           "complexity_colors", "std_colors", "z_colors", "aabb_boxes", "probe_marker",
+           "LEGENDS"]
 
 #: Colour map and value range of each colouring: (title, colour map, lo, hi, scale note).
 LEGENDS = {
-    "height": ("height z (m)", "turbo"),
+    "height": ("height (m)", "turbo"),
     "d": ("signed distance d of rows (m)", "coolwarm"),
     "error": ("GMR error |m(x)| at hits (m)", "RdYlGn_r"),
     "c": ("complexity c (sqrt scale)", "plasma"),
@@ -43,9 +44,11 @@ def colorbar_rgb(name: str, width: int = 256, height: int = 14) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- colourings
-def scan_colors(points: np.ndarray):
-    """Height colours; returns (colours (N,3), lo, hi) with lo/hi the 2-98 % z range."""
-    z = points[:, 2]
+def scan_colors(points: np.ndarray, up=None):
+    """Height colours; returns (colours (N,3), lo, hi) with lo/hi the 2-98 % range of
+    the height: z, or the coordinate along ``up`` (3,), the data's up axis."""
+    u = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, dtype=np.float64)
+    z = points[:, 2] if np.array_equal(u, [0.0, 0.0, 1.0]) else np.asarray(points) @ u
     lo, hi = (np.percentile(z, [2, 98]) if len(z) else (0.0, 1.0))
     hi = max(hi, lo + 1e-6)
     return colormap((z - lo) / (hi - lo), "turbo"), float(lo), float(hi)
@@ -141,6 +144,17 @@ def ellipsoid_mesh(means, covariances, colors, n_sigma: float = 2.0, resolution:
     m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts.reshape(-1, 3)),
                                   o3d.utility.Vector3iVector(faces.astype(np.int32)))
     m.vertex_colors = o3d.utility.Vector3dVector(np.repeat(np.asarray(colors, float), nv, 0))
+    m.compute_vertex_normals()
+    _zero_uvs(m)
+    return m
+
+
+def probe_marker(xyz, radius: float):
+    """The lit sphere marking a probed point: radius ``radius`` (m) around ``xyz`` (3,)."""
+    import open3d as o3d
+
+    m = o3d.geometry.TriangleMesh.create_sphere(radius=float(radius), resolution=10)
+    m.translate(np.asarray(xyz, dtype=np.float64).reshape(3))
     m.compute_vertex_normals()
     _zero_uvs(m)
     return m

@@ -131,7 +131,8 @@ def scene_view(view):
     pts = compare_scene_points(view)
     if pts is None:
         return None
-    return default_view(pts, like=view.model.results.scan.points)
+    return default_view(pts, like=view.model.results.scan.points,
+                        up=getattr(view.model, "up", None))
 
 
 def _compare_geometry(view, r, stage):
@@ -230,7 +231,7 @@ def layer_geometry(view, name):
             return (("grey", id(r.scan)),
                     lambda: G.point_cloud(pts[idx], np.full((len(idx), 3), 0.72)),
                     "points", None)
-        col, lo, hi = G.scan_colors(pts[idx])
+        col, lo, hi = G.scan_colors(pts[idx], getattr(view.model, "up", None))
         return (("height", id(r.scan)), lambda: G.point_cloud(pts[idx], col), "points",
                 ("height", lo, hi))
     if name == "ellipsoids":

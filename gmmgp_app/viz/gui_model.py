@@ -180,6 +180,8 @@ class ViewerModel:
         self.hgmm_cache = None
         self._cache_lock = threading.Lock()
         self._resolved = None   # (scan, what the resolution depends on, cfg, record)
+        #: (3,) the data's up axis (datasets.registry.up_axis): the default view's
+        self.up = np.array([0.0, 0.0, 1.0])
 
     # ------------------------------------------------------------------ opening
     @classmethod
@@ -207,12 +209,14 @@ class ViewerModel:
             except T.TargetError as e:
                 raise ViewerError(str(e)) from None
         from ..datasets import read_scan
+        from ..datasets.registry import up_axis
 
         scan = read_scan(path)
         cfg = MappingConfig() if cfg is None else cfg
         m = cls(StageResults(config=cfg, voxel_size=voxel_size, scan=scan),
                 source=str(path))
         m.kind = "scan"
+        m.up = up_axis(path)
         return m
 
     @classmethod
@@ -315,7 +319,7 @@ class ViewerModel:
         -------
         StageResults
         """
-        from ..pipeline import RunContext, auto_fields, resolve_config, run_stages
+        from ..pipeline import RunContext, auto_fields, run_stages, scan_tree
 
         r = self.results if base is None else base
         if start not in STAGES[1:]:
@@ -360,9 +364,13 @@ class ViewerModel:
                 raise Cancelled(name)
 
         bar = _ProgressBar(progress) if progress is not None else None
-        # "auto" fields resolved from the scan exactly as build_map does
-        run_cfg, record = (cfg, {}) if r.scan is None else self._resolve(cfg, r.scan)
         names = [p for s in order for p in _PIPELINE_STAGES[s]]
+        # "auto" fields resolved from the scan exactly as build_map does, with one k-d
+        # tree of the scan for its measurement and the prepare stage
+        if r.scan is not None and "prepare" in names:
+            state["tree"] = scan_tree(r.scan)
+        run_cfg, record = ((cfg, {}) if r.scan is None
+                           else self._resolve(cfg, r.scan, state.get("tree")))
         if cancelled():
             raise Cancelled(start)
         if record:
@@ -390,7 +398,7 @@ class ViewerModel:
         extra = {k: v for k, v in summary.items() if k not in ("seconds", "counts")}
         return dataclasses.replace(r, summary={**r.summary, **extra}) if extra else r
 
-    def _resolve(self, cfg: MappingConfig, scan: Scan) -> tuple:
+    def _resolve(self, cfg: MappingConfig, scan: Scan, tree=None) -> tuple:
         """``pipeline.resolve_config(cfg, scan)``, measured once per scan while the
         same fields are "auto": the resolution reads the scan, which fields are
         "auto" and a hand-set training subset (autoscale.resolve_config), not the
@@ -407,7 +415,7 @@ class ViewerModel:
         got = self._resolved
         if got is not None and got[0] is scan and got[1] == dep:
             return (cfg.replace(got[2]) if got[2] else cfg), dict(got[3])
-        run_cfg, record = resolve_config(cfg, scan)
+        run_cfg, record = resolve_config(cfg, scan, tree=tree)
         # the fields the resolution set (the "auto" ones, and a training voxel it chose)
         updates = {}
         for k, *_ in MappingConfig.describe():
