@@ -164,7 +164,8 @@ class SurfaceMap:
         near : tuple, optional
             ``predict(xyz, return_grad, far=False)`` at the same points when the caller
             has it (the scan check after its registration): the blend uses it instead
-            of computing the near field again. Ignored with ``far=False``.
+            of computing the near field again; with ``far=False`` (or a map without a
+            far field) it is returned as it is.
 
         Returns
         -------
