@@ -59,7 +59,9 @@ constrained direction shrink geometrically and are extrapolated (Aitken, see
 :func:`_aitken`). On a loaded map 75-90 % of the time is the map's ``predict``:
 the GMR prior (its kernel and the per-cell candidate lists built for the cells the
 moving points enter), the block cover and posteriors and, in the final check, the
-far field's neighbour query and weights.
+far field's neighbour query and weights (the check after an alignment blends the far
+field with the dense stage's last prediction of the GP field at the same points,
+``predict(near=...)``, instead of predicting the GP field again).
 
 Degenerate directions: the normal matrix ``H = sum w_i J_i^T J_i`` (with the
 per-point weights ``1 / (s_i^2 + noise^2)``: whether the geometry constrains a
@@ -436,6 +438,8 @@ class _Fit:
     n_used: int
     scale: float
     history: list
+    #: the map's prediction at ``T`` on the last stage's points (see :func:`_gauss_newton`)
+    last: Optional[dict] = None
 
 
 def _weights(m, var, noise2, known, c_robust, loss="tukey", n_share=1.0, factor=None):
@@ -669,7 +673,8 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
     ``T`` is at hand and returned too (``last``: y, m, var, g, the cell factors and
     share counts used; None if not converged) for the information at the solution
     without another query. ``prune``: after the first iteration only the points with
-    a std under ``PRUNE_STD * known_std`` are predicted (and returned in ``last``).
+    a std under ``PRUNE_STD * known_std`` are predicted (and returned in ``last``, whose
+    ``index`` says which rows of ``x`` they are).
     """
     T = T0.copy()
     last = None
@@ -681,6 +686,7 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
     refactor_tol = REFACTOR_TOL if refactor_tol is None else refactor_tol
     n_share, cell = _share_counts(_apply(T0, x), share_cell, return_cells=True)
     factor, moved = None, np.inf  # the cell factors and how far the points moved since
+    index = np.arange(len(x))
     for it in range(1, max_iter + 1):
         y = _apply(T, x)
         m, var, g = _predict(smap, y)
@@ -691,7 +697,7 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
             keep = np.sqrt(var) < PRUNE_STD * known_std
             if not keep.all():
                 x, y, m, var, g = x[keep], y[keep], m[keep], var[keep], g[keep]
-                n_share, cell = n_share[keep], cell[keep]
+                n_share, cell, index = n_share[keep], cell[keep], index[keep]
         if cell_factors and moved > refactor_tol:
             factor, moved = _factors_here(y, m, var, g, noise2, known_std, cell), 0.0
         w, scale = _weights(m, var, noise2, np.sqrt(var) < known_std, c_robust, loss, n_share,
@@ -716,7 +722,8 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
                             "step_m": 0.0, "step_deg": 0.0, "step": [0.0] * 6,
                             "extrapolation": 1.0,
                             "converged": "Gauss-Newton step below the tolerance, not applied"})
-            converged, last = True, dict(y=y, m=m, var=var, g=g, factor=factor, n_share=n_share)
+            converged, last = True, dict(y=y, m=m, var=var, g=g, factor=factor, n_share=n_share,
+                                         index=index)
             break
         step, prev, extra = _aitken(step, prev, D, accelerate)
         # cap the step (far from the surface the field's gradient is only a guide)
@@ -896,7 +903,8 @@ def _register(smap, x, x_dense, T0, *, noise, known_std, c_robust, loss, max_ite
                     "sandwich_std": np.sqrt(np.clip(np.diag(sandwich), 0, None)).tolist(),
                     "jackknife_std": np.sqrt(np.clip(np.diag(cov), 0, None)).tolist()})
     return _Fit(T, info["H"], cov, info["pivot"], info["lever"], tuple(degenerate), it,
-                converged, int(use.sum()), info["scale"], history)
+                converged, int(use.sum()), info["scale"], history,
+                last if x_dense is not None else None)
 
 
 def _cluster_size(info, cluster_size, min_clusters):
@@ -1136,7 +1144,9 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
         t_align = time.perf_counter() - ta
         T_loc = fit.T
     y = x @ T_loc[:3, :3].T + T_loc[:3, 3]
-    m, var, g = _predict(smap, far=True, y=y)  # faster than without grad
+    # the registration's last prediction (GP field, dense points) is at these points
+    near = None if fit is None or dense is not x else _near_field_at(smap, fit.last, y)
+    m, var, g = _predict(smap, far=True, y=y, near=near)  # faster than without grad
     s = np.sqrt(var)
     s_ref = _surface_std(smap, y, m, s, g, known_std)
     kn = s_ref < known_std
@@ -1224,10 +1234,39 @@ def _surface_std(smap, y, m, s, g, known_std, steps: int = 1):
     return s_ref
 
 
-def _predict(smap, y, far: bool = False):
+def _near_field_at(smap, last, y):
+    """The map's field without its far field (``predict(far=False)``) at ``y`` from the
+    registration's last prediction ``last`` (at ``y[last["index"]]``; the rest, the
+    points its dense stage stopped predicting, predicted here), for the blended
+    prediction of the check (``predict(near=...)``: saves the near field's second
+    evaluation at every point). None when ``last`` is not at ``y``."""
+    if last is None:
+        return None
+    idx = last["index"]
+    if len(idx) > len(y) or not np.array_equal(y[idx], last["y"]):
+        return None
+    m = np.empty(len(y))
+    var = np.empty(len(y))
+    g = np.empty((len(y), 3))
+    m[idx], var[idx], g[idx] = last["m"], last["var"], last["g"]
+    rest = np.ones(len(y), bool)
+    rest[idx] = False
+    if rest.any():
+        m[rest], var[rest], g[rest] = _predict(smap, y[rest])
+    return m, var, g
+
+
+def _predict(smap, y, far: bool = False, near=None):
     """The map's mean, variance and gradient at ``y``, by default without its far field
     (registration, see the module docstring; the known/changed decision uses the
-    blended field); maps whose ``predict`` has no ``far`` keyword as they are."""
+    blended field); maps whose ``predict`` has no ``far`` keyword as they are.
+    ``near``: the field without the far field at ``y`` (:func:`_near_field_at`), for
+    maps whose ``predict`` takes it (a SurfaceMap; others compute it again)."""
+    if near is not None:
+        try:
+            return smap.predict(y, return_grad=True, far=far, near=near)
+        except TypeError:
+            pass
     try:
         return smap.predict(y, return_grad=True, far=far)
     except TypeError:

@@ -148,7 +148,7 @@ class SurfaceMap:
         self.summary = dict(summary or {})
 
     # ------------------------------------------------------------------ predict
-    def predict(self, xyz, return_grad: bool = False, far: bool = True):
+    def predict(self, xyz, return_grad: bool = False, far: bool = True, near=None):
         """Signed distance mean and variance at query points.
 
         Parameters
@@ -161,6 +161,11 @@ class SurfaceMap:
             Blend in the far field (the default). ``False``: the GP field (or the prior)
             alone, whose gradient is the exact derivative of its mean and which has no
             far-field texture along the surface; what the scan check registers against.
+        near : tuple, optional
+            ``predict(xyz, return_grad, far=False)`` at the same points when the caller
+            has it (the scan check after its registration): the blend uses it instead
+            of computing the near field again; with ``far=False`` (or a map without a
+            far field) it is returned as it is.
 
         Returns
         -------
@@ -171,9 +176,14 @@ class SurfaceMap:
         grad : (K, 3) float64, only if ``return_grad``
         """
         xyz = as_queries(xyz)
+        if near is not None and len(near) != (3 if return_grad else 2):
+            raise ValueError(f"Expected near = (mean, var{', grad' if return_grad else ''}), "
+                             f"found {len(near)} arrays.")
         if self.far is None or not far:
+            if near is not None:
+                return tuple(near)
             return self._near_field.predict(xyz, return_grad=return_grad)
-        return self._blended().predict(xyz, return_grad=return_grad)
+        return self._blended().predict(xyz, return_grad=return_grad, base_out=near)
 
     def distribution(self, xyz):
         """The predictive distribution of the signed distance at query points (what

@@ -15,6 +15,13 @@ bench pair of scripts/bench_check.py (36 m street, default map; second drive thr
   points where the difference and the analytic gradient differ by more than 0.5, the
   mean jumping at a block's region boundary, left out).
 
+``--foot`` (bench pair, check_scan's weights, all points, at the truth): the weights from
+the std at each point's foot on the zero level set (one Newton projection) or at the
+noise-free point (an oracle), residuals against the foot (``m / |g|``, the distance to
+the two-step foot), a 7th parameter for a common offset of some faces' distances, and
+the noise-free drive's error split by the faces' orientation (the gradient's dominant
+axis and sign) with their weight share and weighted mean residual.
+
 ``--decompose`` (bench pair) splits the error instead, with check_scan's weights (shared
 1 m counts, cell variance factors, Tukey), all points, at the truth; rotation vectors in
 deg x 1e-3 (x is the street's axis), translation at the points' weighted centre in mm:
@@ -32,6 +39,7 @@ deg x 1e-3 (x is the street's axis), translation at the points' weighted centre 
     PYTHONPATH=$PWD .venv/bin/python scripts/check_error_budget.py --out out/budget.json
     PYTHONPATH=$PWD .venv/bin/python scripts/check_error_budget.py --scene street2
     PYTHONPATH=$PWD .venv/bin/python scripts/check_error_budget.py --decompose
+    PYTHONPATH=$PWD .venv/bin/python scripts/check_error_budget.py --foot --cache out/maps
 """
 
 from __future__ import annotations
@@ -54,10 +62,16 @@ def main(argv=None) -> int:
     ap.add_argument("--density", type=float, default=0.1)
     ap.add_argument("--noise", type=float, default=0.01, help="check_scan's noise (m)")
     ap.add_argument("--out", default=None, help="JSON file (optional)")
+    ap.add_argument("--foot", action="store_true",
+                    help="weights from the std at each point's foot, residuals against the "
+                         "foot, the map's bias by face class (see above)")
+    ap.add_argument("--cache", default=None, help="directory to keep the bench map in")
     ap.add_argument("--decompose", action="store_true",
                     help="split the error into map bias, noise and the robust loss's fixed "
                          "point (see above)")
     args = ap.parse_args(argv)
+    if args.foot:
+        return foot(args)
     if args.decompose:
         return decompose(args)
 
@@ -195,6 +209,134 @@ def decompose(args) -> int:
                 xi = r["xi"]
                 cells.append(f"({xi[3]:+.2f}, {xi[4]:+.2f}, {xi[5]:+.2f}) "
                              f"[{np.linalg.norm(xi[3:]):.2f}]; {np.linalg.norm(xi[:3]):.2f}")
+        print(f"| {what} | {' / '.join(cells)} |")
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(
+            {"argv": sys.argv[1:], "rows": [dict(r, xi=r["xi"].tolist()) for r in rows]},
+            indent=1))
+    return 0
+
+
+def _bench_map(args):
+    import gmmgp_app as gm
+    from gmmgp_app.synth import scan_scene
+
+    if args.cache:
+        path = Path(args.cache) / f"street{args.length:g}_default"
+        if path.exists():
+            return gm.load_map(path)
+    first, _ = scan_scene("street", density=args.density, seed=0,
+                          scene_params=dict(length=args.length))
+    smap = gm.build_map(first)
+    if args.cache:
+        smap.save(path)
+    return smap
+
+
+def foot(args) -> int:
+    """The ``--foot`` table (see the module docstring)."""
+    from gmmgp_app.check import _factors_here, _normal_matrix, _share_counts, _weights
+    from gmmgp_app.synth import scan_scene
+
+    smap = _bench_map(args)
+    params = dict(length=args.length)
+    n2 = args.noise ** 2
+    rows = []
+
+    def step(y, m, g, w):
+        pivot = (w[:, None] * y).sum(0) / w.sum()
+        _, H, b = _normal_matrix(y, g, w, m, pivot)
+        xi = np.linalg.solve(H, b)
+        return np.r_[1e3 * xi[:3], 1e3 * np.degrees(xi[3:])], H, pivot
+
+    def at_foot(y, m, g):
+        n2g = np.maximum((g * g).sum(1), 1e-12)
+        p = y - (m / n2g)[:, None] * g
+        mf, vf, gf = smap.predict(p, return_grad=True, far=False)
+        return p, mf, vf, gf
+
+    for seed in (1, 2, 3):
+        drives = {}
+        for rn in (None, 0.0):
+            kw = {} if rn is None else dict(range_noise=rn)
+            drives[rn], _ = scan_scene("street_van", density=args.density, seed=seed,
+                                       scene_params=params, lane_y=-1.5, **kw)
+        yn = drives[None].points - smap.offset
+        yc = drives[0.0].points - smap.offset
+        mc, vc, gc = smap.predict(yc, return_grad=True, far=False)
+        m, var, g = smap.predict(yn, return_grad=True, far=False)
+        n_share, cell = _share_counts(yn, 1.0, return_cells=True)
+        fac = _factors_here(yn, m, var, g, n2, 0.1, cell)
+        p, mf, vf, gf = at_foot(yn, m, g)
+        known = np.sqrt(var) < 0.1
+
+        def W(v, kn=known, mm=m):
+            return _weights(mm, v, n2, kn, 4.685, "tukey", n_share, fac)[0]
+
+        w0 = W(var)
+        base, H, pivot = step(yn, m, g, w0)
+        rows.append({"seed": seed, "what": "check's weights (std at the point)", "xi": base})
+        rows.append({"seed": seed, "what": "std at the noise-free point (oracle)",
+                     "xi": step(yn, m, g, W(vc))[0]})
+        rows.append({"seed": seed, "what": "std at the foot (one Newton projection)",
+                     "xi": step(yn, m, g, W(vf))[0]})
+        rows.append({"seed": seed, "what": "std at the foot, known there too",
+                     "xi": step(yn, m, g, W(vf, np.sqrt(vf) < 0.1))[0]})
+        rows.append({"seed": seed, "what": "min(std at point, at foot)",
+                     "xi": step(yn, m, g, W(np.minimum(var, vf)))[0]})
+        gn = np.linalg.norm(g, axis=1)
+        rows.append({"seed": seed, "what": "residual m/|g|, gradient g/|g|",
+                     "xi": step(yn, m / gn, g / gn[:, None], w0)[0]})
+        # geometric distance to the zero level set: the two Newton steps' lengths
+        gfn = np.maximum(np.linalg.norm(gf, axis=1), 1e-6)
+        rgeo = m / gn + mf / gfn
+        rows.append({"seed": seed, "what": "residual: distance to the 2-step foot",
+                     "xi": step(yn, rgeo, g / gn[:, None], w0)[0]})
+        rows.append({"seed": seed, "what": "residual: distance to the 2-step foot, foot std",
+                     "xi": step(yn, rgeo, g / gn[:, None], W(vf))[0]})
+        # a 7th parameter: a common offset of the map's distances on some faces
+        ax_n = np.argmax(np.abs(g), axis=1)
+        Jn, _, _ = _normal_matrix(yn, g, w0, m, pivot)
+        for name, col in (("facades (x- and y-facing)", ax_n < 2), ("y-facing faces", ax_n == 1),
+                          ("all faces", np.ones(len(yn), bool))):
+            J7 = np.c_[Jn, col.astype(float)]
+            Jw = J7 * w0[:, None]
+            x7 = np.linalg.solve(Jw.T @ J7, -Jw.T @ m)
+            rows.append({"seed": seed, "what": f"7th parameter: offset of the {name} (offset mm)",
+                         "xi": np.r_[1e3 * x7[:3], 1e3 * np.degrees(x7[3:6])],
+                         "extra": f"{1e3 * x7[6]:+.2f}"})
+        # which faces carry the map's bias: the noise-free residuals' score split by the
+        # gradient's dominant axis and sign, mapped through the same normal matrix
+        ax = np.argmax(np.abs(gc), axis=1)
+        sg = np.sign(gc[np.arange(len(gc)), ax])
+        wc = _weights(mc, vc, n2, np.sqrt(vc) < 0.1, 4.685, "tukey", n_share, fac)[0]
+        J, Hc, bc = _normal_matrix(yc, gc, wc, mc, pivot)
+        Hinv = np.linalg.inv(Hc)
+        for a, name in enumerate("xyz"):
+            for sgn in (1, -1):
+                sel = (ax == a) & (sg == sgn) & (wc > 0)
+                if not sel.any():
+                    continue
+                bk = -(J[sel] * (wc[sel] * mc[sel])[:, None]).sum(0)
+                xi = Hinv @ bk
+                rows.append({"seed": seed,
+                             "what": f"noise-free map part from faces {'+' if sgn > 0 else '-'}{name} "
+                                     f"(weight share, weighted mean d mm)",
+                             "xi": np.r_[1e3 * xi[:3], 1e3 * np.degrees(xi[3:])],
+                             "extra": f"{wc[sel].sum() / wc.sum():.2f}, "
+                                      f"{1e3 * np.average(mc[sel], weights=wc[sel]):+.2f}"})
+        print(f"  seed {seed}: done", file=sys.stderr, flush=True)
+    print("| what | seeds 1 / 2 / 3: rotation vector (deg x 1e-3) [norm]; translation (mm) |")
+    print("|---|---|")
+    for what in dict.fromkeys(r["what"] for r in rows):
+        cells = []
+        for r in rows:
+            if r["what"] == what:
+                xi = r["xi"]
+                cells.append(f"({xi[3]:+.2f}, {xi[4]:+.2f}, {xi[5]:+.2f}) "
+                             f"[{np.linalg.norm(xi[3:]):.2f}]; {np.linalg.norm(xi[:3]):.2f}"
+                             + (f" ({r['extra']})" if "extra" in r else ""))
         print(f"| {what} | {' / '.join(cells)} |")
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -11,7 +11,13 @@ truth in the reported covariance, the reported translation std (mm).
 points by bearing, with the map's std there.
 
     PYTHONPATH=$PWD .venv/bin/python scripts/check_seed_sweep.py --hseed 0 --nseed 1
+``--fixed-point`` runs Gauss-Newton/IRLS from the truth to 1e-6 m / 1e-7 rad instead, with
+check_scan's settings and with the robust loss / cell factors / share cell varied, and
+prints the displacement at the points' centre (where the estimator's own minimum lies,
+whatever the start).
+
     PYTHONPATH=$PWD .venv/bin/python scripts/check_seed_sweep.py --hseed 0 --check-pole
+    PYTHONPATH=$PWD .venv/bin/python scripts/check_seed_sweep.py --hseed 1 --fixed-point
 """
 
 from __future__ import annotations
@@ -38,6 +44,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cache", default=None, help="directory to keep the built maps in")
     ap.add_argument("--nopole", action="store_true")
     ap.add_argument("--check-pole", action="store_true")
+    ap.add_argument("--fixed-point", action="store_true")
     a = ap.parse_args(argv)
 
     import gmmgp_app as gm
@@ -74,6 +81,8 @@ def main(argv=None) -> int:
         return 0
     second, _ = scan_scene("street_van", density=0.1, seed=a.nseed,
                            scene_params=dict(length=20.0), lane_y=-1.5)
+    if a.fixed_point:
+        return fixed_point(smap, second.points - smap.offset, a)
     pts = second.points
     if a.nopole:
         pts = pts[np.linalg.norm(pts[:, :2] - POLE, axis=1) > 0.3]
@@ -97,6 +106,36 @@ def main(argv=None) -> int:
         mahal2=round(float(xi @ np.linalg.pinv(res.covariance) @ xi), 2),
         std_t_mm=(np.sqrt(np.diag(res.covariance)[:3]) * 1e3).round(2).tolist(),
         converged=res.converged, iterations=res.iterations, seconds=round(sec, 2))))
+    return 0
+
+
+def fixed_point(smap, x, a) -> int:
+    """``--fixed-point`` (see the module docstring): ``x`` is the second drive in the
+    map frame, so the truth is the identity."""
+    from scipy.spatial.transform import Rotation
+
+    from gmmgp_app.check import _gauss_newton
+
+    base = dict(noise2=1e-4, known_std=0.1, c_robust=4.685, loss="tukey", share_cell=1.0,
+                cell_factors=True)
+    _, v, _ = smap.predict(x, return_grad=True, far=False)
+    w = 1.0 / (v + 1e-4)
+    c = (w[:, None] * x).sum(0) / w.sum()
+    for label, kw in (("check's (Tukey 4.685, cell factors)", {}),
+                      ("no cell factors", dict(cell_factors=False)),
+                      ("Tukey 20", dict(c_robust=20.0)),
+                      ("Tukey 20, no cell factors", dict(c_robust=20.0, cell_factors=False)),
+                      ("share_cell 0.27", dict(share_cell=0.27))):
+        k = dict(base)
+        k.update(kw)
+        T, it, conv, _, _ = _gauss_newton(smap, x, np.eye(4), [], max_iter=60, tol_t=1e-6,
+                                          tol_r=1e-7, **k)
+        rho = T[:3, :3] @ c + T[:3, 3] - c
+        print(json.dumps(dict(
+            hseed=a.hseed, nseed=a.nseed, what=label, iterations=it, converged=conv,
+            at_centre_mm=(1e3 * rho).round(2).tolist(),
+            rot_mdeg=(1e3 * np.degrees(Rotation.from_matrix(T[:3, :3]).as_rotvec())).round(2)
+            .tolist())), flush=True)
     return 0
 
 

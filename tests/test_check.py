@@ -215,6 +215,35 @@ def test_corridor_reports_the_unconstrained_direction(corridor_map):
     assert res.covariance[0, 0] < 1e-8
 
 
+def test_check_after_alignment_reuses_the_registrations_last_prediction(corridor_map):
+    """After the registration the check blends the far field with the GP field the
+    dense stage predicted last at the same points (``predict(near=...)``) instead of
+    predicting the GP field again: the map's outputs are those of a check at the found
+    transform from scratch, and the final blended prediction was given the near field."""
+    assert corridor_map.far is not None  # the default map: the blend is exercised
+    calls = []
+
+    class Spy:
+        offset, seed_points = corridor_map.offset, corridor_map.seed_points
+
+        def predict(self, xyz, return_grad=False, far=True, near=None):
+            calls.append((len(xyz), far, near is not None))
+            return corridor_map.predict(xyz, return_grad=return_grad, far=far, near=near)
+
+    scan = _corridor(20000, np.random.default_rng(1))
+    T = _truth(rot_deg=0.3, axis=(0.2, 0.1, 0.3), t=(0.05, 0.02, -0.01))
+    moved = _move(scan.points, T)
+    res = check_scan(moved, Spy(), align=True)
+    ref = check_scan(moved, corridor_map, init=res.transform)
+    big = [c for c in calls if c[0] == len(moved) and c[1]]
+    assert big and big[0][2], calls  # the check's blended prediction had the near field
+    assert not any(c[2] for c in calls if c is not big[0])
+    for name in ("distance", "std", "std_surface", "z"):
+        np.testing.assert_allclose(getattr(res, name), getattr(ref, name), rtol=1e-7,
+                                   atol=1e-9, err_msg=name)
+    assert np.array_equal(res.known, ref.known) and np.array_equal(res.changed, ref.changed)
+
+
 # ----------------------------------------------------------------------------- second drive
 
 

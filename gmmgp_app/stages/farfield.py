@@ -523,12 +523,14 @@ class BlendedField:
         # the GP's length scale l (auto rule 1.75 h_t when not given)
         self.length_scale = float(length_scale) if length_scale else 1.75 * far.rho0
 
-    def predict(self, xyz, return_grad: bool = False, mean_only: bool = False):
+    def predict(self, xyz, return_grad: bool = False, mean_only: bool = False, base_out=None):
         """Mean, variance[, gradient]; ``mean_only``: the mean alone (the same values;
         the variance model, which the mean does not use, is skipped). With
         ``unseen_predictive="mixture"`` the variance is the square of the central
-        68.27 % half-width of eq. unseen_mixture (:meth:`distribution`)."""
-        res, dist = self._predict(xyz, return_grad, mean_only)
+        68.27 % half-width of eq. unseen_mixture (:meth:`distribution`). ``base_out``:
+        the base field's ``predict(xyz, return_grad)`` when the caller has it (not
+        computed again)."""
+        res, dist = self._predict(xyz, return_grad, mean_only, base_out)
         return res
 
     def distribution(self, xyz):
@@ -537,10 +539,11 @@ class BlendedField:
         when ``unseen_predictive="gaussian"`` or the field is not calibrated)."""
         return self._predict(xyz, False, False)[1]
 
-    def _predict(self, xyz, return_grad, mean_only):
+    def _predict(self, xyz, return_grad, mean_only, base_out=None):
         from .unseen import UnseenMixture
 
-        out = self.base.predict(xyz, return_grad=return_grad)
+        out = self.base.predict(xyz, return_grad=return_grad) if base_out is None \
+            else tuple(base_out)
         c = self.far.components(xyz, return_grad)
         # the GP's weight fades with the distance to the data: beyond a length scale
         # its mean is the HGMM prior, whose variance does not know how far it is
