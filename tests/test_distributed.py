@@ -8,7 +8,7 @@ import pytest
 import gmmgp_app as gm
 from gmmgp_app.config import GPConfig
 from gmmgp_app.distributed import (DistributedError, SerialExecutor, batch_by_cost,
-                                   map_batched, open_executor)
+                                   map_batched, open_executor, worker_numba_threads)
 from gmmgp_app.stages.gp import ConstantPrior, fit_local_gps
 from gmmgp_app.tiling import (TiledMap, TileSpec, TilingError, build_tiled_map, tile_owners,
                               build_tiled_map_from_las)
@@ -90,6 +90,31 @@ def test_open_executor_errors():
             pass
     with open_executor(0) as ex:
         assert isinstance(ex, SerialExecutor)
+
+
+def test_worker_numba_threads_share_the_cores(monkeypatch):
+    monkeypatch.delenv("NUMBA_NUM_THREADS", raising=False)
+    assert [worker_numba_threads(w, cores=8) for w in (1, 2, 3, 4, 8, 16)] == \
+        [8, 4, 2, 2, 1, 1]
+    assert worker_numba_threads(2, cores=2) == 1
+    monkeypatch.setenv("NUMBA_NUM_THREADS", "3")  # the user's bound is kept
+    assert worker_numba_threads(1, cores=8) == 3 and worker_numba_threads(4, cores=8) == 2
+
+
+def _numba_threads():
+    import numba
+
+    return numba.get_num_threads()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["processes", "dask"])
+def test_local_workers_run_numba_on_their_share_of_the_cores(kind):
+    """Each local worker's numba kernels get cores // workers threads (two workers with
+    every core each oversubscribe the machine)."""
+    with open_executor(workers=2, kind=kind) as ex:
+        got = [f.result() for f in [ex.submit(_numba_threads) for _ in range(4)]]
+    assert got == [worker_numba_threads(2)] * 4
 
 
 # ---------------------------------------------------------------- GP blocks on executors
