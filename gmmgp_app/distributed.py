@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-from concurrent.futures import Executor, Future, as_completed
+from concurrent.futures import FIRST_COMPLETED, Executor, Future, as_completed, wait
 from typing import Callable, Iterator, Optional, Sequence
 
 import numpy as np
@@ -31,8 +31,8 @@ __all__ = [
     "open_executor",
     "batch_by_cost",
     "map_batched",
+    "imap_unordered",
     "gp_block_seconds",
-    "worker_numba_threads",
 ]
 
 #: Rough sustained rate of the dense GP block work (kernel build + Cholesky), flop/s.
@@ -77,9 +77,7 @@ def open_executor(workers: Optional[int] = None, scheduler: Optional[str] = None
         is then ignored (the cluster has its own).
     kind : {"dask", "processes"}
         Local workers through a Dask ``LocalCluster`` (one thread per worker) or
-        a :class:`concurrent.futures.ProcessPoolExecutor`; either way each local worker
-        runs its numba kernels on :func:`worker_numba_threads` threads (the cores
-        divided among the workers) and one BLAS thread.
+        a :class:`concurrent.futures.ProcessPoolExecutor`.
 
     Yields
     ------
@@ -112,66 +110,21 @@ def open_executor(workers: Optional[int] = None, scheduler: Optional[str] = None
         # spawned, not forked: the parent's numba parallel kernels start GNU OpenMP
         # threads, and a child forked from such a process aborts ("fork() called from a
         # process already using GNU OpenMP")
-        with ProcessPoolExecutor(max_workers=int(workers), initializer=_init_local_worker,
-                                 initargs=(worker_numba_threads(int(workers)),),
+        with ProcessPoolExecutor(max_workers=int(workers), initializer=_single_thread_blas,
                                  mp_context=multiprocessing.get_context("spawn")) as ex:
             yield ex
         return
     from distributed import Client, LocalCluster
 
-    # one thread per worker: the work is numpy/numba bound and holds the GIL in places;
-    # the numba-parallel kernels of each worker share the cores with the other workers
+    # one thread per worker: the work is numpy/numba bound and holds the GIL in places
     cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
-                           dashboard_address=":0",
-                           env={"NUMBA_NUM_THREADS": str(worker_numba_threads(int(workers)))})
+                           dashboard_address=":0")
     client = Client(cluster)
     try:
         yield client.get_executor()
     finally:
         client.close()
         cluster.close()
-
-
-def worker_numba_threads(workers: int, cores: Optional[int] = None) -> int:
-    """Numba threads for each of ``workers`` local worker processes: the cores shared
-    among them, ``max(1, cores // workers)``.
-
-    A process's numba-parallel kernels (k-NN, EM, GP prediction, IMLS) start one thread
-    per core; two local workers with two threads each on two cores oversubscribe them
-    (issue 16: two Dask workers were slower than one process below 8x the street). An
-    explicit ``NUMBA_NUM_THREADS`` in the environment is an upper bound.
-
-    Parameters
-    ----------
-    workers : int >= 1
-    cores : int, optional
-        Default: the CPUs this process may run on (``os.sched_getaffinity``).
-    """
-    import os
-
-    if cores is None:
-        try:
-            cores = len(os.sched_getaffinity(0))
-        except AttributeError:  # pragma: no cover - not on Linux
-            cores = os.cpu_count() or 1
-    n = max(1, int(cores) // max(1, int(workers)))
-    env = os.environ.get("NUMBA_NUM_THREADS", "")
-    if env.isdigit() and int(env) > 0:
-        n = min(n, int(env))
-    return n
-
-
-def _init_local_worker(numba_threads: int):
-    """Process-pool initialiser: one BLAS thread, ``numba_threads`` numba threads."""
-    import os
-
-    os.environ["NUMBA_NUM_THREADS"] = str(numba_threads)
-    _single_thread_blas()
-    import numba
-
-    # numba may have been imported already (the spawned child re-imports the parent's
-    # main module), with the machine's thread count: lower it for this (the main) thread
-    numba.set_num_threads(min(int(numba_threads), numba.config.NUMBA_NUM_THREADS))
 
 
 def _single_thread_blas():
@@ -283,3 +236,33 @@ def map_batched(executor: Optional[Executor], fn: Callable, batches: Sequence,
         if progress is not None:
             progress(done, total)
     return results
+
+
+def imap_unordered(executor: Optional[Executor], fn: Callable, tasks: Sequence,
+                   window: int = 4) -> Iterator[tuple]:
+    """``(i, fn(tasks[i]))`` for every task, in completion order, with at most ``window``
+    tasks submitted and not yet handed back.
+
+    What a tiled build needs: finished tile maps are consumed (saved, dropped) as they
+    come, so at most ``window`` wait in memory, and a worker that finishes starts the
+    next tile at once (submitting in waves of ``window`` left workers idle at the end
+    of every wave while the wave's largest tile finished). ``None`` or a
+    :class:`SerialExecutor` runs each task at submission: one result in memory at a
+    time.
+    """
+    if not (isinstance(window, (int, np.integer)) and window >= 1):
+        raise DistributedError(f"Expected window to be an integer >= 1, found {window!r}.")
+    if executor is None:
+        executor = SerialExecutor()
+    if isinstance(executor, SerialExecutor):
+        window = 1
+    pending: dict = {}
+    nxt = 0
+    while nxt < len(tasks) or pending:
+        while nxt < len(tasks) and len(pending) < window:
+            pending[executor.submit(fn, tasks[nxt])] = nxt
+            nxt += 1
+        finished, _ = wait(list(pending), return_when=FIRST_COMPLETED)
+        for fut in sorted(finished, key=pending.get):
+            i = pending.pop(fut)
+            yield i, fut.result()

@@ -8,7 +8,7 @@ import pytest
 import gmmgp_app as gm
 from gmmgp_app.config import GPConfig
 from gmmgp_app.distributed import (DistributedError, SerialExecutor, batch_by_cost,
-                                   map_batched, open_executor, worker_numba_threads)
+                                   imap_unordered, map_batched, open_executor)
 from gmmgp_app.stages.gp import ConstantPrior, fit_local_gps
 from gmmgp_app.tiling import (TiledMap, TileSpec, TilingError, build_tiled_map, tile_owners,
                               build_tiled_map_from_las)
@@ -92,29 +92,38 @@ def test_open_executor_errors():
         assert isinstance(ex, SerialExecutor)
 
 
-def test_worker_numba_threads_share_the_cores(monkeypatch):
-    monkeypatch.delenv("NUMBA_NUM_THREADS", raising=False)
-    assert [worker_numba_threads(w, cores=8) for w in (1, 2, 3, 4, 8, 16)] == \
-        [8, 4, 2, 2, 1, 1]
-    assert worker_numba_threads(2, cores=2) == 1
-    monkeypatch.setenv("NUMBA_NUM_THREADS", "3")  # the user's bound is kept
-    assert worker_numba_threads(1, cores=8) == 3 and worker_numba_threads(4, cores=8) == 2
+class _CountingPool(ThreadPoolExecutor):
+    def __init__(self, *a, **k):
+        super().__init__(*a, **k)
+        self.submitted = 0
+
+    def submit(self, fn, *args, **kwargs):
+        self.submitted += 1
+        return super().submit(fn, *args, **kwargs)
 
 
-def _numba_threads():
-    import numba
+def _sleep_square(x):
+    import time
 
-    return numba.get_num_threads()
+    time.sleep(0.002 * (x % 5))
+    return x * x
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("kind", ["processes", "dask"])
-def test_local_workers_run_numba_on_their_share_of_the_cores(kind):
-    """Each local worker's numba kernels get cores // workers threads (two workers with
-    every core each oversubscribe the machine)."""
-    with open_executor(workers=2, kind=kind) as ex:
-        got = [f.result() for f in [ex.submit(_numba_threads) for _ in range(4)]]
-    assert got == [worker_numba_threads(2)] * 4
+@pytest.mark.parametrize("window", [1, 3])
+def test_imap_unordered_every_result_once_at_most_window_in_flight(window):
+    tasks = list(range(23))
+    with _CountingPool(max_workers=4) as ex:
+        got = {}
+        for i, r in imap_unordered(ex, _sleep_square, tasks, window=window):
+            assert ex.submitted - len(got) <= window  # submitted, not yet handed back
+            got[i] = r
+    assert got == {i: i * i for i in tasks}
+    # serially (None or SerialExecutor): in order, one at a time; errors surface
+    assert list(imap_unordered(None, _square, [3, 1, 2])) == [(0, 9), (1, 1), (2, 4)]
+    with pytest.raises(KeyError):
+        list(imap_unordered(SerialExecutor(), _boom, [1]))
+    with pytest.raises(DistributedError, match="window to be an integer >= 1"):
+        list(imap_unordered(None, _square, [1], window=0))
 
 
 # ---------------------------------------------------------------- GP blocks on executors
