@@ -380,6 +380,30 @@ def streamed_map(scan, tiled, tmp_path, off):
                                     cache_tiles=1, offset=off)
 
 
+def test_tile_store_put_saved_writes_the_workers_files(tiled, tmp_path):
+    """A streamed build stores each tile from its worker's saved files as they are (no
+    load and re-save): the folder holds exactly those bytes, which a load predicts with
+    bit for bit; a read-only store keeps the map in memory and writes nothing."""
+    from gmmgp_app.tiling.store import TileStore
+    from gmmgp_app.tiling.tasks import map_to_bytes
+
+    key = sorted(tiled.tiles)[0]
+    smap = tiled.tiles[key]
+    files = map_to_bytes(smap)
+    store = TileStore(tmp_path / "maps", [])
+    store.put_saved(key, files)
+    assert list(store) == [key]
+    assert {p.name: p.read_bytes() for p in store._path(key).iterdir()} == files
+    q = np.random.default_rng(2).uniform(smap.gp_points.min(0), smap.gp_points.max(0),
+                                         (500, 3))
+    for a, b in zip(smap.predict(q), store[key].predict(q)):
+        assert np.array_equal(a, b)
+    ro = TileStore(tmp_path / "ro", [], read_only=True)
+    ro.put_saved(key, files)
+    assert list(ro) == [key] and not (tmp_path / "ro").exists()
+    assert np.array_equal(ro[key].predict(q)[0], smap.predict(q)[0])
+
+
 def test_streamed_laz_equals_in_memory_tiles(street, tiled, tmp_path):
     """Chunked LAZ reading into tiles gives the same tile maps as the in-memory split."""
     scan, _ = street

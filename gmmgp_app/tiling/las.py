@@ -10,7 +10,7 @@ import numpy as np
 from ..config import MappingConfig
 from .geometry import TileSpec, TilingError, members, owners_summary, tile_owners
 from .store import TileStore
-from .tasks import build_tile, map_from_bytes
+from .tasks import build_tile
 from .tiled_map import TiledMap
 
 __all__ = ["spill_las_to_tiles", "build_tiled_map_from_las", "stream_plan", "stream_tiles",
@@ -218,7 +218,7 @@ def build_tiled_map_from_las(path, cfg: Optional[MappingConfig] = None,
         if isinstance(b, str):
             skipped[key] = b
         else:
-            store[key] = map_from_bytes(b)
+            store.put_saved(key, b)  # the worker's saved files, not loaded here
         if progress is not None:
             progress(done, len(tasks))
     skipped = dict(sorted(skipped.items()))
