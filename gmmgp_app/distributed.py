@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-from concurrent.futures import Executor, Future, as_completed
+from concurrent.futures import FIRST_COMPLETED, Executor, Future, as_completed, wait
 from typing import Callable, Iterator, Optional, Sequence
 
 import numpy as np
@@ -31,6 +31,7 @@ __all__ = [
     "open_executor",
     "batch_by_cost",
     "map_batched",
+    "imap_unordered",
     "gp_block_seconds",
 ]
 
@@ -235,3 +236,33 @@ def map_batched(executor: Optional[Executor], fn: Callable, batches: Sequence,
         if progress is not None:
             progress(done, total)
     return results
+
+
+def imap_unordered(executor: Optional[Executor], fn: Callable, tasks: Sequence,
+                   window: int = 4) -> Iterator[tuple]:
+    """``(i, fn(tasks[i]))`` for every task, in completion order, with at most ``window``
+    tasks submitted and not yet handed back.
+
+    What a tiled build needs: finished tile maps are consumed (saved, dropped) as they
+    come, so at most ``window`` wait in memory, and a worker that finishes starts the
+    next tile at once (submitting in waves of ``window`` left workers idle at the end
+    of every wave while the wave's largest tile finished). ``None`` or a
+    :class:`SerialExecutor` runs each task at submission: one result in memory at a
+    time.
+    """
+    if not (isinstance(window, (int, np.integer)) and window >= 1):
+        raise DistributedError(f"Expected window to be an integer >= 1, found {window!r}.")
+    if executor is None:
+        executor = SerialExecutor()
+    if isinstance(executor, SerialExecutor):
+        window = 1
+    pending: dict = {}
+    nxt = 0
+    while nxt < len(tasks) or pending:
+        while nxt < len(tasks) and len(pending) < window:
+            pending[executor.submit(fn, tasks[nxt])] = nxt
+            nxt += 1
+        finished, _ = wait(list(pending), return_when=FIRST_COMPLETED)
+        for fut in sorted(finished, key=pending.get):
+            i = pending.pop(fut)
+            yield i, fut.result()

@@ -8,7 +8,7 @@ import pytest
 import gmmgp_app as gm
 from gmmgp_app.config import GPConfig
 from gmmgp_app.distributed import (DistributedError, SerialExecutor, batch_by_cost,
-                                   map_batched, open_executor)
+                                   imap_unordered, map_batched, open_executor)
 from gmmgp_app.stages.gp import ConstantPrior, fit_local_gps
 from gmmgp_app.tiling import (TiledMap, TileSpec, TilingError, build_tiled_map, tile_owners,
                               build_tiled_map_from_las)
@@ -90,6 +90,40 @@ def test_open_executor_errors():
             pass
     with open_executor(0) as ex:
         assert isinstance(ex, SerialExecutor)
+
+
+class _CountingPool(ThreadPoolExecutor):
+    def __init__(self, *a, **k):
+        super().__init__(*a, **k)
+        self.submitted = 0
+
+    def submit(self, fn, *args, **kwargs):
+        self.submitted += 1
+        return super().submit(fn, *args, **kwargs)
+
+
+def _sleep_square(x):
+    import time
+
+    time.sleep(0.002 * (x % 5))
+    return x * x
+
+
+@pytest.mark.parametrize("window", [1, 3])
+def test_imap_unordered_every_result_once_at_most_window_in_flight(window):
+    tasks = list(range(23))
+    with _CountingPool(max_workers=4) as ex:
+        got = {}
+        for i, r in imap_unordered(ex, _sleep_square, tasks, window=window):
+            assert ex.submitted - len(got) <= window  # submitted, not yet handed back
+            got[i] = r
+    assert got == {i: i * i for i in tasks}
+    # serially (None or SerialExecutor): in order, one at a time; errors surface
+    assert list(imap_unordered(None, _square, [3, 1, 2])) == [(0, 9), (1, 1), (2, 4)]
+    with pytest.raises(KeyError):
+        list(imap_unordered(SerialExecutor(), _boom, [1]))
+    with pytest.raises(DistributedError, match="window to be an integer >= 1"):
+        list(imap_unordered(None, _square, [1], window=0))
 
 
 # ---------------------------------------------------------------- GP blocks on executors
@@ -375,6 +409,30 @@ def streamed_map(scan, tiled, tmp_path, off):
     return build_tiled_map_from_las(tmp_path / "street.laz", tiled.config, tiled.spec,
                                     work_dir=tmp_path / "work", chunk_size=3000,
                                     cache_tiles=1, offset=off)
+
+
+def test_tile_store_put_saved_writes_the_workers_files(tiled, tmp_path):
+    """A streamed build stores each tile from its worker's saved files as they are (no
+    load and re-save): the folder holds exactly those bytes, which a load predicts with
+    bit for bit; a read-only store keeps the map in memory and writes nothing."""
+    from gmmgp_app.tiling.store import TileStore
+    from gmmgp_app.tiling.tasks import map_to_bytes
+
+    key = sorted(tiled.tiles)[0]
+    smap = tiled.tiles[key]
+    files = map_to_bytes(smap)
+    store = TileStore(tmp_path / "maps", [])
+    store.put_saved(key, files)
+    assert list(store) == [key]
+    assert {p.name: p.read_bytes() for p in store._path(key).iterdir()} == files
+    q = np.random.default_rng(2).uniform(smap.gp_points.min(0), smap.gp_points.max(0),
+                                         (500, 3))
+    for a, b in zip(smap.predict(q), store[key].predict(q)):
+        assert np.array_equal(a, b)
+    ro = TileStore(tmp_path / "ro", [], read_only=True)
+    ro.put_saved(key, files)
+    assert list(ro) == [key] and not (tmp_path / "ro").exists()
+    assert np.array_equal(ro[key].predict(q)[0], smap.predict(q)[0])
 
 
 def test_streamed_laz_equals_in_memory_tiles(street, tiled, tmp_path):

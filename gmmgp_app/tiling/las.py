@@ -10,7 +10,7 @@ import numpy as np
 from ..config import MappingConfig
 from .geometry import TileSpec, TilingError, members, owners_summary, tile_owners
 from .store import TileStore
-from .tasks import build_tile, map_from_bytes
+from .tasks import build_tile
 from .tiled_map import TiledMap
 
 __all__ = ["spill_las_to_tiles", "build_tiled_map_from_las", "stream_plan", "stream_tiles",
@@ -194,7 +194,7 @@ def build_tiled_map_from_las(path, cfg: Optional[MappingConfig] = None,
     """
     from pathlib import Path
 
-    from ..distributed import map_batched
+    from ..distributed import imap_unordered
 
     cfg = MappingConfig() if cfg is None else cfg
     spec = TileSpec() if spec is None else spec
@@ -211,20 +211,17 @@ def build_tiled_map_from_las(path, cfg: Optional[MappingConfig] = None,
             tasks.append((key, files, None, cfg, method))
     store = TileStore(work_dir / "maps", [], cache=cache_tiles)
     skipped = {}
-    # submit in waves so that at most a few finished tile maps wait in memory
-    wave = 4
-    done = 0
-    total = len(tasks)
-    for s in range(0, len(tasks), wave):
-        part = map_batched(executor, build_tile, tasks[s:s + wave])
-        for key, b in part:
-            if isinstance(b, str):
-                skipped[key] = b
-            else:
-                store[key] = map_from_bytes(b)
-        done += len(part)
+    # a sliding window of tiles: each finished tile map is saved and dropped as it
+    # comes (at most a few wait in memory) and a free worker starts the next tile
+    for done, (_, (key, b)) in enumerate(imap_unordered(executor, build_tile, tasks,
+                                                        window=4), start=1):
+        if isinstance(b, str):
+            skipped[key] = b
+        else:
+            store.put_saved(key, b)  # the worker's saved files, not loaded here
         if progress is not None:
-            progress(done, total)
+            progress(done, len(tasks))
+    skipped = dict(sorted(skipped.items()))
     if not len(store):
         raise TilingError(f"Expected at least one tile with {spec.min_points} points in "
                           f"'{path}', found none that could be mapped.")
