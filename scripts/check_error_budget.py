@@ -137,10 +137,63 @@ def main(argv=None) -> int:
     return 0
 
 
+def _print_rows(rows, out, translation_note="") -> int:
+    """Print the per-seed table of ``rows`` (dicts with "seed", "what", "xi" = translation
+    mm then rotation deg x 1e-3, optional "extra") and write them to ``out`` (JSON) if
+    given."""
+    print("| what | seeds 1 / 2 / 3: rotation vector (deg x 1e-3) [norm]; translation (mm)"
+          f"{translation_note} |")
+    print("|---|---|")
+    for what in dict.fromkeys(r["what"] for r in rows):
+        cells = []
+        for r in rows:
+            if r["what"] == what:
+                xi = r["xi"]
+                cells.append(f"({xi[3]:+.2f}, {xi[4]:+.2f}, {xi[5]:+.2f}) "
+                             f"[{np.linalg.norm(xi[3:]):.2f}]; {np.linalg.norm(xi[:3]):.2f}"
+                             + (f" ({r['extra']})" if "extra" in r else ""))
+        print(f"| {what} | {' / '.join(cells)} |")
+    if out:
+        Path(out).parent.mkdir(parents=True, exist_ok=True)
+        Path(out).write_text(json.dumps(
+            {"argv": sys.argv[1:], "rows": [dict(r, xi=r["xi"].tolist()) for r in rows]},
+            indent=1))
+    return 0
+
+
+def _one_step(y, m, g, w):
+    """One Gauss-Newton step of the registration from the identity (residuals ``m`` with
+    gradients ``g`` at points ``y``, weights ``w``, pivot at their weighted centre):
+    (translation mm, rotation deg x 1e-3), the normal matrix and the pivot."""
+    from gmmgp_app.check import _normal_matrix
+
+    pivot = (w[:, None] * y).sum(0) / w.sum()
+    _, H, b = _normal_matrix(y, g, w, m, pivot)
+    xi = np.linalg.solve(H, b)
+    return np.r_[1e3 * xi[:3], 1e3 * np.degrees(xi[3:])], H, pivot
+
+
+def _drive_pair(args, params, seed, offset):
+    """The second drive (the van, another lane) with noise seed ``seed``, and the same
+    rays without range noise: (noisy, noise-free) points relative to the map's offset."""
+    from gmmgp_app.synth import scan_scene
+
+    drives = {}
+    for rn in (None, 0.0):
+        kw = {} if rn is None else dict(range_noise=rn)
+        drives[rn], _ = scan_scene("street_van", density=args.density, seed=seed,
+                                   scene_params=params, lane_y=-1.5, **kw)
+    yn = drives[None].points - offset
+    yc = drives[0.0].points - offset
+    if len(yn) != len(yc):
+        raise SystemExit("the noise-free drive has other rays; cannot pair the points")
+    return yn, yc
+
+
 def decompose(args) -> int:
     """The ``--decompose`` table (see the module docstring)."""
     import gmmgp_app as gm
-    from gmmgp_app.check import (_factors_here, _gauss_newton, _normal_matrix,
+    from gmmgp_app.check import (_factors_here, _gauss_newton,
                                  _share_counts, _weights)
     from gmmgp_app.synth import scan_scene
     from scipy.spatial.transform import Rotation
@@ -152,21 +205,10 @@ def decompose(args) -> int:
     rows = []
 
     def step(y, m, g, w):
-        pivot = (w[:, None] * y).sum(0) / w.sum()
-        _, H, b = _normal_matrix(y, g, w, m, pivot)
-        xi = np.linalg.solve(H, b)
-        return np.r_[1e3 * xi[:3], 1e3 * np.degrees(xi[3:])]
+        return _one_step(y, m, g, w)[0]
 
     for seed in (1, 2, 3):
-        drives = {}
-        for rn in (None, 0.0):
-            kw = {} if rn is None else dict(range_noise=rn)
-            drives[rn], _ = scan_scene("street_van", density=args.density, seed=seed,
-                                       scene_params=params, lane_y=-1.5, **kw)
-        yn = drives[None].points - smap.offset
-        yc = drives[0.0].points - smap.offset
-        if len(yn) != len(yc):
-            raise SystemExit("the noise-free drive has other rays; cannot pair the points")
+        yn, yc = _drive_pair(args, params, seed, smap.offset)
         out = {}
         for name, y in (("noise-free", yc), ("noisy", yn)):
             m, var, g = smap.predict(y, return_grad=True, far=False)
@@ -183,7 +225,7 @@ def decompose(args) -> int:
         rows.append({"seed": seed, "what": "  noise part", "xi": step(y, m - mc, g, w)})
         rows.append({"seed": seed, "what": "  noise part, uniform weights",
                      "xi": step(y, m - mc, g, (w > 0).astype(float))})
-        x = drives[None].points - smap.offset  # the truth is the identity here
+        x = yn  # the noisy drive; the truth is the identity here
         for label, kw, tol in (("fixed point, Tukey 4.685", {}, (1e-6, 1e-7)),
                                ("fixed point, Tukey 20", dict(c_robust=20.0), (1e-6, 1e-7)),
                                ("fixed point, Cauchy 2.385",
@@ -199,23 +241,7 @@ def decompose(args) -> int:
                 1e3 * (T[:3, :3] @ c + T[:3, 3] - c),
                 1e3 * np.degrees(Rotation.from_matrix(T[:3, :3]).as_rotvec())]})
         print(f"  seed {seed}: done", file=sys.stderr, flush=True)
-    print("| what | seeds 1 / 2 / 3: rotation vector (deg x 1e-3) [norm]; translation (mm) "
-          "[norm] |")
-    print("|---|---|")
-    for what in dict.fromkeys(r["what"] for r in rows):
-        cells = []
-        for r in rows:
-            if r["what"] == what:
-                xi = r["xi"]
-                cells.append(f"({xi[3]:+.2f}, {xi[4]:+.2f}, {xi[5]:+.2f}) "
-                             f"[{np.linalg.norm(xi[3:]):.2f}]; {np.linalg.norm(xi[:3]):.2f}")
-        print(f"| {what} | {' / '.join(cells)} |")
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(
-            {"argv": sys.argv[1:], "rows": [dict(r, xi=r["xi"].tolist()) for r in rows]},
-            indent=1))
-    return 0
+    return _print_rows(rows, args.out, " [norm]")
 
 
 def _bench_map(args):
@@ -237,18 +263,13 @@ def _bench_map(args):
 def foot(args) -> int:
     """The ``--foot`` table (see the module docstring)."""
     from gmmgp_app.check import _factors_here, _normal_matrix, _share_counts, _weights
-    from gmmgp_app.synth import scan_scene
 
     smap = _bench_map(args)
     params = dict(length=args.length)
     n2 = args.noise ** 2
     rows = []
 
-    def step(y, m, g, w):
-        pivot = (w[:, None] * y).sum(0) / w.sum()
-        _, H, b = _normal_matrix(y, g, w, m, pivot)
-        xi = np.linalg.solve(H, b)
-        return np.r_[1e3 * xi[:3], 1e3 * np.degrees(xi[3:])], H, pivot
+    step = _one_step
 
     def at_foot(y, m, g):
         n2g = np.maximum((g * g).sum(1), 1e-12)
@@ -257,13 +278,7 @@ def foot(args) -> int:
         return p, mf, vf, gf
 
     for seed in (1, 2, 3):
-        drives = {}
-        for rn in (None, 0.0):
-            kw = {} if rn is None else dict(range_noise=rn)
-            drives[rn], _ = scan_scene("street_van", density=args.density, seed=seed,
-                                       scene_params=params, lane_y=-1.5, **kw)
-        yn = drives[None].points - smap.offset
-        yc = drives[0.0].points - smap.offset
+        yn, yc = _drive_pair(args, params, seed, smap.offset)
         mc, vc, gc = smap.predict(yc, return_grad=True, far=False)
         m, var, g = smap.predict(yn, return_grad=True, far=False)
         n_share, cell = _share_counts(yn, 1.0, return_cells=True)
@@ -327,23 +342,7 @@ def foot(args) -> int:
                              "extra": f"{wc[sel].sum() / wc.sum():.2f}, "
                                       f"{1e3 * np.average(mc[sel], weights=wc[sel]):+.2f}"})
         print(f"  seed {seed}: done", file=sys.stderr, flush=True)
-    print("| what | seeds 1 / 2 / 3: rotation vector (deg x 1e-3) [norm]; translation (mm) |")
-    print("|---|---|")
-    for what in dict.fromkeys(r["what"] for r in rows):
-        cells = []
-        for r in rows:
-            if r["what"] == what:
-                xi = r["xi"]
-                cells.append(f"({xi[3]:+.2f}, {xi[4]:+.2f}, {xi[5]:+.2f}) "
-                             f"[{np.linalg.norm(xi[3:]):.2f}]; {np.linalg.norm(xi[:3]):.2f}"
-                             + (f" ({r['extra']})" if "extra" in r else ""))
-        print(f"| {what} | {' / '.join(cells)} |")
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(
-            {"argv": sys.argv[1:], "rows": [dict(r, xi=r["xi"].tolist()) for r in rows]},
-            indent=1))
-    return 0
+    return _print_rows(rows, args.out)
 
 
 if __name__ == "__main__":

@@ -132,8 +132,7 @@ def sweep(names, cache, baselines, seed=0, rules=None):
                 r1.append(c1[s].mean())
                 r2.append(c2[s].mean())
                 rl.append(ll[s].mean())
-                best = max(ms[k]["ll_sdf" if k != "loggpis" else "ll_edf"][i]
-                           for k in ("hgmm", "gpis", "loggpis") if k in ms)
+                best = FV.best_baseline_ll(ms, i)
                 mg.append(rl[-1] - best)
             n1 = sum(abs(x - 0.68) <= 0.05 for x in r1)
             n2 = sum(abs(x - 0.95) <= 0.03 for x in r2)

@@ -27,3 +27,30 @@ def box_scene(tmp_path_factory):
     save_scan_npz(root / "scan.npz", scan.points, scan.origins)
     save_mesh_ply(root / "mesh.ply", scene)
     return root, scan
+
+
+@pytest.fixture
+def count_scan_trees(monkeypatch):
+    """``count(points) -> list``: from then on every k-d tree built (by scipy, the scale
+    measurement or the prepare stage) appends whether it was of ``points`` (the same
+    array object) to the returned list; the measured-scan cache is cleared so that the
+    scan is measured in the test."""
+    import scipy.spatial
+
+    import gmmgp_app.pipeline as P
+    from gmmgp_app.stages import autoscale, prepare
+
+    def count(points):
+        built = []
+        real = scipy.spatial.cKDTree
+
+        def counting(data, *a, **k):
+            built.append(data is points)
+            return real(data, *a, **k)
+
+        for mod in (scipy.spatial, autoscale, prepare):
+            monkeypatch.setattr(mod, "cKDTree", counting)
+        P._RESOLVED.clear()
+        return built
+
+    return count

@@ -741,28 +741,16 @@ def test_gmr_colours_use_the_d_m_the_run_resolved():
 
 
 
-def test_the_apps_first_run_builds_one_kd_tree_of_the_scan(monkeypatch):
+def test_the_apps_first_run_builds_one_kd_tree_of_the_scan(count_scan_trees):
     """The app's run from 'prepare' shares one k-d tree of the scan between the scale
     measurement and the prepare stage, as build_map does, with the same training set."""
-    import scipy.spatial
-
     import gmmgp_app as gm
     import gmmgp_app.pipeline as P
-    from gmmgp_app.stages import autoscale, prepare
     from gmmgp_app.synth import scan_scene
     from gmmgp_app.viz.gui_model import Cancelled, StageResults, ViewerModel
 
     scan, _ = scan_scene("sphere", density=0.05, seed=0)
-    built = []
-    real = scipy.spatial.cKDTree
-
-    def counting(data, *a, **k):
-        built.append(data is scan.points)
-        return real(data, *a, **k)
-
-    for mod in (scipy.spatial, autoscale, prepare):
-        monkeypatch.setattr(mod, "cKDTree", counting)
-    P._RESOLVED.clear()
+    built = count_scan_trees(scan.points)
     cfg = gm.MappingConfig()
     model = ViewerModel(StageResults(config=cfg, voxel_size=0.1, scan=scan))
     shown = []

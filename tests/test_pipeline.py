@@ -219,7 +219,8 @@ def test_map_surface_reach_is_the_auto_voxels_whatever_the_voxel(sphere):
     assert len(e.faces) >= len(c.faces)
 
 
-def test_build_map_builds_one_kd_tree_of_the_scan_with_the_same_fields(sphere, monkeypatch):
+def test_build_map_builds_one_kd_tree_of_the_scan_with_the_same_fields(
+        sphere, monkeypatch, count_scan_trees):
     """The scale measurement (autoscale.measure_scan) and the prepare stage share the
     k-d tree build_map makes of the scan's points (~1 s on a 1.3M-point street): one
     tree of those points per run, where each built its own, and the same map bit for
@@ -227,19 +228,10 @@ def test_build_map_builds_one_kd_tree_of_the_scan_with_the_same_fields(sphere, m
     import scipy.spatial
 
     import gmmgp_app.pipeline as P
-    from gmmgp_app.stages import autoscale, prepare
 
     scan, _ = sphere
-    built = []
-    real = scipy.spatial.cKDTree
-
-    def counting(data, *a, **k):
-        built.append(data is scan.points)
-        return real(data, *a, **k)
-
-    for mod in (scipy.spatial, autoscale, prepare):
-        monkeypatch.setattr(mod, "cKDTree", counting)
-    P._RESOLVED.clear()        # measure the scan here, not from an earlier test's result
+    real = scipy.spatial.cKDTree     # the real class, before the counter replaces it
+    built = count_scan_trees(scan.points)   # the scan measured here, not from a cache
     one = gm.build_map(scan, gm.MappingConfig(), method="hgmm")
     assert sum(built) == 1, built
     assert one.summary["auto"]                       # the scan was measured (auto fields)
