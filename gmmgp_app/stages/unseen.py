@@ -109,27 +109,38 @@ class UnseenMixture:
         return (1.0 - q) * (2.0 * ndtr(t / np.sqrt(self.var_observed[sl])) - 1.0) \
             + q * (2.0 * ndtr(t / np.sqrt(self.var_unseen[sl])) - 1.0)
 
-    def half_width(self, level: float = ONE_SIGMA, iterations: int = 50) -> np.ndarray:
+    def half_width(self, level: float = ONE_SIGMA, iterations: int = 60) -> np.ndarray:
         """(K,) central half-width: P(|y - m| <= half_width) = ``level`` (eq.
-        unseen_halfwidth; bisection between the two components' own half-widths where
-        the unseen component is active, the Gaussian's ``s Phi^-1((1 + level) / 2)``
-        elsewhere)."""
+        unseen_halfwidth). The Gaussian's ``s Phi^-1((1 + level) / 2)`` where the unseen
+        component is off; elsewhere Newton's method on F(t) = P(|y - m| <= t) - level
+        from the narrow component's half-width, where F < 0. F is increasing and concave
+        for t > 0 (a sum of increasing concave terms), so each Newton step lands at or
+        below the root: the iterates rise monotonically to it, quadratically near it,
+        without a bracket (steps that round to below zero are taken as converged)."""
         if not 0.0 < level < 1.0:
             raise ValueError(f"Expected a central probability level in (0, 1), found {level!r}.")
         zl = ndtri(0.5 + 0.5 * level)
         out = np.sqrt(self.var_observed) * zl
         rows = np.flatnonzero(self.mixed)
         if len(rows):
-            # the mixture's mass within the narrow component's half-width is below the
-            # level, within the wide one's above it
-            lo = out[rows].copy()
-            hi = np.sqrt(self.var_unseen[rows]) * zl
+            t = out[rows].copy()
+            q = self.q[rows]
+            s1 = np.sqrt(self.var_observed[rows])
+            s2 = np.sqrt(self.var_unseen[rows])
+            norm = math.sqrt(2.0 / math.pi)         # 2 phi(0)
+            active = np.arange(len(rows))
             for _ in range(iterations):
-                mid = 0.5 * (lo + hi)
-                below = self.central_mass(mid, rows) < level
-                lo = np.where(below, mid, lo)
-                hi = np.where(below, hi, mid)
-            out[rows] = 0.5 * (lo + hi)
+                ta, qa, a1, a2 = t[active], q[active], s1[active], s2[active]
+                f = self.central_mass(ta, rows[active]) - level
+                # F'(t) = 2 [(1 - q) phi(t / s1) / s1 + q phi(t / s2) / s2]
+                fp = norm * ((1.0 - qa) * np.exp(-0.5 * (ta / a1) ** 2) / a1
+                             + qa * np.exp(-0.5 * (ta / a2) ** 2) / a2)
+                step = np.maximum(-f / fp, 0.0)
+                t[active] = ta + step
+                active = active[step > 4.0 * np.finfo(float).eps * ta]
+                if not len(active):
+                    break
+            out[rows] = t
         return out
 
     @property
