@@ -259,6 +259,27 @@ def test_open_errors_name_the_fix(tmp_path):
         m.load_tiles()
 
 
+def test_a_folder_of_scans_opens_as_a_scan_and_any_other_folder_names_both(tmp_path):
+    """A folder the project did not write (no map.json, summary.json, tiled.json or
+    check.json) is read as a folder of scans, as 'gmmgp run' reads it; a folder that
+    is neither ends in one error naming both."""
+    from gmmgp_app.datasets import read_scan
+    from gmmgp_app.synth import save_scan_npz
+
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    for i in range(2):
+        s = _plane_scan(200, seed=i)
+        save_scan_npz(scans / f"scan{i}.npz", s.points, s.origins)
+    m = ViewerModel.open(scans)
+    assert m.kind == "scan"
+    np.testing.assert_array_equal(m.results.scan.points, read_scan(scans).points)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ViewerError, match=r"is no map, run or check folder .* and no "
+                                          r"folder of scans: .*contains no scan files"):
+        ViewerModel.open(tmp_path / "empty")
+
+
 # --------------------------------------------------------------------------- frames
 _RENDER_TARGETS = """
 import sys

@@ -13,6 +13,7 @@ EXAMPLES = """examples:
   gmmgp view out/demo --stage hgmm --level 2 --screenshot hgmm2.png --size 1280x800
   gmmgp view scan.npz --stage hgmm --compare hgmm.split_threshold=0.03 --screenshot cmp.png
   gmmgp view out/check --segment 1 --screenshot seg1.png
+  gmmgp view ../shared/data/stanford_bunny/raw_scans   # a folder of scans, as 'gmmgp run' reads it
   xvfb-run -s "-screen 0 1600x1000x24" gmmgp view scan.ply     # on a machine without a display"""
 
 

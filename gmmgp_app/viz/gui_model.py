@@ -188,7 +188,8 @@ class ViewerModel:
     def open(cls, target, cfg: Optional[MappingConfig] = None,
              voxel_size: float = 0.1) -> "ViewerModel":
         """Open a scan file, a saved map folder, a ``gmmgp run`` output folder (single
-        or tiled map), a tiled map folder or a ``gmmgp check`` output folder.
+        or tiled map), a tiled map folder, a ``gmmgp check`` output folder or a folder
+        of scans (what ``read_scan`` reads: a Stanford set, a KITTI sequence, ...).
 
         A scan opens with no results beyond the scan itself; call :meth:`compute`
         from "prepare". A map opens with its hierarchy, GP and field, and a run
@@ -203,7 +204,7 @@ class ViewerModel:
             raise ViewerError(f"'{path}' does not exist; give a scan file, a map or run "
                               "folder ('gmmgp run SCAN --out DIR') or a check folder "
                               "('gmmgp check ... --out DIR').")
-        if path.is_dir():
+        if path.is_dir() and T.is_result_folder(path):
             try:
                 return cls._open_folder(path, voxel_size)
             except T.TargetError as e:
@@ -211,7 +212,17 @@ class ViewerModel:
         from ..datasets import read_scan
         from ..datasets.registry import up_axis
 
-        scan = read_scan(path)
+        if path.is_dir():
+            from ..datasets import ScanReadError
+
+            try:
+                scan = read_scan(path)
+            except ScanReadError as e:
+                raise ViewerError(
+                    f"'{path}' is no map, run or check folder (no map.json, summary.json, "
+                    f"tiled.json or check.json in it) and no folder of scans: {e}") from None
+        else:
+            scan = read_scan(path)
         cfg = MappingConfig() if cfg is None else cfg
         m = cls(StageResults(config=cfg, voxel_size=voxel_size, scan=scan),
                 source=str(path))

@@ -30,8 +30,8 @@ import numpy as np
 
 from ..types import GaussianMixture, HGMMLevel, HierarchicalGMM, Scan, SurfaceMesh
 
-__all__ = ["CheckView", "TiledView", "read_check", "read_run_mesh", "read_summary",
-           "summary_lines", "is_check_folder", "tiled_map_dir"]
+__all__ = ["CheckView", "TiledView", "is_result_folder", "read_check", "read_run_mesh",
+           "read_summary", "summary_lines", "is_check_folder", "tiled_map_dir"]
 
 
 class TargetError(ValueError):
@@ -267,6 +267,16 @@ def merge_hierarchies(hs) -> HierarchicalGMM:
 
 
 # --------------------------------------------------------------------------- check results
+def is_result_folder(path) -> bool:
+    """Whether folder ``path`` is something the project wrote: a ``gmmgp check``
+    result, a tiled map, a saved map or a run folder (its ``map/`` or ``summary.json``).
+    Any other folder is opened as a folder of scans."""
+    p = Path(path)
+    return (is_check_folder(p) or tiled_map_dir(p) is not None
+            or any((d / "map.json").is_file() for d in (p, p / "map"))
+            or (p / "summary.json").is_file())
+
+
 def is_check_folder(path) -> bool:
     p = Path(path)
     return (p / "check.json").is_file() and (p / "points.ply").is_file()
