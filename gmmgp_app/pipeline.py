@@ -977,3 +977,5 @@ std_colour_max = _surface.std_colour_max
 variance_colors = _surface.variance_colors
 write_mesh_ply = _surface.write_mesh_ply
 read_mesh_ply = _surface.read_mesh_ply
+StitchedPredictive = _unseen.StitchedPredictive
+UnseenMixture = _unseen.UnseenMixture
