@@ -292,7 +292,7 @@ class StitchedPredictive:
                 new = ta - f / fp
             la, ha = lo[active], hi[active]
             bad = ~((new > la) & (new < ha)) | ~np.isfinite(new)
-            new = np.where(bad, 0.5 * (la + ha), new)
+            new = np.where(f == 0, ta, np.where(bad, 0.5 * (la + ha), new))  # at the root: kept
             t[active] = new
             tol = 4.0 * np.finfo(float).eps * np.maximum(new, 1e-300)
             done = (np.abs(new - ta) <= tol) | (ha - la <= tol) | (f == 0)
