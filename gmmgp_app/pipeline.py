@@ -199,7 +199,7 @@ class SurfaceMap:
         xyz = as_queries(xyz)
         if self.far is None:
             mean, var = self._near_field.predict(xyz)[:2]
-            return _unseen.UnseenMixture(mean, var)
+            return _unseen.UnseenMixture(mean, var, reported_var=var)  # var: predict's
         return self._blended().distribution(xyz)
 
     def predict_mean(self, xyz) -> np.ndarray:

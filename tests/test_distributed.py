@@ -342,6 +342,31 @@ def test_tiled_distribution_is_the_owning_tiles_and_predicts_stitched_moments(st
         assert owned == (count == 1).sum() and owned_w1 > 100
 
 
+@pytest.mark.parametrize("far", [dict(unseen_predictive="gaussian"), dict(calibrated=False),
+                                 dict(unseen_weight=0.0)])
+def test_distribution_variance_is_predicts_in_every_far_field_setting(street, tiled, far):
+    """Where a map's predictive is Gaussian its ``var`` is predict's variance bit for
+    bit (not sqrt(v)^2), for a single map and stitched: so a tiled map's stitched std
+    is its predict's in every far-field setting, not only with the default mixture."""
+    import copy
+    import dataclasses
+
+    scan, _ = street
+    tiles = {}
+    for k, t in tiled.tiles.items():
+        tiles[k] = copy.copy(t)
+        tiles[k].config = dataclasses.replace(t.config, far=dataclasses.replace(
+            t.config.far, **far))
+    tm = TiledMap(tiled.spec, tiles, tiles[tiled.keys[0]].config, tiled.method,
+                  owners=tiled.owners)
+    q = _blend_queries(scan, np.random.default_rng(7))
+    one = tiles[tiled.keys[0]]
+    assert np.array_equal(one.distribution(q).var, one.predict(q)[1])
+    dist, (mean, var) = tm.distribution(q), tm.predict(q)
+    assert np.array_equal(dist.mean, mean) and np.array_equal(dist.var, var)
+    assert np.array_equal(dist.std, np.sqrt(var))
+
+
 def test_tiled_distribution_in_the_blend_is_the_weighted_mixture(street, tiled):
     """In the blend band the log density is that of sum_t w_t p_t / W (the tiles'
     densities from their own distributions), and half_width(level) holds exactly

@@ -68,9 +68,14 @@ class UnseenMixture:
     w_behind, w_extent : (K,) widths of eqs. unseen_behind, unseen_extent (m)
     weight : float, lambda of eq. unseen_var (q = 3 lambda^2, at most 1/2); 0 (or zero
         widths): the Gaussian N(m, v)
+    reported_var : (K,), optional
+        What :attr:`var` reports where the unseen component is off: the Gaussian's
+        variance as its caller's ``predict`` returns it, kept bit for bit (default:
+        :attr:`std` squared, ``sqrt(v)^2``, within rounding of ``v``).
     """
 
-    def __init__(self, mean, var_observed, w_behind=None, w_extent=None, weight: float = 0.0):
+    def __init__(self, mean, var_observed, w_behind=None, w_extent=None, weight: float = 0.0,
+                 reported_var=None):
         self.mean = np.asarray(mean, dtype=np.float64).reshape(-1)
         K = len(self.mean)
         self.var_observed = np.broadcast_to(
@@ -84,6 +89,8 @@ class UnseenMixture:
         self.q = np.where(w2 > 0, unseen_prior(weight), 0.0)
         self.mixed = self.q > 0
         self._std = None
+        self._reported = None if reported_var is None else np.broadcast_to(
+            np.asarray(reported_var, dtype=np.float64), (K,))
 
     def __len__(self):
         return len(self.mean)
@@ -152,8 +159,11 @@ class UnseenMixture:
 
     @property
     def var(self) -> np.ndarray:
-        """(K,) sigma^2 of :attr:`std` (what :meth:`SurfaceMap.predict` reports)."""
-        return self.std ** 2
+        """(K,) sigma^2 of :attr:`std` (what :meth:`SurfaceMap.predict` reports); where
+        the unseen component is off and ``reported_var`` was given, that one."""
+        if self._reported is None:
+            return self.std ** 2
+        return np.where(self.mixed, self.std ** 2, self._reported)
 
 
 class StitchedPredictive:

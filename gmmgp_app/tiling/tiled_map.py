@@ -176,7 +176,7 @@ class TiledMap:
         from ..pipeline import UnseenMixture
 
         m, v = tile.predict(x)[:2]
-        return UnseenMixture(m, v), v
+        return UnseenMixture(m, v, reported_var=v), v
 
     def predict_mean(self, xyz) -> np.ndarray:
         """(K,) the mean of :meth:`predict` alone, the same values bit for bit (what the
