@@ -230,7 +230,7 @@ def check_tiled_methods(methods, provided) -> None:
 
 
 class _TiledModel:
-    """A tiled map as :func:`run_evaluation` uses a map: ``predict`` and
+    """A tiled map as :func:`run_evaluation` uses a map: ``predict``, ``distribution`` and
     ``extract_surface`` in the scan's local frame, which may differ from the map's
     (a streamed map chose its offset from the LAS header)."""
 
@@ -246,6 +246,12 @@ class _TiledModel:
         # frames equal (the usual case): the queries go through bit for bit
         return self.tmap.predict(x + self.shift if np.any(self.shift) else x,
                                  return_grad=return_grad)
+
+    def distribution(self, xyz):
+        """The stitched predictive (:meth:`TiledMap.distribution`), scored by its log
+        density and central intervals as a single map's :meth:`SurfaceMap.distribution`."""
+        x = np.asarray(xyz, dtype=np.float64)
+        return self.tmap.distribution(x + self.shift if np.any(self.shift) else x)
 
     def extract_surface(self, voxel_size=None):
         mesh = self.tmap.extract_surface(voxel_size=voxel_size)

@@ -199,7 +199,7 @@ class SurfaceMap:
         xyz = as_queries(xyz)
         if self.far is None:
             mean, var = self._near_field.predict(xyz)[:2]
-            return _unseen.UnseenMixture(mean, var)
+            return _unseen.UnseenMixture(mean, var, reported_var=var)  # var: predict's
         return self._blended().distribution(xyz)
 
     def predict_mean(self, xyz) -> np.ndarray:
@@ -977,3 +977,5 @@ std_colour_max = _surface.std_colour_max
 variance_colors = _surface.variance_colors
 write_mesh_ply = _surface.write_mesh_ply
 read_mesh_ply = _surface.read_mesh_ply
+StitchedPredictive = _unseen.StitchedPredictive
+UnseenMixture = _unseen.UnseenMixture

@@ -225,6 +225,42 @@ def test_eval_refuses_methods_a_tiled_map_cannot_answer(box, tmp_path, capsys):
                                   tmap.predict(q + [1.0, -2.0, 0.5])[0])
 
 
+def test_eval_of_a_tiled_run_scores_the_stitched_distribution(box, tmp_path, monkeypatch,
+                                                             capsys):
+    """gmmgp eval on a tiled gmmgp run scores TiledMap.distribution (log density,
+    central intervals), as it scores SurfaceMap.distribution on a single map, not the
+    Gaussian of predict's mean and variance."""
+    import gmmgp_app.evaluation as E
+
+    root, opts = box
+    out = tmp_path / "tiled"
+    assert main(["run", str(root / "scan.npz"), "--out", str(out), *opts, "--no-mesh",
+                 "--tile-size", "1.2", "--tile-overlap", "0.4"]) == 0
+    seen = []
+    real = E.binned_metrics
+
+    def spy(mean, var, truth, dist, bins, **kw):
+        res = real(mean, var, truth, dist, bins, **kw)
+        seen.append((mean, var, truth, dist, np.asarray(bins), kw, res))
+        return res
+
+    monkeypatch.setattr(E, "binned_metrics", spy)
+    assert _eval(out, root / "mesh.ply", "--methods", "gmmgp", "--no-surface") == 0
+    capsys.readouterr()
+    (mean, var, truth, dist, bins, kw, res), = seen
+    d = kw["distribution"]
+    assert d is not None and type(d.parts[0]).__name__ == "StitchedPredictive"
+    assert np.array_equal(np.concatenate([p.mean for p in d.parts]), mean)
+    sel = (dist >= bins[0]) & (dist < bins[-1])
+    ll = d.logpdf(truth)
+    assert res["all"]["ll_sdf"] == pytest.approx(float(np.mean(ll[sel])), rel=1e-12)
+    c2 = np.abs(truth - mean) <= d.half_width(E.TWO_SIGMA)
+    assert res["all"]["cov2_sdf"] == pytest.approx(float(np.mean(c2[sel])), rel=1e-12)
+    # several tiles weigh some of the queries, and the score is not the Gaussian's there
+    assert sum(len(p._multi) for p in d.parts) > 10
+    assert not np.allclose(ll, E.gaussian_loglik(truth, mean, var))
+
+
 @pytest.mark.slow
 def test_eval_of_a_tiled_run_matches_the_untiled_one(box):
     """gmmgp eval on a tiled run scores gmmgp (and hgmm, the tiles' stitched priors)

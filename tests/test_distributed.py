@@ -285,6 +285,135 @@ def test_tiled_predict_mean_is_predicts_mean_and_the_mesh_is_unchanged(street, t
         assert np.array_equal(a, b)
 
 
+def _blend_queries(scan, rng):
+    """Queries inside tiles, across the tile border x = 24 m in the blend band, and
+    beyond every tile (the nearest tile answers)."""
+    near = scan.points[::9]
+    return np.concatenate([near + rng.normal(0, 0.1, near.shape),
+                           np.c_[np.full(300, 24.0) + rng.uniform(-1.0, 1.0, 300),
+                                 rng.uniform(10, 30, 300), rng.uniform(-0.5, 3, 300)],
+                           np.c_[rng.uniform(-20, 80, 50), rng.uniform(-20, 80, 50),
+                                 rng.uniform(-1, 5, 50)]])
+
+
+def test_tiled_distribution_is_the_owning_tiles_and_predicts_stitched_moments(street, tiled):
+    """TiledMap.distribution: where one tile weighs a query it is that tile's
+    SurfaceMap.distribution exactly (log density, std, half-widths); everywhere its
+    mean and std are TiledMap.predict's bit for bit, for the gmmgp tiles and for the
+    stitched GMR priors (compare's hgmm baseline, Gaussian tiles)."""
+    from gmmgp_app.compare import _tiled_priors
+
+    scan, sdf = street
+    q = _blend_queries(scan, np.random.default_rng(5))
+    y = sdf(q)
+    for tm in (tiled, _tiled_priors(tiled)):
+        dist = tm.distribution(q)
+        mean, var = tm.predict(q)
+        assert np.array_equal(dist.mean, mean) and np.array_equal(dist.var, var)
+        assert np.array_equal(dist.std, np.sqrt(var))
+        parts = tm._tile_weights(q)
+        count = np.zeros(len(q), int)
+        for _, rows, _, _ in parts:
+            count[rows] += 1
+        assert (count >= 2).sum() > 100 and (count == 1).sum() > 100
+        owned = owned_w1 = 0
+        for owner, rows, w, _ in parts:
+            one = rows[count[rows] == 1]
+            full = w[count[rows] == 1] == 1.0
+            own, _ = tm._tile_distribution(owner, q[one])
+            np.testing.assert_array_equal(dist.logpdf(y)[one], own.logpdf(y[one]))
+            # weight 1: predict's std is the tile's; a lone tile of weight w < 1 (its
+            # neighbour square unmapped) gives w v / w, within rounding of it
+            np.testing.assert_array_equal(dist.std[one][full], own.std[full])
+            np.testing.assert_allclose(dist.std[one], own.std, rtol=1e-12)
+            np.testing.assert_array_equal(dist.mean[one][full], own.mean[full])
+            owned_w1 += int(full.sum())
+            for level in (0.5, 0.6827, 0.95):
+                np.testing.assert_array_equal(dist.half_width(level)[one],
+                                              own.half_width(level))
+            owned += len(one)
+        # beyond every tile: the nearest tile's distribution
+        miss = count == 0
+        assert miss.sum() > 20
+        for key, r in tm._nearest_tiles(q, miss):
+            own, _ = tm._tile_distribution(key, q[r])
+            np.testing.assert_array_equal(dist.logpdf(y)[r], own.logpdf(y[r]))
+            np.testing.assert_array_equal(dist.half_width(0.9)[r], own.half_width(0.9))
+        assert owned == (count == 1).sum() and owned_w1 > 100
+
+
+@pytest.mark.parametrize("far", [dict(unseen_predictive="gaussian"), dict(calibrated=False),
+                                 dict(unseen_weight=0.0)])
+def test_distribution_variance_is_predicts_in_every_far_field_setting(street, tiled, far):
+    """Where a map's predictive is Gaussian its ``var`` is predict's variance bit for
+    bit (not sqrt(v)^2), for a single map and stitched: so a tiled map's stitched std
+    is its predict's in every far-field setting, not only with the default mixture."""
+    import copy
+    import dataclasses
+
+    scan, _ = street
+    tiles = {}
+    for k, t in tiled.tiles.items():
+        tiles[k] = copy.copy(t)
+        tiles[k].config = dataclasses.replace(t.config, far=dataclasses.replace(
+            t.config.far, **far))
+    tm = TiledMap(tiled.spec, tiles, tiles[tiled.keys[0]].config, tiled.method,
+                  owners=tiled.owners)
+    q = _blend_queries(scan, np.random.default_rng(7))
+    one = tiles[tiled.keys[0]]
+    assert np.array_equal(one.distribution(q).var, one.predict(q)[1])
+    dist, (mean, var) = tm.distribution(q), tm.predict(q)
+    assert np.array_equal(dist.mean, mean) and np.array_equal(dist.var, var)
+    assert np.array_equal(dist.std, np.sqrt(var))
+
+
+def test_tiled_distribution_in_the_blend_is_the_weighted_mixture(street, tiled):
+    """In the blend band the log density is that of sum_t w_t p_t / W (the tiles'
+    densities from their own distributions), and half_width(level) holds exactly
+    ``level`` of it about the stitched mean (against a 200-step bisection)."""
+    from scipy.special import ndtr
+
+    scan, sdf = street
+    q = _blend_queries(scan, np.random.default_rng(6))
+    y = sdf(q)
+    dist = tiled.distribution(q)
+    parts = tiled._tile_weights(q)
+    K = len(q)
+    dens, W, lo_c, hi_c = np.zeros(K), np.zeros(K), {}, {}
+    tiles = []
+    for owner, rows, w, _ in parts:
+        d, _ = tiled._tile_distribution(owner, q[rows])
+        dens[rows] += w * np.exp(d.logpdf(y[rows]))
+        W[rows] += w
+        tiles.append((rows, w, d))
+    blend = np.flatnonzero(np.isin(np.arange(K), dist._multi))
+    assert len(blend) > 100
+    np.testing.assert_allclose(dist.logpdf(y)[blend], np.log(dens[blend] / W[blend]),
+                               rtol=1e-12, atol=1e-12)
+    # the tiles' means differ there: a mixture, not one tile's distribution
+    assert np.max(np.abs(dist.std[blend] - dist.half_width(0.6826894921370859)[blend])) > 0
+
+    def mass(t):
+        out = np.zeros(K)
+        for rows, w, d in tiles:
+            c = dist.mean[rows]
+            for p, v in ((1 - d.q, d.var_observed), (d.q, d.var_unseen)):
+                s = np.sqrt(v)
+                out[rows] += w * p * (ndtr((c + t[rows] - d.mean) / s)
+                                      - ndtr((c - t[rows] - d.mean) / s))
+        return out / np.where(W > 0, W, 1.0)
+
+    for level in (0.3, 0.6827, 0.9545, 0.999):
+        hw = dist.half_width(level)
+        np.testing.assert_allclose(mass(hw)[blend], level, atol=1e-12)
+        lo, hi = np.zeros(K), np.full(K, 50.0)
+        for _ in range(200):
+            mid = 0.5 * (lo + hi)
+            below = mass(mid) < level
+            lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+        np.testing.assert_allclose(hw[blend], lo[blend], rtol=1e-10)
+
+
 def test_tiled_gradient_matches_finite_differences(street):
     """The blend's gradient (tiles' gradients plus the weights' gradient) is exact.
 

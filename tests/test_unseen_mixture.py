@@ -224,3 +224,55 @@ def test_evaluation_scores_the_predictive_distribution():
         np.testing.assert_allclose(b[key], a[key], rtol=1e-9)
     np.testing.assert_allclose(reliability(y, m, s * s, distribution=g)["observed"],
                                reliability(y, m, s * s)["observed"], atol=1e-12)
+
+
+def test_stitched_predictive_is_the_weighted_mixture_of_its_parts():
+    """StitchedPredictive (a tiled map's predictive): queries in one part are that
+    part's UnseenMixture exactly; queries in several are sum_t w_t p_t / W, whose log
+    density matches scipy's normal densities and whose central half-widths hold the
+    level (quadrature of the density) about the given mean, also for far-apart tile
+    means (a plateau of the central mass, where Newton's steps leave the bracket)."""
+    from gmmgp_app.stages.unseen import StitchedPredictive
+
+    rng = np.random.default_rng(11)
+    K = 60
+    a = UnseenMixture(rng.normal(0, 0.3, K), rng.uniform(1e-4, 4e-2, K),
+                      rng.uniform(0, 1, K) * (rng.uniform(size=K) < 0.6), None, 0.3)
+    b = UnseenMixture(a.mean + rng.normal(0, 0.5, K), rng.uniform(1e-4, 1e-3, K),
+                      None, rng.uniform(0, 2, K) * (rng.uniform(size=K) < 0.6), 0.2)
+    wa = rng.uniform(0.05, 1.0, K)
+    blend = np.arange(K) >= 20
+    rows_b = np.flatnonzero(blend)
+    W = wa.copy()
+    W[rows_b] += 1 - wa[rows_b]
+    mean = np.where(blend, (wa * a.mean + (1 - wa) * b.mean) / W, a.mean)
+    w_b = np.sqrt(3 * (b.var_unseen - b.var_observed))  # b's widths again
+    b_sub = UnseenMixture(b.mean[rows_b], b.var_observed[rows_b], None, w_b[rows_b], 0.2)
+    parts = [(np.arange(K), wa, a), (rows_b, 1 - wa[rows_b], b_sub)]
+    var = rng.uniform(0.01, 0.1, K)
+    d = StitchedPredictive(mean, var, parts, W)
+    y = mean + rng.normal(0, 0.3, K)
+    one = ~blend
+    np.testing.assert_array_equal(d.logpdf(y)[one], a.logpdf(y)[one])
+    np.testing.assert_array_equal(d.half_width(0.8)[one], a.half_width(0.8)[one])
+    assert np.array_equal(d.std, np.sqrt(var)) and np.array_equal(d.mean, mean)
+
+    def pdf(i, x):
+        out = 0.0
+        for w, m in ((wa[i] / W[i], a), ((1 - wa[i]) / W[i], b)):
+            out += w * ((1 - m.q[i]) * norm.pdf(x, m.mean[i], math.sqrt(m.var_observed[i]))
+                        + m.q[i] * norm.pdf(x, m.mean[i], math.sqrt(m.var_unseen[i])))
+        return out
+
+    lp = d.logpdf(y)
+    for level in (0.2, ONE_SIGMA, 0.99):
+        hw = d.half_width(level)
+        for i in rows_b:
+            assert lp[i] == pytest.approx(math.log(pdf(i, y[i])), rel=1e-12, abs=1e-12)
+            brk = [x for x in (a.mean[i], b.mean[i]) if abs(x - mean[i]) < hw[i]]
+            mass = integrate.quad(lambda x: pdf(i, x), mean[i] - hw[i], mean[i] + hw[i],
+                                  points=brk or None, epsabs=1e-13, epsrel=1e-12,
+                                  limit=200)[0]
+            assert mass == pytest.approx(level, abs=1e-9)
+    with pytest.raises(ValueError, match="in at least one part"):
+        StitchedPredictive(mean, var, [parts[1]], W)

@@ -571,5 +571,5 @@ class BlendedField:
                     var = var + unseen_variance(wb, we, self.unseen_weight)
             res = (res[0], var) + tuple(res[2:])
         if dist is None:
-            dist = UnseenMixture(res[0], res[1])
+            dist = UnseenMixture(res[0], res[1], reported_var=res[1])  # var: predict's
         return res, dist

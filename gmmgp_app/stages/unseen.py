@@ -42,7 +42,7 @@ import math
 import numpy as np
 from scipy.special import ndtr, ndtri
 
-__all__ = ["UnseenMixture", "ONE_SIGMA", "unseen_prior"]
+__all__ = ["UnseenMixture", "StitchedPredictive", "ONE_SIGMA", "unseen_prior"]
 
 #: Central probability of a Gaussian's +-1 sigma interval, erf(1 / sqrt 2).
 ONE_SIGMA = math.erf(1.0 / math.sqrt(2.0))
@@ -68,9 +68,14 @@ class UnseenMixture:
     w_behind, w_extent : (K,) widths of eqs. unseen_behind, unseen_extent (m)
     weight : float, lambda of eq. unseen_var (q = 3 lambda^2, at most 1/2); 0 (or zero
         widths): the Gaussian N(m, v)
+    reported_var : (K,), optional
+        What :attr:`var` reports where the unseen component is off: the Gaussian's
+        variance as its caller's ``predict`` returns it, kept bit for bit (default:
+        :attr:`std` squared, ``sqrt(v)^2``, within rounding of ``v``).
     """
 
-    def __init__(self, mean, var_observed, w_behind=None, w_extent=None, weight: float = 0.0):
+    def __init__(self, mean, var_observed, w_behind=None, w_extent=None, weight: float = 0.0,
+                 reported_var=None):
         self.mean = np.asarray(mean, dtype=np.float64).reshape(-1)
         K = len(self.mean)
         self.var_observed = np.broadcast_to(
@@ -84,6 +89,8 @@ class UnseenMixture:
         self.q = np.where(w2 > 0, unseen_prior(weight), 0.0)
         self.mixed = self.q > 0
         self._std = None
+        self._reported = None if reported_var is None else np.broadcast_to(
+            np.asarray(reported_var, dtype=np.float64), (K,))
 
     def __len__(self):
         return len(self.mean)
@@ -152,5 +159,155 @@ class UnseenMixture:
 
     @property
     def var(self) -> np.ndarray:
-        """(K,) sigma^2 of :attr:`std` (what :meth:`SurfaceMap.predict` reports)."""
-        return self.std ** 2
+        """(K,) sigma^2 of :attr:`std` (what :meth:`SurfaceMap.predict` reports); where
+        the unseen component is off and ``reported_var`` was given, that one."""
+        if self._reported is None:
+            return self.std ** 2
+        return np.where(self.mixed, self.std ** 2, self._reported)
+
+
+class StitchedPredictive:
+    """The predictive of a field stitched from several maps (tiles) with position-only
+    weights: per query the mixture ``p(y) = sum_t (w_t / W) p_t(y)`` of the tiles'
+    predictives ``p_t`` (each an :class:`UnseenMixture`, so per query a mixture of up
+    to two Gaussians per tile, each tile with its own mean).
+
+    Its ``mean`` and ``var`` are the stitched mean and variance the caller computed the
+    way its ``predict`` does (passed in, kept bit for bit): ``mean = sum w_t m_t / W``
+    and ``var = sum w_t (v_t + m_t^2) / W - mean^2``, with ``v_t`` each tile's reported
+    variance (the square of its reported sigma); ``std = sqrt(var)``. That is the law
+    of total variance applied to the tiles' reported sigmas: the mixture's own standard
+    deviation where the tiles are Gaussian, the central 68.27 % half-width where one
+    tile answers, and in between a summary of the tiles' sigmas, not the mixture's
+    68.27 % half-width exactly. ``logpdf`` is the mixture's log density and
+    ``half_width(level)`` its central interval about ``mean`` (exact coverage of the
+    stitched predictive), by safeguarded Newton steps inside a bracket.
+
+    Where a single tile weighs a query the mixture is that tile's predictive: its
+    ``logpdf`` and ``half_width`` are returned as the tile computes them.
+
+    Parameters
+    ----------
+    mean, var : (K,) the stitched mean and variance
+    parts : list of ``(rows, weight, dist)``: ``dist`` an :class:`UnseenMixture` of the
+        queries ``rows`` (each query at most once per part), ``weight`` (n,) positive
+    total : (K,) the sum of the weights of each query's parts (W)
+    """
+
+    def __init__(self, mean, var, parts, total):
+        self.mean = np.asarray(mean, dtype=np.float64).reshape(-1)
+        self.var = np.asarray(var, dtype=np.float64).reshape(-1)
+        K = len(self.mean)
+        total = np.asarray(total, dtype=np.float64).reshape(-1)
+        count = np.zeros(K, dtype=np.int64)
+        for rows, _, _ in parts:
+            count[rows] += 1
+        if np.any(count == 0):
+            raise ValueError(f"Expected every query in at least one part, found "
+                             f"{int((count == 0).sum())} in none.")
+        single = count == 1
+        #: (dist, positions in its rows, query rows) where that dist alone answers
+        self._single = []
+        self._multi = np.flatnonzero(~single)
+        n, C = len(self._multi), 2 * int(count.max())
+        pos = np.full(K, -1)
+        pos[self._multi] = np.arange(n)
+        slot = np.zeros(n, dtype=np.int64)
+        pi, mu, sd = np.zeros((n, C)), np.zeros((n, C)), np.ones((n, C))
+        for rows, w, d in parts:
+            rows = np.asarray(rows)
+            one = single[rows]
+            if one.any():
+                self._single.append((d, np.flatnonzero(one), rows[one]))
+            sel = np.flatnonzero(~one)
+            if not len(sel):
+                continue
+            r = pos[rows[sel]]
+            s = slot[r]
+            frac = np.asarray(w, dtype=np.float64)[sel] / total[rows[sel]]
+            pi[r, s], pi[r, s + 1] = frac * (1.0 - d.q[sel]), frac * d.q[sel]
+            mu[r, s] = mu[r, s + 1] = d.mean[sel]
+            sd[r, s] = np.sqrt(d.var_observed[sel])
+            sd[r, s + 1] = np.sqrt(d.var_unseen[sel])
+            slot[r] += 2
+        self._pi, self._mu, self._sd = pi, mu, sd
+
+    def __len__(self):
+        return len(self.mean)
+
+    @property
+    def std(self) -> np.ndarray:
+        """(K,) sqrt of :attr:`var` (the stitched ``predict``'s sigma)."""
+        return np.sqrt(self.var)
+
+    def logpdf(self, y) -> np.ndarray:
+        """(K,) log density of ``y`` under the stitched mixture."""
+        from scipy.special import logsumexp
+
+        y = np.asarray(y, dtype=np.float64).reshape(-1)
+        out = np.empty(len(self.mean))
+        for d, at, rows in self._single:
+            # the tile's own log density, elementwise (its other queries get its mean)
+            full = d.mean.copy()
+            full[at] = y[rows]
+            out[rows] = d.logpdf(full)[at]
+        if len(self._multi):
+            z = (y[self._multi, None] - self._mu) / self._sd
+            with np.errstate(divide="ignore"):
+                lp = np.log(self._pi) - 0.5 * z * z - np.log(self._sd) \
+                    - 0.5 * math.log(2.0 * math.pi)
+            out[self._multi] = logsumexp(lp, axis=1)
+        return out
+
+    def central_mass(self, half_width) -> np.ndarray:
+        """P(|y - mean| <= half_width) for the queries several tiles weigh (in order)."""
+        t = np.asarray(half_width, dtype=np.float64).reshape(-1, 1)
+        c = self.mean[self._multi, None]
+        return np.sum(self._pi * (ndtr((c + t - self._mu) / self._sd)
+                                  - ndtr((c - t - self._mu) / self._sd)), axis=1)
+
+    def half_width(self, level: float = ONE_SIGMA, iterations: int = 100) -> np.ndarray:
+        """(K,) central half-width about :attr:`mean` holding ``level`` of the stitched
+        mixture. Where several tiles weigh a query, F(t) = P(|y - mean| <= t) - level is
+        increasing but not concave (the tiles' means differ), so Newton's steps are kept
+        inside the bracket [0, max_k(|mu_k - mean| + z s_k)] (F(0) < 0 and every
+        component holds ``level`` within the upper end) and replaced by bisection where
+        they leave it."""
+        if not 0.0 < level < 1.0:
+            raise ValueError(f"Expected a central probability level in (0, 1), found {level!r}.")
+        out = np.empty(len(self.mean))
+        for d, at, rows in self._single:
+            out[rows] = d.half_width(level)[at]
+        if not len(self._multi):
+            return out
+        zl = ndtri(0.5 + 0.5 * level)
+        c = self.mean[self._multi, None]
+        on = self._pi > 0
+        lo = np.zeros(len(self._multi))
+        hi = np.max(np.where(on, np.abs(self._mu - c) + zl * self._sd, 0.0), axis=1)
+        t = np.clip(np.sqrt(self.var[self._multi]) * zl, 0.0, hi)
+        norm = 1.0 / math.sqrt(2.0 * math.pi)
+        active = np.arange(len(t))
+        for _ in range(iterations):
+            ta = t[active]
+            pi, mu, sd, ca = (a[active] for a in (self._pi, self._mu, self._sd, c))
+            a = (ca + ta[:, None] - mu) / sd
+            b = (ca - ta[:, None] - mu) / sd
+            f = np.sum(pi * (ndtr(a) - ndtr(b)), axis=1) - level
+            fp = norm * np.sum(pi * (np.exp(-0.5 * a * a) + np.exp(-0.5 * b * b)) / sd, axis=1)
+            below = f < 0
+            lo[active] = np.where(below, ta, lo[active])
+            hi[active] = np.where(below, hi[active], ta)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                new = ta - f / fp
+            la, ha = lo[active], hi[active]
+            bad = ~((new > la) & (new < ha)) | ~np.isfinite(new)
+            new = np.where(f == 0, ta, np.where(bad, 0.5 * (la + ha), new))  # at the root: kept
+            t[active] = new
+            tol = 4.0 * np.finfo(float).eps * np.maximum(new, 1e-300)
+            done = (np.abs(new - ta) <= tol) | (ha - la <= tol) | (f == 0)
+            active = active[~done]
+            if not len(active):
+                break
+        out[self._multi] = t
+        return out

@@ -112,6 +112,72 @@ class TiledMap:
             self._nearest_tile(x, ~ok, mean, var, grad, return_grad, far)
         return (mean, var, grad) if return_grad else (mean, var)
 
+    def distribution(self, xyz):
+        """The stitched predictive distribution at query points (what :meth:`predict`
+        summarises; :meth:`SurfaceMap.distribution` of a single map): an object with
+        ``mean``, ``var``, ``std`` (K,), ``logpdf(y)`` and ``half_width(level)``.
+
+        The choice: per query, the mixture of the tiles' predictives with the
+        stitching weights of :meth:`predict`, ``p(y) = sum_t w_t p_t(y) / sum_t w_t``
+        (each ``p_t`` the tile's :meth:`SurfaceMap.distribution`, a Gaussian or the
+        two-component mixture of eq. unseen_mixture; a tile without one, such as the
+        GMR prior of compare's hgmm baseline, the Gaussian of its ``predict``). Its
+        ``mean`` and ``var`` are :meth:`predict`'s, computed the same way (``sum w_t
+        m_t / W`` bit for bit; ``sum w_t (v_t + m_t^2) / W - mean^2`` with ``v_t`` each
+        tile's reported variance), ``std = sqrt(var)``: the mixture's variance by the
+        law of total variance, with each tile's reported sigma (its central 68.27 %
+        half-width) in place of its own variance. ``logpdf`` is the mixture's log
+        density and ``half_width(level)`` its exact central interval about the mean
+        (stages/unseen.py, :class:`StitchedPredictive`); in blend zones
+        ``half_width(0.6827)`` therefore differs from ``std``. Where one tile weighs a
+        query (weight 1 inside its square, or the nearest tile beyond every tile) the
+        result is that tile's distribution exactly.
+        """
+        from ..pipeline import StitchedPredictive, as_queries
+
+        x = as_queries(xyz)
+        K = len(x)
+        W = np.zeros(K)
+        Wm = np.zeros(K)
+        Wv = np.zeros(K)
+        Wm2 = np.zeros(K)
+        parts = []
+        for owner, rows, w, _ in self._tile_weights(x):
+            d, v = self._tile_distribution(owner, x[rows])
+            m = d.mean
+            W[rows] += w
+            Wm[rows] += w * m
+            Wv[rows] += w * v
+            Wm2[rows] += w * m * m
+            parts.append((rows, w, d))
+        mean = np.zeros(K)
+        var = np.zeros(K)
+        ok = W > 0
+        # the same operations as predict: the same mean and variance bit for bit
+        mean[ok] = Wm[ok] / W[ok]
+        var[ok] = Wv[ok] / W[ok] + np.maximum(Wm2[ok] / W[ok] - mean[ok] ** 2, 0.0)
+        if (~ok).any() and self.tiles:
+            for key, r in self._nearest_tiles(x, ~ok):
+                d, v = self._tile_distribution(key, x[r])
+                mean[r], var[r] = d.mean, v
+                W[r] = 1.0
+                parts.append((r, np.ones(len(r)), d))
+        return StitchedPredictive(mean, var, parts, W)
+
+    def _tile_distribution(self, key, x) -> tuple:
+        """(predictive, reported variance) of tile ``key`` at ``x``: its
+        ``distribution`` and that one's ``var`` (what its ``predict`` returns), or for a
+        tile without one the Gaussian of its ``predict``."""
+        tile = self.tiles[key]
+        dist = getattr(tile, "distribution", None)
+        if dist is not None:
+            d = dist(x)
+            return d, d.var
+        from ..pipeline import UnseenMixture
+
+        m, v = tile.predict(x)[:2]
+        return UnseenMixture(m, v, reported_var=v), v
+
     def predict_mean(self, xyz) -> np.ndarray:
         """(K,) the mean of :meth:`predict` alone, the same values bit for bit (what the
         surface lattice needs): the stitching weights depend on the query's position
