@@ -23,6 +23,36 @@ TILED_MAP_FORMAT = "gmmgp-tiled-map"
 TILED_MAP_FORMAT_VERSION = 1
 
 
+class _StitchSums:
+    """Per-query running sums of the tiles' stitching (:meth:`TiledMap.predict`):
+    ``W = sum w_t``, ``sum w_t m_t``, ``sum w_t v_t``, ``sum w_t m_t^2``, and the
+    stitched mean and variance from them, in one order of operations (so that
+    :meth:`TiledMap.predict` and :meth:`TiledMap.distribution` agree bit for bit)."""
+
+    def __init__(self, K: int):
+        self.W = np.zeros(K)
+        self.Wm = np.zeros(K)
+        self.Wv = np.zeros(K)
+        self.Wm2 = np.zeros(K)
+
+    def add(self, rows, w, m, v) -> None:
+        self.W[rows] += w
+        self.Wm[rows] += w * m
+        self.Wv[rows] += w * v
+        self.Wm2[rows] += w * m * m
+
+    def mean_var(self):
+        """(mean, var, ok): ``mean = sum w m / W``, ``var = sum w v / W + sum w m^2 / W
+        - mean^2`` (written so that a single tile of weight 1 returns its variance bit
+        for bit) where ``ok = W > 0``, zeros elsewhere."""
+        W, ok = self.W, self.W > 0
+        mean = np.zeros(len(W))
+        var = np.zeros(len(W))
+        mean[ok] = self.Wm[ok] / W[ok]
+        var[ok] = self.Wv[ok] / W[ok] + np.maximum(self.Wm2[ok] / W[ok] - mean[ok] ** 2, 0.0)
+        return mean, var, ok
+
+
 class TiledMap:
     """A SurfaceMap-like field made of independently mapped, overlapping tiles.
 
@@ -81,30 +111,20 @@ class TiledMap:
 
         x = as_queries(xyz)
         K = len(x)
-        W = np.zeros(K)
-        Wm = np.zeros(K)
-        Wv = np.zeros(K)
-        Wm2 = np.zeros(K)
+        sums = _StitchSums(K)
         gW = np.zeros((K, 2))
         gWm = np.zeros((K, 3))
         for owner, rows, w, dw in self._tile_weights(x):
             out = self.tiles[owner].predict(x[rows], return_grad=return_grad, far=far)
-            m, v = out[0], out[1]
-            W[rows] += w
-            Wm[rows] += w * m
-            Wv[rows] += w * v
-            Wm2[rows] += w * m * m
+            m = out[0]
+            sums.add(rows, w, m, out[1])
             if return_grad:
                 gW[rows] += dw
                 gWm[rows] += w[:, None] * out[2]
                 gWm[rows, :2] += m[:, None] * dw
-        mean = np.zeros(K)
-        var = np.zeros(K)
+        mean, var, ok = sums.mean_var()
+        W = sums.W
         grad = np.zeros((K, 3))
-        ok = W > 0
-        mean[ok] = Wm[ok] / W[ok]
-        # written so that a single tile of weight 1 returns its variance bit for bit
-        var[ok] = Wv[ok] / W[ok] + np.maximum(Wm2[ok] / W[ok] - mean[ok] ** 2, 0.0)
         if return_grad:
             grad[ok] = gWm[ok] / W[ok, None]
             grad[ok, :2] -= mean[ok, None] * gW[ok] / W[ok, None]
@@ -136,26 +156,15 @@ class TiledMap:
         from ..pipeline import StitchedPredictive, as_queries
 
         x = as_queries(xyz)
-        K = len(x)
-        W = np.zeros(K)
-        Wm = np.zeros(K)
-        Wv = np.zeros(K)
-        Wm2 = np.zeros(K)
+        sums = _StitchSums(len(x))
         parts = []
         for owner, rows, w, _ in self._tile_weights(x):
             d, v = self._tile_distribution(owner, x[rows])
-            m = d.mean
-            W[rows] += w
-            Wm[rows] += w * m
-            Wv[rows] += w * v
-            Wm2[rows] += w * m * m
+            sums.add(rows, w, d.mean, v)
             parts.append((rows, w, d))
-        mean = np.zeros(K)
-        var = np.zeros(K)
-        ok = W > 0
         # the same operations as predict: the same mean and variance bit for bit
-        mean[ok] = Wm[ok] / W[ok]
-        var[ok] = Wv[ok] / W[ok] + np.maximum(Wm2[ok] / W[ok] - mean[ok] ** 2, 0.0)
+        mean, var, ok = sums.mean_var()
+        W = sums.W
         if (~ok).any() and self.tiles:
             for key, r in self._nearest_tiles(x, ~ok):
                 d, v = self._tile_distribution(key, x[r])
