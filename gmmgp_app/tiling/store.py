@@ -65,6 +65,10 @@ class TileStore:
             self._written[key] = smap
         else:
             smap.save(self._path(key))
+        self._stored(key)
+
+    def _stored(self, key) -> None:
+        """Index tile ``key`` just stored and drop a stale loaded copy of it."""
         if key not in self:
             self._keys = sorted(self._keys + [key])
         self._cache.pop(key, None)
@@ -84,9 +88,7 @@ class TileStore:
         with atomic_dir(self._path(key)) as tmp:
             for name, data in files.items():
                 (tmp / name).write_bytes(data)
-        if key not in self:
-            self._keys = sorted(self._keys + [key])
-        self._cache.pop(key, None)
+        self._stored(key)
 
     def items(self):
         return ((k, self[k]) for k in self._keys)
