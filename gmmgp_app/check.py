@@ -54,9 +54,11 @@ the steps are under 1 mm, then all of them until they are under 0.2 mm, then all
 the scan's points (at most 150k: the scan's noise averages out over more points)
 until the step computed at ``T`` is under 0.1 mm and 10 urad (without the dense
 stage: 50 um and 5 urad) (that step is not
-applied: its prediction serves the information at the solution). Near the solution the steps along a weakly
-constrained direction shrink geometrically and are extrapolated (Aitken, see
-:func:`_aitken`). On a loaded map 75-90 % of the time is the map's ``predict``:
+applied: its prediction serves the information at the solution). Each step is the
+IRLS solution of the residuals linearised at the map's prediction (the robust weights
+recomputed from them, :func:`_linear_irls`: re-weighting costs no prediction). Near
+the solution the steps along a weakly constrained direction shrink geometrically and
+are extrapolated (Aitken, see :func:`_aitken`). On a loaded map 75-90 % of the time is the map's ``predict``:
 the GMR prior (its kernel and the per-cell candidate lists built for the cells the
 moving points enter), the block cover and posteriors and, in the final check, the
 far field's neighbour query and weights (the check after an alignment blends the far
