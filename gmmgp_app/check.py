@@ -58,8 +58,8 @@ applied: its prediction serves the information at the solution). Each step is th
 IRLS solution of the residuals linearised at the map's prediction (the robust weights
 recomputed from them, :func:`_linear_irls`: re-weighting costs no prediction). Near
 the solution the steps along a weakly constrained direction shrink geometrically and
-are extrapolated (Aitken, see :func:`_aitken`). On a loaded map 75-90 % of the time is the map's ``predict``:
-the GMR prior (its kernel and the per-cell candidate lists built for the cells the
+are extrapolated (Aitken, see :func:`_aitken`). On a loaded map 75-90 % of the time
+is the map's ``predict``: the GMR prior (its kernel and the per-cell candidate lists built for the cells the
 moving points enter), the block cover and posteriors and, in the final check, the
 far field's neighbour query and weights (the check after an alignment blends the far
 field with the dense stage's last prediction of the GP field at the same points,
@@ -771,9 +771,11 @@ def _linear_irls(J, m, var, step, D, P, *, noise2, known_std, c_robust, loss, n_
     Between two map predictions the registration re-weights (Tukey weights on z with
     a MAD scale, both functions of the residuals) and steps again; near the solution
     the points move by millimetres, over which the map's field is linear to microns
-    (its length scale is centimetres to decimetres), so the linearised residuals give
-    the re-weighted steps without a prediction each (a 6x6 solve on the stored
-    Jacobian, a few ms on 112k points, against 0.4 s CPU for a prediction). Far from
+    (its length scale is centimetres to decimetres) apart from the GP field's 10-100 um
+    jumps at block boundaries, so the linearised residuals give the re-weighted steps
+    without a prediction each (a 6x6 solve on the stored Jacobian, about 13 ms CPU on
+    112k points, against 0.4 s for a prediction). The jumps are why the next
+    prediction still moves the points (about half the previous step on KITTI). Far from
     the solution (the coarse stage's first steps, centimetres) the linearisation is
     only a guide, as the Gauss-Newton step itself is, and the step is capped by the
     caller as before. The next prediction, at the pose reached, checks it: the
