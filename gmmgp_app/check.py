@@ -59,8 +59,8 @@ IRLS solution of the residuals linearised at the map's prediction (the robust we
 recomputed from them, :func:`_linear_irls`: re-weighting costs no prediction). Near
 the solution the steps along a weakly constrained direction shrink geometrically and
 are extrapolated (Aitken, see :func:`_aitken`). On a loaded map 75-90 % of the time
-is the map's ``predict``: the GMR prior (its kernel and the per-cell candidate lists built for the cells the
-moving points enter), the block cover and posteriors and, in the final check, the
+is the map's ``predict``: the GMR prior (its kernel and the per-cell candidate lists
+built for the cells the moving points enter), the block cover and posteriors and, in the final check, the
 far field's neighbour query and weights (the check after an alignment blends the far
 field with the dense stage's last prediction of the GP field at the same points,
 ``predict(near=...)``, instead of predicting the GP field again).
