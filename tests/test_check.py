@@ -522,3 +522,72 @@ def test_exact_street_sdf_as_the_map_meets_the_targets():
     van = second.labels == 8
     far = van & (np.abs(street.sdf(second.points)) > 0.2)
     assert res.changed[far].mean() >= 0.8 and res.changed[~van].mean() < 0.01
+
+
+def test_linear_irls_reaches_the_robust_fixed_point_of_linear_residuals():
+    """_linear_irls on residuals that are exactly linear in xi (an oracle: the field is
+    linear) ends where the robust normal equations hold, i.e. at the fixed point of an
+    independent IRLS loop (Tukey biweight on z with the MAD scale, written out here);
+    the outliers make it differ from the plain Gauss-Newton step."""
+    from gmmgp_app.check import _linear_irls, _solve_step
+
+    rng = np.random.default_rng(5)
+    n = 4000
+    J = rng.normal(size=(n, 6))
+    xi_true = np.r_[2e-3, -1e-3, 5e-4, 2e-4, -3e-4, 1e-4]
+    noise = 0.002
+    m = -J @ xi_true + rng.normal(0, noise, n)
+    m[:300] += rng.uniform(0.05, 0.2, 300)  # a changed object: far residuals
+    var = np.full(n, 0.003 ** 2)
+    D, P = np.ones(6), np.eye(6)
+    kw = dict(noise2=noise ** 2, known_std=0.1, c_robust=4.685, loss="tukey",
+              n_share=np.ones(n), factor=None)
+    gn = _solve_step(J.T @ J, -J.T @ m, D, P)  # unweighted first step as the start
+    xi, solves = _linear_irls(J, m, var, gn, D, P, max_iter=50, tol_t=1e-12, tol_r=1e-12,
+                              **kw)
+    assert 2 < solves < 50
+
+    xo = gn.copy()  # the oracle's IRLS
+    s = np.sqrt(var + noise ** 2)
+    for _ in range(200):
+        z = (m + J @ xo) / s
+        u = z / (4.685 * 1.4826 * np.median(np.abs(z)))
+        w = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0) / (var + noise ** 2)
+        new = np.linalg.solve((J * w[:, None]).T @ J, -(J * w[:, None]).T @ m)
+        if np.abs(new - xo).max() < 1e-14:
+            break
+        xo = new
+    np.testing.assert_allclose(xi, xo, atol=1e-9)
+    assert np.abs(xi - xi_true).max() < 2e-4  # the outliers do not pull
+    assert np.abs(gn - xi_true).max() > 5e-4  # ... where the plain step is pulled
+
+
+def test_inner_irls_gives_the_same_transform_with_fewer_predictions(monkeypatch):
+    """The registration with IRLS solves on the linearised residuals between map
+    predictions (INNER_IRLS, the default) and with one Gauss-Newton step per prediction
+    (0) converge to the same transform (the box of the test above, with a block of
+    changed points); the former with fewer map predictions."""
+    import gmmgp_app.check as C
+
+    rng = np.random.default_rng(11)
+    pts = _box_surface(8000, rng) + rng.normal(0, 0.005, (8000, 3))
+    pts[:400, 2] += 0.3  # a changed part: the robust weights must drop it
+    T = _truth(rot_deg=2.0, t=(0.1, -0.05, 0.08))
+    out = {}
+    default = C.INNER_IRLS
+    assert default > 1
+    for inner in (default, 0):
+        monkeypatch.setattr(C, "INNER_IRLS", inner)
+        smap = _AnalyticMap(_box_sdf, std=0.005)
+        calls = []
+        orig = smap.predict
+        smap.predict = lambda x, return_grad=False, _o=orig: (calls.append(len(x)),
+                                                              _o(x, return_grad))[1]
+        res = check_scan(_move(pts, T), smap, align=True, noise=0.005)
+        assert res.converged
+        out[inner] = (res, len(calls))
+    (a, na), (b, nb) = out[default], out[0]
+    assert na < nb, (na, nb)
+    d = a.transform @ np.linalg.inv(b.transform)
+    assert np.abs(d[:3, 3]).max() < 2e-4
+    assert np.degrees(np.abs(d[:3, :3] - np.eye(3)).max()) < 2e-3
