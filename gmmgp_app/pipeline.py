@@ -42,7 +42,7 @@ from .stages import octree as _octree
 from .stages import prepare as _prepare
 from .stages import surface as _surface
 from .stages import unseen as _unseen
-from .types import GaussianMixture, HGMMLevel, HierarchicalGMM, Scan, SurfaceMesh
+from .types import GaussianMixture, HGMMLevel, HierarchicalGMM, Scan, SurfaceMesh, as_up_axis
 
 __all__ = ["build_map", "SurfaceMap", "load_map", "update_map", "run_stages", "Stage",
            "STAGES", "RECIPES", "RunContext", "NullObserver", "FanoutObserver", "METHODS",
@@ -131,11 +131,17 @@ class SurfaceMap:
     config : MappingConfig
     summary : dict
         Timings (s) and counts per stage.
+    up : (3,) float64
+        The scan's up axis (``Scan.up``: y for a Stanford range-scan set, else z),
+        saved with the map so that a viewer stands it upright; a map saved without
+        one loads with z.
     """
 
     def __init__(self, method, config, offset, prior, hgmm=None, gp=None,
-                 gp_points=None, gp_normals=None, seed_points=None, summary=None, far=None):
+                 gp_points=None, gp_normals=None, seed_points=None, summary=None, far=None,
+                 up=None):
         self.method = method
+        self.up = as_up_axis(up)
         self.far = far
         self.config = config
         self.offset = np.asarray(offset, dtype=np.float64).reshape(3)
@@ -296,6 +302,7 @@ class SurfaceMap:
                 "prior_params": getattr(self.prior, "params", lambda: {})(),
                 "far_params": None if self.far is None else self.far.params(),
                 "config_toml": self.config.to_toml(),
+                "up": [float(v) for v in self.up],
                 "summary": jsonable(self.summary),
             }
             (tmp / "map.json").write_text(json.dumps(meta, indent=2))
@@ -351,7 +358,7 @@ def load_map(directory) -> SurfaceMap:
     smap = SurfaceMap(meta["method"], cfg, arrays["offset"], prior, hgmm=hgmm, gp=gp,
                       gp_points=arrays["gp_points"], gp_normals=arrays["gp_normals"],
                       seed_points=arrays["seed_points"], summary=meta.get("summary", {}),
-                      far=far)
+                      far=far, up=meta.get("up"))   # saved before the up axis: z
     return smap
 
 
@@ -564,7 +571,7 @@ def _map_stage(ctx, scan, summary=None, prior=None, hgmm=None, gp=None, gp_point
     return {"smap": SurfaceMap(ctx.method, ctx.cfg, scan.offset, prior, hgmm=hgmm, gp=gp,
                                gp_points=gp_points, gp_normals=gp_normals,
                                seed_points=surface_seeds(scan, ctx.cfg), summary=summary,
-                               far=far)}
+                               far=far, up=scan.up)}
 
 
 def _surface_stage(ctx, smap):
@@ -590,7 +597,7 @@ def _refit_stage(ctx, smap, touched, gp_points, gp_normals, all_points):
     out = SurfaceMap(smap.method, smap.config, smap.offset, smap.prior, hgmm=smap.hgmm,
                      gp=field_, gp_points=gpp,
                      seed_points=surface_seeds(Scan(points=all_points), ctx.cfg),
-                     summary=smap.summary, far=smap.far)
+                     summary=smap.summary, far=smap.far, up=smap.up)
     return {"smap": out, "n_refit": n_refit}
 
 

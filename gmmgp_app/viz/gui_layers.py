@@ -120,7 +120,7 @@ def compare_scene_points(view):
         return pts
     from .gui_tuning import compare_shift
 
-    return np.vstack([pts, pts + compare_shift(pts)])
+    return np.vstack([pts, pts + compare_shift(pts, up=getattr(view.model, "up", None))])
 
 
 def scene_view(view):
@@ -144,7 +144,7 @@ def _compare_geometry(view, r, stage):
     prev = getattr(view, "previous", None)
     if prev is None or r.scan is None or len(r.scan) == 0:
         return None, None, None, None
-    shift = compare_shift(r.scan.points)
+    shift = compare_shift(r.scan.points, up=getattr(view.model, "up", None))
     sp = prev.scan.points if prev.scan is not None else np.zeros((0, 3))
     idx = view._display_points(sp)
     grey = lambda: G.point_cloud(sp[idx] + shift, np.full((len(idx), 3), 0.72))  # noqa: E731
