@@ -725,7 +725,7 @@ def run_stages(names, state: dict, ctx: RunContext, *, observer=None,
 def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gmmgp",
               observer=None, *, stop_after: Optional[str] = None, executor=None,
               progress=None, loggpis_lambda: Optional[float] = None,
-              check_grid: bool = False) -> SurfaceMap:
+              check_grid: bool = False, tree=None) -> SurfaceMap:
     """Map a scan into a probabilistic signed distance field.
 
     Parameters
@@ -752,7 +752,11 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
         Log-GPIS lambda (1/m).
     check_grid : bool
         Refuse an impossible surface grid (:func:`check_surface_grid`) once the
-        configuration is resolved, before any fitting (``gmmgp run`` when it meshes).
+        configuration is resolved, before any fitting.
+    tree : scipy.spatial.cKDTree, optional
+        The k-d tree of ``scan.points`` (:func:`scan_tree`) when the caller has it
+        (``gmmgp run`` checks the grid with it before starting a cluster); else built
+        here, once, for the scale measurement and the prepare stage.
 
     Returns
     -------
@@ -770,7 +774,8 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
     observer = observer or NullObserver()
     summary: dict = {"method": method, "n_scan_points": len(scan), "seconds": {}, "counts": {}}
     # one k-d tree of the scan for the scale measurement and the prepare stage
-    state = {"scan": scan, "summary": summary, "tree": scan_tree(scan)}
+    state = {"scan": scan, "summary": summary,
+             "tree": scan_tree(scan) if tree is None else tree}
     cfg, summary["auto"] = resolve_config(cfg, scan, tree=state["tree"])
     if check_grid:
         _surface.check_surface_grid(scan.points, cfg.surface)
@@ -913,10 +918,12 @@ def format_auto(record: dict) -> str:
                                for k, v in rows])
 
 
-def check_surface_grid(scan: Scan, cfg: MappingConfig) -> int:
+def check_surface_grid(scan: Scan, cfg: MappingConfig, *, tree=None) -> int:
     """Refuse, before any fitting, a surface grid too large to extract: the surface voxel
-    is the one ``build_map`` will use (``"auto"`` resolved from ``scan``)."""
-    cfg, _ = resolve_config(cfg, scan)
+    is the one ``build_map`` will use (``"auto"`` resolved from ``scan``; ``tree``, the
+    k-d tree of its points when the caller has it: :func:`resolve_config` remembers the
+    resolution, so ``build_map`` on the same scan and ``cfg`` does not measure again)."""
+    cfg, _ = resolve_config(cfg, scan, tree=tree)
     return _surface.check_surface_grid(scan.points, cfg.surface)
 
 
