@@ -217,9 +217,10 @@ def _run_tiled(args, cfg, spec, scan, out: Path, console, t0: float, read_s: flo
     With ``stream`` (:func:`gmmgp_app.tiling.stream_plan`; ``scan`` is then None) the
     LAS/LAZ file is streamed into per-tile pieces under a temporary folder inside
     ``out`` (the same file system as the output, which must hold the map anyway,
-    unlike a possibly small /tmp); the folder is removed once the map is saved to ``out/map`` (the save
-    copies the tiles), also on errors and Ctrl-C, and the mesh is extracted from the
-    saved map, which is what later commands open.
+    unlike a possibly small /tmp). Either way the finished tile maps are kept in that
+    folder, not in memory (a few loaded at a time); it is removed once the map is saved
+    to ``out/map`` (the save copies the tiles), also on errors and Ctrl-C, and the mesh
+    is extracted from the saved map, which is what later commands open.
     """
     import dataclasses
     import shutil
@@ -240,12 +241,12 @@ def _run_tiled(args, cfg, spec, scan, out: Path, console, t0: float, read_s: flo
         with open_executor(workers=args.workers or None, scheduler=args.scheduler,
                            kind="processes" if args.processes else "dask") as executor:
             bar = _TaskBar(console, "tiles")
+            out.mkdir(parents=True, exist_ok=True)
+            work = Path(tempfile.mkdtemp(prefix=".stream-" if stream else ".tiles-", dir=out))
             if stream is None:
                 tmap = build_tiled_map(scan, cfg, spec, method=args.method, executor=executor,
-                                       progress=bar, keep_points=True)
+                                       progress=bar, keep_points=True, work_dir=work)
             else:
-                out.mkdir(parents=True, exist_ok=True)
-                work = Path(tempfile.mkdtemp(prefix=".stream-", dir=out))
                 tmap = stream_tiles(stream, cfg, spec, args.method, work, executor, bar)
             bar.close()
         seconds = {"read": read_s, "tiles": time.perf_counter() - t1}

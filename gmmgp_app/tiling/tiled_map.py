@@ -15,7 +15,7 @@ from ..types import Scan, as_up_axis
 from .geometry import (TileSpec, TilingError, members, owners_summary, tile_dirname,
                        union_points, split_into_tiles, tile_owners)
 from .store import TileStore
-from .tasks import run_tiles
+from .tasks import map_tiles_to_store, run_tiles
 
 __all__ = ["TiledMap", "build_tiled_map", "load_tiled_map"]
 
@@ -405,7 +405,8 @@ class TiledMap:
 def build_tiled_map(scan: Scan, cfg: Optional[MappingConfig] = None,
                     spec: Optional[TileSpec] = None, method: str = "gmmgp", *,
                     executor=None, progress: Optional[Callable[[int, int], None]] = None,
-                    keep_points: bool = True) -> TiledMap:
+                    keep_points: bool = True, work_dir=None, cache_tiles: int = 4
+                    ) -> TiledMap:
     """Map a large scan tile by tile (each tile one task on ``executor``).
 
     Parameters
@@ -422,6 +423,12 @@ def build_tiled_map(scan: Scan, cfg: Optional[MappingConfig] = None,
         One count per finished tile.
     keep_points : bool
         Keep each tile's points for :meth:`TiledMap.update`.
+    work_dir : path, optional
+        Keep the tile maps on disk in ``work_dir/maps`` as they finish (the returned
+        map loads them on demand, ``cache_tiles`` at a time), as a streamed LAS build
+        does: memory then holds a few tile maps, not all of them (``gmmgp run
+        --tile-size``: the 8x street's peak RSS 532 -> 246 MB without meshing).
+        Default: every tile map in memory.
 
     Returns
     -------
@@ -441,8 +448,12 @@ def build_tiled_map(scan: Scan, cfg: Optional[MappingConfig] = None,
         raise TilingError(f"Expected at least one tile with {spec.min_points} points, found "
                           f"{max((len(t) for t in tiles.values()), default=0)}; use larger "
                           "tiles or lower TileSpec.min_points.")
-    maps, skipped = run_tiles(executor, tasks, progress)
-    if not maps:
+    if work_dir is None:
+        maps, skipped = run_tiles(executor, tasks, progress)
+    else:
+        maps = TileStore(Path(work_dir) / "maps", [], cache=cache_tiles)
+        skipped = map_tiles_to_store(executor, tasks, maps, progress)
+    if not len(maps):
         raise TilingError(f"Expected at least one tile to map, all {len(skipped)} failed; "
                           f"first: {next(iter(skipped.values()))}")
     kept = {k: (t.points, t.origins) for k, t in tiles.items()} if keep_points else None
