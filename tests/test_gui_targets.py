@@ -488,6 +488,7 @@ def _stanford_set(folder, n=3000, seed=5):
     return folder / "set.conf"
 
 
+@pytest.mark.filterwarnings("ignore:Scan has no sensor origins")  # a sphere / a plane
 def test_a_saved_map_keeps_its_scans_up_axis_for_the_viewer(tmp_path):
     """A map made from a Stanford scan set (y up) opens y up in the app, as its scan
     does: the map (map.json "up"), the run folder and the tiled map keep the scan's up

@@ -838,6 +838,7 @@ def test_a_refused_surface_grid_never_starts_a_cluster(tmp_path, capsys, monkeyp
         assert_no_partial_outputs(out)
 
 
+@pytest.mark.filterwarnings("ignore:Scan has no sensor origins")  # a sphere / a plane
 def test_run_checks_the_grid_then_starts_the_cluster_with_one_kd_tree(
         tmp_path, capsys, monkeypatch, count_scan_trees):
     """On a grid that fits, the check comes before the cluster, and the grid check and
