@@ -294,7 +294,7 @@ def _tiled_priors(tmap):
     from .tiling import TiledMap
 
     return TiledMap(tmap.spec, _PriorTiles(tmap.tiles), tmap.config, "hgmm",
-                    offset=tmap.offset, summary=tmap.summary, owners=tmap.owners)
+                    offset=tmap.offset, summary=tmap.summary, owners=tmap.owners, up=tmap.up)
 
 
 class _PriorOnly:

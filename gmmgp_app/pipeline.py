@@ -42,7 +42,7 @@ from .stages import octree as _octree
 from .stages import prepare as _prepare
 from .stages import surface as _surface
 from .stages import unseen as _unseen
-from .types import GaussianMixture, HGMMLevel, HierarchicalGMM, Scan, SurfaceMesh
+from .types import GaussianMixture, HGMMLevel, HierarchicalGMM, Scan, SurfaceMesh, as_up_axis
 
 __all__ = ["build_map", "SurfaceMap", "load_map", "update_map", "run_stages", "Stage",
            "STAGES", "RECIPES", "RunContext", "NullObserver", "FanoutObserver", "METHODS",
@@ -131,11 +131,17 @@ class SurfaceMap:
     config : MappingConfig
     summary : dict
         Timings (s) and counts per stage.
+    up : (3,) float64
+        The scan's up axis (``Scan.up``: y for a Stanford range-scan set, else z),
+        saved with the map so that a viewer stands it upright; a map saved without
+        one loads with z.
     """
 
     def __init__(self, method, config, offset, prior, hgmm=None, gp=None,
-                 gp_points=None, gp_normals=None, seed_points=None, summary=None, far=None):
+                 gp_points=None, gp_normals=None, seed_points=None, summary=None, far=None,
+                 up=None):
         self.method = method
+        self.up = as_up_axis(up)
         self.far = far
         self.config = config
         self.offset = np.asarray(offset, dtype=np.float64).reshape(3)
@@ -296,6 +302,7 @@ class SurfaceMap:
                 "prior_params": getattr(self.prior, "params", lambda: {})(),
                 "far_params": None if self.far is None else self.far.params(),
                 "config_toml": self.config.to_toml(),
+                "up": [float(v) for v in self.up],
                 "summary": jsonable(self.summary),
             }
             (tmp / "map.json").write_text(json.dumps(meta, indent=2))
@@ -351,7 +358,7 @@ def load_map(directory) -> SurfaceMap:
     smap = SurfaceMap(meta["method"], cfg, arrays["offset"], prior, hgmm=hgmm, gp=gp,
                       gp_points=arrays["gp_points"], gp_normals=arrays["gp_normals"],
                       seed_points=arrays["seed_points"], summary=meta.get("summary", {}),
-                      far=far)
+                      far=far, up=meta.get("up"))   # saved before the up axis: z
     return smap
 
 
@@ -564,7 +571,7 @@ def _map_stage(ctx, scan, summary=None, prior=None, hgmm=None, gp=None, gp_point
     return {"smap": SurfaceMap(ctx.method, ctx.cfg, scan.offset, prior, hgmm=hgmm, gp=gp,
                                gp_points=gp_points, gp_normals=gp_normals,
                                seed_points=surface_seeds(scan, ctx.cfg), summary=summary,
-                               far=far)}
+                               far=far, up=scan.up)}
 
 
 def _surface_stage(ctx, smap):
@@ -590,7 +597,7 @@ def _refit_stage(ctx, smap, touched, gp_points, gp_normals, all_points):
     out = SurfaceMap(smap.method, smap.config, smap.offset, smap.prior, hgmm=smap.hgmm,
                      gp=field_, gp_points=gpp,
                      seed_points=surface_seeds(Scan(points=all_points), ctx.cfg),
-                     summary=smap.summary, far=smap.far)
+                     summary=smap.summary, far=smap.far, up=smap.up)
     return {"smap": out, "n_refit": n_refit}
 
 
@@ -718,7 +725,7 @@ def run_stages(names, state: dict, ctx: RunContext, *, observer=None,
 def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gmmgp",
               observer=None, *, stop_after: Optional[str] = None, executor=None,
               progress=None, loggpis_lambda: Optional[float] = None,
-              check_grid: bool = False) -> SurfaceMap:
+              check_grid: bool = False, tree=None) -> SurfaceMap:
     """Map a scan into a probabilistic signed distance field.
 
     Parameters
@@ -745,7 +752,11 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
         Log-GPIS lambda (1/m).
     check_grid : bool
         Refuse an impossible surface grid (:func:`check_surface_grid`) once the
-        configuration is resolved, before any fitting (``gmmgp run`` when it meshes).
+        configuration is resolved, before any fitting.
+    tree : scipy.spatial.cKDTree, optional
+        The k-d tree of ``scan.points`` (:func:`scan_tree`) when the caller has it
+        (``gmmgp run`` checks the grid with it before starting a cluster); else built
+        here, once, for the scale measurement and the prepare stage.
 
     Returns
     -------
@@ -763,7 +774,8 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
     observer = observer or NullObserver()
     summary: dict = {"method": method, "n_scan_points": len(scan), "seconds": {}, "counts": {}}
     # one k-d tree of the scan for the scale measurement and the prepare stage
-    state = {"scan": scan, "summary": summary, "tree": scan_tree(scan)}
+    state = {"scan": scan, "summary": summary,
+             "tree": scan_tree(scan) if tree is None else tree}
     cfg, summary["auto"] = resolve_config(cfg, scan, tree=state["tree"])
     if check_grid:
         _surface.check_surface_grid(scan.points, cfg.surface)
@@ -906,10 +918,12 @@ def format_auto(record: dict) -> str:
                                for k, v in rows])
 
 
-def check_surface_grid(scan: Scan, cfg: MappingConfig) -> int:
+def check_surface_grid(scan: Scan, cfg: MappingConfig, *, tree=None) -> int:
     """Refuse, before any fitting, a surface grid too large to extract: the surface voxel
-    is the one ``build_map`` will use (``"auto"`` resolved from ``scan``)."""
-    cfg, _ = resolve_config(cfg, scan)
+    is the one ``build_map`` will use (``"auto"`` resolved from ``scan``; ``tree``, the
+    k-d tree of its points when the caller has it: :func:`resolve_config` remembers the
+    resolution, so ``build_map`` on the same scan and ``cfg`` does not measure again)."""
+    cfg, _ = resolve_config(cfg, scan, tree=tree)
     return _surface.check_surface_grid(scan.points, cfg.surface)
 
 

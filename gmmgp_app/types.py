@@ -33,6 +33,19 @@ def _f64(a, shape_tail: tuple, name: str) -> np.ndarray:
     return arr
 
 
+#: The up axis of every input that does not say otherwise (z).
+Z_UP = (0.0, 0.0, 1.0)
+
+
+def as_up_axis(up) -> np.ndarray:
+    """(3,) float64 ``up`` checked to be a coordinate axis (+-x, +-y or +-z); None: z."""
+    u = np.asarray(Z_UP if up is None else up, dtype=np.float64).reshape(-1)
+    if u.shape != (3,) or np.count_nonzero(u) != 1 or abs(float(u.sum())) != 1.0:
+        raise ValueError(f"Expected an up axis along x, y or z (e.g. (0, 1, 0)), found "
+                         f"{up!r}.")
+    return u
+
+
 @dataclass(frozen=True)
 class Scan:
     """A point cloud with optional sensor origins, in a local frame.
@@ -53,6 +66,10 @@ class Scan:
         Units of the *input* before conversion to metres ("m", "ft", "us-ft", ...).
     source : str
         Human-readable description of where the points came from.
+    up : (3,) float64
+        The data's up axis (+-x, +-y or +-z): y for a Stanford range-scan set, z for
+        every other input (:func:`gmmgp_app.datasets.registry.up_axis`). The mapping
+        does not use it; a map keeps it so that viewers stand the scene upright.
     """
 
     points: np.ndarray
@@ -62,8 +79,10 @@ class Scan:
     intensity: Optional[np.ndarray] = None
     units: str = "m"
     source: str = ""
+    up: np.ndarray = field(default_factory=lambda: np.array(Z_UP))
 
     def __post_init__(self):
+        object.__setattr__(self, "up", as_up_axis(self.up))
         pts = _f64(self.points, (3,), "Scan.points")
         object.__setattr__(self, "points", pts)
         n = len(pts)
@@ -99,6 +118,7 @@ class Scan:
             intensity=take(self.intensity),
             units=self.units,
             source=self.source,
+            up=self.up,
         )
 
 

@@ -26,6 +26,11 @@ Mesh metrics, computed afterwards in this process (not timed):
     .venv/bin/python scripts/bench_peers.py                  # out/bench/bench_peers.{json,md}
     .venv/bin/python scripts/bench_peers.py --cases street10,kitti --repeats 3
     .venv/bin/python scripts/bench_peers.py --gmmgp-arg=--set --gmmgp-arg=gp.d_m=0.03
+    .venv/bin/python scripts/bench_peers.py --repo /path/to/other/checkout   # map with its code
+
+The mapper runs the code of ``--repo`` (default: this script's own repository),
+whatever PYTHONPATH or the current folder hold; the JSON names it (``mapper``: the
+folder, its commit, whether it has uncommitted changes).
 """
 
 from __future__ import annotations
@@ -80,6 +85,47 @@ json.dump({"seconds": {"read": t1 - t0, "integrate": t2 - t1, "mesh": t3 - t2,
 
 
 # --------------------------------------------------------------------------- processes
+def mapper_command(repo, scan, out, extra=(), environ=None) -> tuple:
+    """``(cmd, env, cwd)`` of one ``gmmgp run`` of the benchmark: ``gmmgp run SCAN --out
+    OUT -q EXTRA`` importing gmmgp_app from ``repo``. The repository comes first on the
+    child's PYTHONPATH and is its working folder (``python -m`` puts the working folder
+    before PYTHONPATH: started from another checkout, the child imported that one), so
+    neither the caller's PYTHONPATH nor its folder choose the mapper's code; the other
+    PYTHONPATH entries follow. Paths are made absolute (the child starts in ``repo``)."""
+    repo = Path(repo).resolve()
+    environ = os.environ if environ is None else environ
+    rest = [p for p in environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+    env = dict(environ, PYTHONPATH=os.pathsep.join([str(repo), *rest]))
+    cmd = [sys.executable, "-m", "gmmgp_app.cli", "run", str(Path(scan).resolve()),
+           "--out", str(Path(out).resolve()), "-q", *map(str, extra)]
+    return cmd, env, repo
+
+
+def mapper_source(repo) -> dict:
+    """What the JSON says of the mapper's code: its folder, git commit and whether the
+    checkout has uncommitted changes to tracked files (None when not a git checkout)."""
+    repo = Path(repo).resolve()
+
+    def git(*a):
+        r = subprocess.run(["git", "-C", str(repo), *a], capture_output=True, text=True)
+        return r.stdout.strip() if r.returncode == 0 else None
+
+    commit = git("rev-parse", "HEAD")
+    status = git("status", "--porcelain", "--untracked-files=no") if commit else None
+    return {"repo": str(repo), "commit": commit,
+            "modified": None if status is None else bool(status)}
+
+
+def check_repo(repo) -> Path:
+    """``repo`` resolved, refused unless it holds gmmgp_app (a one-line ValueError)."""
+    r = Path(repo).resolve()
+    if not (r / "gmmgp_app" / "cli.py").is_file():
+        raise ValueError(f"--repo {repo} holds no gmmgp_app/cli.py; give the checkout whose "
+                         "code should map (default: this script's repository).")
+    return r
+
+
+
 # A small launcher measures the mapper: Linux hands a forked child the parent's
 # high-water RSS (kept across exec), so the mapper must be forked from a small process.
 LAUNCHER = (
@@ -257,7 +303,14 @@ def main(argv=None) -> int:
     ap.add_argument("--peers", default=str(ROOT / ".peers"), help="side environment folder")
     ap.add_argument("--out", default=str(ROOT / "out" / "bench"))
     ap.add_argument("--no-vdbfusion", action="store_true")
+    ap.add_argument("--repo", default=str(ROOT),
+                    help="checkout whose gmmgp_app maps (default: this script's repository, "
+                         f"{ROOT}); PYTHONPATH does not choose it")
     args = ap.parse_args(argv)
+    try:
+        repo = check_repo(args.repo)
+    except ValueError as e:
+        ap.error(str(e))
 
     from gmmgp_app._atomic import atomic_write_text
     from gmmgp_app.stages.surface import read_mesh_ply
@@ -284,8 +337,8 @@ def main(argv=None) -> int:
     runner = peers / "vdbfusion_runner.py"
     runner.write_text(RUNNER)
 
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    results = {"cases": {}, "settings": {
+    log(f"gmmgp: the code of {repo}")
+    results = {"cases": {}, "mapper": mapper_source(repo), "settings": {
         "vdbfusion": {"voxel_m": VOXEL, "sdf_trunc_m": TRUNC, "space_carving": False,
                       "fill_holes": False, "min_weight": 0.0, "origin_cell_m": ORIGIN_CELL},
         "gmmgp_args": args.gmmgp_arg, "repeats": args.repeats, "samples": args.samples},
@@ -307,14 +360,14 @@ def main(argv=None) -> int:
                 d = work / f"{case}_{name}_{r}"
                 shutil.rmtree(d, ignore_errors=True)
                 if name == "gmmgp":
-                    cmd = [sys.executable, "-m", "gmmgp_app.cli", "run", str(inp["scan"]),
-                           "--out", str(d), "-q", *args.gmmgp_arg]
+                    cmd, env, cwd = mapper_command(repo, inp["scan"], d, args.gmmgp_arg)
                 else:
                     d.mkdir(parents=True)
                     cmd = [vdb_py, str(runner), str(inp["scan"]), str(d / "mesh.npz"),
                            str(VOXEL), str(TRUNC), str(ORIGIN_CELL)]
+                    env, cwd = None, None
                 log(f"{case}: {name} run {r + 1}/{args.repeats} ...")
-                m = run_measured(cmd, env=env)
+                m = run_measured(cmd, env=env, cwd=cwd)
                 if name == "gmmgp":
                     m["stages"] = json.loads((d / "summary.json").read_text())["seconds"]
                 else:
@@ -366,7 +419,10 @@ def markdown(results) -> str:
                         f"{100 * k['comp_5cm']:.1f} | {k['chamfer_mm']:.1f} | {k['faces']}")
             lines.append(f"| {case} | {res['n_points']} | {name} | {m['wall_s']:.1f} | "
                          f"{m['peak_rss_mb']:.0f} | {metr} |")
-    notes = ["", "Wall time and peak RSS of the whole process (read, map, mesh, write); "
+    src = results.get("mapper") or {}
+    notes = ["", f"gmmgp: the code of {src.get('repo', '?')} at {src.get('commit') or '?'}"
+             + (" with uncommitted changes" if src.get("modified") else "") + ".",
+             "", "Wall time and peak RSS of the whole process (read, map, mesh, write); "
              f"median of {results['settings']['repeats']} run(s). Accuracy: mesh samples to "
              "the exact mesh (KITTI: to the scan); completeness: observed exact surface "
              "(KITTI: scan points) within 1/2/5 cm of the mesh."]

@@ -66,9 +66,12 @@ def test_streamed_run_equals_in_memory_run(laz, street, tmp_path, capsys):
     assert s["streamed"] is True and s["stream"]["origins"] is False
     assert s["stream_fallback"] is None and s["n_points"] == len(street)
     assert m["streamed"] is False and m["stream"] is None and m["stream_fallback"] == "--no-stream"
-    # the work folder is removed and nothing is left beside the outputs
+    # the work folders (streamed pieces and tiles; the read-whole run's tiles) are
+    # removed and nothing is left beside the outputs
     assert sorted(p.name for p in (tmp_path / "s").iterdir()) == [
         "config.toml", "map", "mesh_gmmgp.ply", "summary.json"]
+    assert sorted(p.name for p in (tmp_path / "m").iterdir()) == [
+        "config.toml", "map", "summary.json"]
     a = load_tiled_map(tmp_path / "s" / "map")
     b = load_tiled_map(tmp_path / "m" / "map")
     assert a.keys == b.keys and a.owners == b.owners and len(a.keys) > 3

@@ -942,3 +942,54 @@ def test_tiled_surface_with_the_auto_voxel_uses_the_tiles_median():
     ref = tm.extract_surface(voxel_size=tm.surface_voxel())
     assert len(mesh.faces) > 100
     np.testing.assert_array_equal(mesh.vertices, ref.vertices)
+
+
+def test_a_tiled_build_into_a_work_folder_holds_a_few_tile_maps_not_all(street, tiled,
+                                                                        tmp_path, monkeypatch):
+    """``build_tiled_map(work_dir=)`` (``gmmgp run --tile-size``): each finished tile map
+    goes to disk as it comes (at most one alive while a serial build maps tiles) and
+    none is held when the build returns, where the in-memory build holds all of them;
+    the map predicts bit for bit as the in-memory one, loading its tiles on demand,
+    ``cache_tiles`` at a time."""
+    import gc
+    import weakref
+
+    from gmmgp_app import pipeline
+    from gmmgp_app.tiling.store import TileStore
+
+    scan, _ = street
+    alive, real_init = [], pipeline.SurfaceMap.__init__
+
+    def tracking_init(self, *a, **k):
+        real_init(self, *a, **k)
+        alive.append(weakref.ref(self))
+
+    monkeypatch.setattr(pipeline.SurfaceMap, "__init__", tracking_init)
+
+    def live_maps(peak):
+        def progress(done, total):
+            gc.collect()
+            peak.append(sum(r() is not None for r in alive))
+        return progress
+
+    def held():
+        gc.collect()
+        return sum(r() is not None for r in alive)
+
+    in_memory, on_disk = [], []
+    ref = build_tiled_map(scan, tiled.config, tiled.spec, progress=live_maps(in_memory))
+    n = len(ref.keys)
+    assert n >= 4 and held() == n                 # the in-memory build holds every tile map
+    del ref
+    alive.clear()
+    tm = build_tiled_map(scan, tiled.config, tiled.spec, progress=live_maps(on_disk),
+                         work_dir=tmp_path / "work", cache_tiles=2)
+    assert held() == 0
+    assert len(on_disk) == n and max(on_disk) <= 1, on_disk
+    assert isinstance(tm.tiles, TileStore) and tm.keys == tiled.keys
+    assert sorted(p.name for p in (tmp_path / "work" / "maps").iterdir()) == sorted(
+        f"tile_{i}_{j}" for i, j in tiled.keys)
+    q = np.random.default_rng(4).uniform(scan.points.min(0), scan.points.max(0), (2000, 3))
+    for a, b in zip(tm.predict(q, return_grad=True), tiled.predict(q, return_grad=True)):
+        assert np.array_equal(a, b)
+    assert held() <= 2                            # cache_tiles loaded, no more

@@ -571,6 +571,9 @@ def test_lighting_switches_the_sun_on_from_the_cameras_side():
         def set_sun_light(self, d, colour, intensity):
             calls.append(("sun", np.asarray(d, float), float(intensity)))
 
+        def set_indirect_light_intensity(self, intensity):
+            calls.append(("ambient", float(intensity)))
+
         def enable_sun_light(self, on):
             calls.append(("enable", on))
 
@@ -597,10 +600,75 @@ def test_lighting_switches_the_sun_on_from_the_cameras_side():
         sun = [c for c in calls if c[0] == "sun"][0]
         d = sun[1]
         assert sun[2] > 0 and abs(np.linalg.norm(d) - 1) < 1e-6
+        ambient = [c[1] for c in calls if c[0] == "ambient"]
+        assert ambient and 0 < ambient[0] < sun[2]     # the sun is the key light
         _, _, centre, eye = camera_pose(pts)
         to_eye = (eye - centre) / np.linalg.norm(eye - centre)
         assert to_eye @ -d > 0.5            # lit from the viewer's side
         assert np.array([0, -1.0, 0]) @ -d > 0 and np.array([0, 0, 1.0]) @ -d > 0  # side, ground
+
+
+_RENDER_STREET = """
+import sys
+import numpy as np
+from gmmgp_app.config import MappingConfig
+from gmmgp_app.types import Scan, SurfaceMesh
+from gmmgp_app.viz.gui_model import StageResults, ViewerModel
+from gmmgp_app.viz.gui_screenshot import render_png
+
+def plane(origin, u, v, normal, k=12):
+    s, t = np.meshgrid(np.linspace(0, 1, k), np.linspace(0, 1, k))
+    P = origin + s.reshape(-1, 1) * u + t.reshape(-1, 1) * v
+    a = (np.arange(k - 1)[None, :] + k * np.arange(k - 1)[:, None]).reshape(-1)
+    F = np.vstack([np.c_[a, a + 1, a + k], np.c_[a + 1, a + k + 1, a + k]])
+    return P, F if np.dot(np.cross(u, v), normal) > 0 else F[:, ::-1]
+
+X, Y, Z = np.eye(3)
+L, W, H = 36.0, 16.0, 14.0
+faces = {"road": plane(np.array([0, -W / 2, 0.0]), L * X, W * Y, Z),      # normals to the street
+         "facade_py": plane(np.array([0, W / 2, 0.0]), L * X, H * Z, -Y),
+         "facade_my": plane(np.array([0, -W / 2, 0.0]), L * X, H * Z, Y)}
+scan = Scan(np.vstack([P for P, _ in faces.values()]))
+for name, (P, F) in faces.items():
+    mesh = SurfaceMesh(P, F.astype(np.int64), np.zeros(len(P)))
+    m = ViewerModel(StageResults(MappingConfig(), 0.5, scan=scan, mesh=mesh), "street")
+    render_png(m, f"{sys.argv[1]}/{name}.png", size=(240, 160), stage="surface")
+"""
+
+
+@pytest.mark.slow
+def test_a_lit_street_is_neither_washed_out_nor_lit_from_the_wrong_side(tmp_path):
+    """The road of a street (0.75 grey, as the app draws surfaces) renders mid-grey, not
+    white, and the facade the sun faces (over the camera's shoulder, from -y:
+    ``gui_camera.sun_direction``) is brighter than the one turned away. Before, Open3D's
+    image-based light outshone the sun: road (242, 252, 255), sunlit facade 92, the
+    other 236. One offscreen frame per face (the app's camera, lights and material)."""
+    from gmmgp_app.viz.gui_camera import default_view, sun_direction
+
+    xvfb, display = _start_xvfb(tmp_path)
+    env = dict(os.environ, DISPLAY=display)
+    env.pop("WAYLAND_DISPLAY", None)
+    try:
+        code, err = _run_quiet([sys.executable, "-c", _RENDER_STREET, str(tmp_path)], env=env,
+                               timeout=240)
+    finally:
+        _stop_xvfb(xvfb)
+    assert code == 0, err[-3000:]
+    grey = {}
+    for name in ("road", "facade_py", "facade_my"):
+        im = _png(tmp_path / f"{name}.png")
+        drawn = im[np.any(im < 250, axis=2)]
+        assert len(drawn) > 500, f"{name}: {len(drawn)} pixels drawn"
+        grey[name] = np.median(drawn, axis=0)
+    # the light's geometry the pictures rely on: the sun lights the road and the facade
+    # at +y (its street side faces -y), not the facade at -y
+    street = np.array([[0, -8, 0], [36, 8, 14.0]])
+    d = sun_direction(default_view(street))
+    assert -d[2] > 0.3 and d[1] > 0.2                   # from above, from the -y side
+    assert grey["road"].max() < 225, grey               # not washed out (was 255)
+    assert grey["road"].min() > 120, grey               # nor dark
+    assert np.ptp(grey["road"]) < 12, grey              # grey, not tinted (was 13 blue)
+    assert grey["facade_py"].mean() > grey["facade_my"].mean() + 10, grey
 
 
 def _street(n=4000, length=36.0, half_width=8.0, height=14.0, seed=0):

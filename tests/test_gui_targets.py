@@ -473,3 +473,77 @@ def test_compare_screenshot_records_the_resolved_d_m_with_default_settings(tmp_p
     for r in (drawn["results"], drawn["previous"]):
         assert r.summary["auto"]["gp.d_m"]["value"] == d_m
         assert r.gp_points is not None and r.mesh is None  # stopped after the GP stage
+
+
+def _stanford_set(folder, n=3000, seed=5):
+    """A one-scan Stanford ``.conf`` set: a bunny-sized sphere (radius 5 cm) in a PLY."""
+    import open3d as o3d
+
+    folder.mkdir()
+    d = np.random.default_rng(seed).normal(size=(n, 3))
+    pts = 0.05 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    o3d.io.write_point_cloud(str(folder / "s0.ply"),
+                             o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)))
+    (folder / "set.conf").write_text("bmesh s0.ply 0 0 0 0 0 0 1\n")
+    return folder / "set.conf"
+
+
+@pytest.mark.filterwarnings("ignore:Scan has no sensor origins")  # a sphere / a plane
+def test_a_saved_map_keeps_its_scans_up_axis_for_the_viewer(tmp_path):
+    """A map made from a Stanford scan set (y up) opens y up in the app, as its scan
+    does: the map (map.json "up"), the run folder and the tiled map keep the scan's up
+    axis; a map saved without one (older versions) opens z up."""
+    from gmmgp_app.cli import main
+    from gmmgp_app.datasets import read_scan
+    from gmmgp_app.pipeline import load_map
+
+    conf = _stanford_set(tmp_path / "set")
+    np.testing.assert_array_equal(read_scan(conf).up, [0, 1, 0])
+    np.testing.assert_array_equal(read_scan(conf.parent).up, [0, 1, 0])
+    out = tmp_path / "out"
+    assert main(["run", str(conf), "--out", str(out), "--no-mesh", "--quiet",
+                 "--set", "hgmm.max_levels=2"]) == 0
+    np.testing.assert_array_equal(load_map(out / "map").up, [0, 1, 0])
+    for target in (out, out / "map"):
+        np.testing.assert_array_equal(ViewerModel.open(target).up, [0, 1, 0])
+    # a map saved before the up axis was kept: z, as those maps always opened
+    meta = json.loads((out / "map" / "map.json").read_text())
+    assert meta.pop("up") == [0.0, 1.0, 0.0]
+    (out / "map" / "map.json").write_text(json.dumps(meta))
+    np.testing.assert_array_equal(ViewerModel.open(out / "map").up, [0, 0, 1])
+    # a scan that is not a Stanford set: z
+    np.testing.assert_array_equal(read_scan(conf.parent / "s0.ply").up, [0, 0, 1])
+
+
+def test_a_tiled_map_keeps_its_scans_up_axis(tmp_path):
+    from gmmgp_app.tiling import TileSpec, build_tiled_map, load_tiled_map
+
+    scan = _plane_scan(n=1200)
+    y_up = Scan(scan.points, origins=scan.origins, up=(0.0, 1.0, 0.0))
+    tmap = build_tiled_map(y_up, CFG, TileSpec(size=5.0, overlap=0.5, min_points=50))
+    np.testing.assert_array_equal(tmap.up, [0, 1, 0])
+    tmap.save(tmp_path / "tiled")
+    np.testing.assert_array_equal(load_tiled_map(tmp_path / "tiled").up, [0, 1, 0])
+    np.testing.assert_array_equal(ViewerModel.open(tmp_path / "tiled").up, [0, 1, 0])
+    meta = json.loads((tmp_path / "tiled" / "tiled.json").read_text())
+    del meta["up"]
+    (tmp_path / "tiled" / "tiled.json").write_text(json.dumps(meta))
+    np.testing.assert_array_equal(load_tiled_map(tmp_path / "tiled").up, [0, 0, 1])
+
+
+def test_the_compare_copy_stands_beside_y_up_data_not_above_it():
+    """The compare layer shifts the previous run across the view in the horizontal
+    plane of the data's up axis: for y-up data never along y (that stacked the copy
+    above or below the scan)."""
+    rng = np.random.default_rng(3)
+    # a y-up street: long along x, its height along y, its width along z
+    street = rng.uniform([0, 0, -4], [40, 12, 4], size=(3000, 3))
+    sh = compare_shift(street, up=(0.0, 1.0, 0.0))
+    assert sh[0] == 0 and sh[1] == 0 and sh[2] > np.ptp(street[:, 2])   # across: z
+    # the same street z up: across is y, as before
+    z_up = street[:, [0, 2, 1]]
+    np.testing.assert_array_equal(compare_shift(z_up), compare_shift(z_up, up=(0, 0, 1)))
+    assert np.flatnonzero(compare_shift(z_up)).tolist() == [1]
+    # a y-up object longer in x than deep in z: across is z, never y
+    obj = rng.normal(size=(2000, 3)) * [0.08, 0.03, 0.03]
+    assert np.flatnonzero(compare_shift(obj, up=(0.0, 1.0, 0.0))).tolist() == [2]

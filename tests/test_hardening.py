@@ -820,6 +820,74 @@ def test_surface_grid_too_large_is_refused_before_fitting(tmp_path, capsys, monk
     assert_no_partial_outputs(out)
 
 
+def test_a_refused_surface_grid_never_starts_a_cluster(tmp_path, capsys, monkeypatch):
+    """``run --workers N`` refuses an impossible grid before the Dask cluster starts
+    (starting it costs ~0.5 s, and on a refused grid it was started for nothing)."""
+    import gmmgp_app.distributed as D
+
+    def no_cluster(*a, **k):
+        raise AssertionError("a cluster was started although the grid is refused")
+
+    monkeypatch.setattr(D, "open_executor", no_cluster)
+    out = tmp_path / "out"
+    for kind in ((), ("--processes",)):
+        rc, _, err = _cli(capsys, "run", _big_plane(tmp_path), "--out", out, "-q",
+                          "--method", "hgmm", "--workers", "2", *kind,
+                          "--set", "surface.voxel_size=0.0005")
+        assert_one_line_error(rc, err, "run", r"needs up to [\d,]+ field evaluations")
+        assert_no_partial_outputs(out)
+
+
+@pytest.mark.filterwarnings("ignore:Scan has no sensor origins")  # a sphere / a plane
+def test_run_checks_the_grid_then_starts_the_cluster_with_one_kd_tree(
+        tmp_path, capsys, monkeypatch, count_scan_trees):
+    """On a grid that fits, the check comes before the cluster, and the grid check and
+    the map share one k-d tree of the scan and one scale measurement."""
+    import contextlib
+
+    import gmmgp_app.distributed as D
+    from gmmgp_app.commands import run as run_cmd
+    from gmmgp_app.stages import autoscale, surface
+
+    events = []
+    real_open, real_check = D.open_executor, surface.check_surface_grid
+    real_resolve = autoscale.resolve_config
+
+    @contextlib.contextmanager
+    def serial_cluster(*a, **k):          # what the code asked for, run serially here
+        events.append(("cluster", k.get("workers")))
+        with real_open() as ex:
+            yield ex
+
+    def checking(*a, **k):
+        events.append("grid")
+        return real_check(*a, **k)
+
+    def measuring(*a, **k):
+        events.append("measure")
+        return real_resolve(*a, **k)
+
+    scan = gm.read_scan(_big_plane(tmp_path))
+    monkeypatch.setattr(run_cmd, "read_scan_args", lambda paths, args: scan)
+    monkeypatch.setattr(D, "open_executor", serial_cluster)
+    monkeypatch.setattr(surface, "check_surface_grid", checking)
+    monkeypatch.setattr(autoscale, "resolve_config", measuring)
+    built = count_scan_trees(scan.points)
+    rc, _, err = _cli(capsys, "run", "plane.npy", "--out", tmp_path / "out", "-q",
+                      "--method", "hgmm", "--workers", "2", "--no-mesh")
+    assert rc == 0, err
+    assert events == [("cluster", 2), "measure"]          # --no-mesh: no grid to check
+    events.clear()
+    built.clear()
+    built = count_scan_trees(scan.points)
+    rc, _, err = _cli(capsys, "run", "plane.npy", "--out", tmp_path / "out2", "-q",
+                      "--method", "hgmm", "--workers", "2")
+    assert rc == 0, err
+    assert events[:3] == ["measure", "grid", ("cluster", 2)]
+    assert "measure" not in events[3:]
+    assert built.count(True) == 1, built
+
+
 # --------------------------------------------------------------------------- corpus G: interruptions
 def _default_sigint():
     # A job started in the background by a non-interactive shell (nohup ... &) inherits

@@ -107,22 +107,23 @@ def run(args) -> int:
     scan = read_scan_args(args.scan, args)
     read_s = time.perf_counter() - t0
     stop = None if args.stage == "all" else args.stage
-    # refuse an impossible grid before fitting
-    check_grid = stop is None and not args.no_mesh and args.method != "loggpis"
-    if spec is not None:
-        if check_grid:
-            from ..pipeline import check_surface_grid
+    tree = None
+    if stop is None and not args.no_mesh and args.method != "loggpis":
+        # refuse an impossible grid before fitting and before a cluster starts; the
+        # scale measured for it (and its k-d tree of the scan) is build_map's own
+        from ..pipeline import check_surface_grid, scan_tree
 
-            check_surface_grid(scan, cfg)
+        tree = scan_tree(scan) if spec is None else None
+        check_surface_grid(scan, cfg, tree=tree)
+    if spec is not None:
         return _run_tiled(args, cfg, spec, scan, out, console, t0, read_s, fallback=fallback)
     from ..distributed import open_executor
 
     with open_executor(workers=args.workers or None, scheduler=args.scheduler,
                        kind="processes" if args.processes else "dask") as executor:
         bar = _TaskBar(console, "GP blocks")
-        # (build_map checks the grid once the scale is measured: one k-d tree of the scan)
         smap = build_map(scan, cfg, method=args.method, observer=observer, stop_after=stop,
-                         executor=executor, progress=bar, check_grid=check_grid)
+                         executor=executor, progress=bar, tree=tree)
         bar.close()
     del scan  # the map keeps what it needs (seeds, GP points): free the scan before meshing
     smap.summary["seconds"] = {"read": read_s, **smap.summary["seconds"]}
@@ -216,9 +217,10 @@ def _run_tiled(args, cfg, spec, scan, out: Path, console, t0: float, read_s: flo
     With ``stream`` (:func:`gmmgp_app.tiling.stream_plan`; ``scan`` is then None) the
     LAS/LAZ file is streamed into per-tile pieces under a temporary folder inside
     ``out`` (the same file system as the output, which must hold the map anyway,
-    unlike a possibly small /tmp); the folder is removed once the map is saved to ``out/map`` (the save
-    copies the tiles), also on errors and Ctrl-C, and the mesh is extracted from the
-    saved map, which is what later commands open.
+    unlike a possibly small /tmp). Either way the finished tile maps are kept in that
+    folder, not in memory (a few loaded at a time); it is removed once the map is saved
+    to ``out/map`` (the save copies the tiles), also on errors and Ctrl-C, and the mesh
+    is extracted from the saved map, which is what later commands open.
     """
     import dataclasses
     import shutil
@@ -239,12 +241,12 @@ def _run_tiled(args, cfg, spec, scan, out: Path, console, t0: float, read_s: flo
         with open_executor(workers=args.workers or None, scheduler=args.scheduler,
                            kind="processes" if args.processes else "dask") as executor:
             bar = _TaskBar(console, "tiles")
+            out.mkdir(parents=True, exist_ok=True)
+            work = Path(tempfile.mkdtemp(prefix=".stream-" if stream else ".tiles-", dir=out))
             if stream is None:
                 tmap = build_tiled_map(scan, cfg, spec, method=args.method, executor=executor,
-                                       progress=bar, keep_points=True)
+                                       progress=bar, keep_points=True, work_dir=work)
             else:
-                out.mkdir(parents=True, exist_ok=True)
-                work = Path(tempfile.mkdtemp(prefix=".stream-", dir=out))
                 tmap = stream_tiles(stream, cfg, spec, args.method, work, executor, bar)
             bar.close()
         seconds = {"read": read_s, "tiles": time.perf_counter() - t1}

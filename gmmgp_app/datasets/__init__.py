@@ -28,6 +28,7 @@ multiple of 1000 m; ``Scan.points`` are local (original = points + offset).
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Optional, Sequence, Union
 
@@ -48,7 +49,8 @@ from ._common import (
     qname,
 )
 from .las import read_las_header, write_las
-from .registry import SUPPORTED_EXTENSIONS, read_conf_file, read_file, read_folder, read_list
+from .registry import (SUPPORTED_EXTENSIONS, read_conf_file, read_file, read_folder, read_list,
+                       up_axis)
 
 __all__ = [
     "read_scan",
@@ -119,7 +121,9 @@ def read_scan(
         ``points`` (N, 3) float64 metres in the local frame, ``origins`` (N, 3)
         when known (KITTI: sensor frame zeros or pose translations; E57 and
         posed sequences: scanner positions; NPZ: as stored), ``offset`` (3,),
-        ``labels`` (N,) int64 and ``intensity`` (N,) when the format has them.
+        ``labels`` (N,) int64 and ``intensity`` (N,) when the format has them;
+        ``up``, the data's up axis (y for a Stanford ``.conf`` set, z otherwise; a
+        list takes its inputs' common up axis, z when they differ).
 
     Raises
     ------
@@ -137,6 +141,7 @@ def read_scan(
     if isinstance(path_or_paths, (str, Path)) or hasattr(path_or_paths, "__fspath__"):
         path = Path(path_or_paths)
         where = qname(path)
+        up = up_axis(path)
         if path.is_dir():
             raws = read_folder(path, units=units, poses=poses, scans=scans, max_scans=max_scans)
             if labels is not None:
@@ -165,9 +170,14 @@ def read_scan(
             )
         raws = read_list(paths, units=units, poses=poses, scans=scans, max_scans=max_scans)
         where = qname(paths[0]) + (f" and {len(paths) - 1} more" if len(paths) > 1 else "")
+        ups = {tuple(up_axis(p)) for p in paths}
+        up = ups.pop() if len(ups) == 1 else None
     raw = merge(raws, source=raws[0].source if len(raws) == 1 else where.strip("'"))
     raw = filter_classes(raw, classes, where)
-    return finalize(raw, offset=offset, where=where)
+    scan = finalize(raw, offset=offset, where=where)
+    if up is not None and tuple(up) != tuple(scan.up):
+        scan = dataclasses.replace(scan, up=up)
+    return scan
 
 
 def scan_summary(scan: Scan, *, max_sample: int = 20_000, seed: int = 0) -> dict:

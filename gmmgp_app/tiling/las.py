@@ -10,7 +10,7 @@ import numpy as np
 from ..config import MappingConfig
 from .geometry import TileSpec, TilingError, members, owners_summary, tile_owners
 from .store import TileStore
-from .tasks import build_tile
+from .tasks import map_tiles_to_store
 from .tiled_map import TiledMap
 
 __all__ = ["spill_las_to_tiles", "build_tiled_map_from_las", "stream_plan", "stream_tiles",
@@ -194,8 +194,6 @@ def build_tiled_map_from_las(path, cfg: Optional[MappingConfig] = None,
     """
     from pathlib import Path
 
-    from ..distributed import imap_unordered
-
     cfg = MappingConfig() if cfg is None else cfg
     spec = TileSpec() if spec is None else spec
     work_dir = Path(work_dir)
@@ -210,18 +208,7 @@ def build_tiled_map_from_las(path, cfg: Optional[MappingConfig] = None,
                       else []) for m in members(owners, key)]
             tasks.append((key, files, None, cfg, method))
     store = TileStore(work_dir / "maps", [], cache=cache_tiles)
-    skipped = {}
-    # a sliding window of tiles: each finished tile map is saved and dropped as it
-    # comes (at most a few wait in memory) and a free worker starts the next tile
-    for done, (_, (key, b)) in enumerate(imap_unordered(executor, build_tile, tasks,
-                                                        window=4), start=1):
-        if isinstance(b, str):
-            skipped[key] = b
-        else:
-            store.put_saved(key, b)  # the worker's saved files, not loaded here
-        if progress is not None:
-            progress(done, len(tasks))
-    skipped = dict(sorted(skipped.items()))
+    skipped = map_tiles_to_store(executor, tasks, store, progress)
     if not len(store):
         raise TilingError(f"Expected at least one tile with {spec.min_points} points in "
                           f"'{path}', found none that could be mapped.")

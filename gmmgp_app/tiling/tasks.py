@@ -55,6 +55,25 @@ def map_from_bytes(files: dict):
         return load_map(d)
 
 
+def map_tiles_to_store(executor, tasks, store, progress=None) -> dict:
+    """Map the tile ``tasks`` into ``store`` (a :class:`~.store.TileStore` on disk) as they
+    finish: a sliding window of tiles, each finished map's saved files written as they
+    are and dropped (at most a few maps in memory), a free worker starting the next
+    tile at once. Returns the skipped tiles' reasons by key (too sparse to map)."""
+    from ..distributed import imap_unordered
+
+    skipped = {}
+    for done, (_, (key, b)) in enumerate(imap_unordered(executor, build_tile, tasks,
+                                                        window=4), start=1):
+        if isinstance(b, str):
+            skipped[key] = b
+        else:
+            store.put_saved(key, b)  # the worker's saved files, not loaded here
+        if progress is not None:
+            progress(done, len(tasks))
+    return dict(sorted(skipped.items()))
+
+
 def run_tiles(executor, tasks, progress):
     from ..distributed import map_batched
 

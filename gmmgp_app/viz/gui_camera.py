@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..types import as_up_axis
+
 __all__ = ["ELONGATED", "DefaultView", "default_view", "up_frame", "across_axis",
            "sun_direction"]
 
@@ -95,9 +97,7 @@ def _long_axis(lo, hi):
 
 def up_frame(up) -> np.ndarray:
     """(3, 3) the rotation taking the coordinate axis ``up`` (+-x, +-y or +-z) to +z."""
-    u = np.asarray(up, dtype=np.float64).reshape(3)
-    if np.count_nonzero(u) != 1 or abs(float(u.sum())) != 1.0:
-        raise ValueError(f"Expected an up axis along x, y or z (e.g. (0, 1, 0)), found {up}.")
+    u = as_up_axis(up)
     if u[2] == 1.0:
         return np.eye(3)
     if u[2] == -1.0:
@@ -143,12 +143,15 @@ def default_view(points, like=None, up=None) -> DefaultView:
     return DefaultView(lo, hi, centre, centre + ext * offset, np.array([0.0, 0.0, 1.0]), along)
 
 
-def across_axis(points) -> int:
-    """The horizontal axis (0: x, 1: y) across the default view: copies shifted along it
-    stand side by side in the picture (the compare layer)."""
-    lo, hi = _box(points)
+def across_axis(points, up=None) -> int:
+    """The horizontal axis (0: x, 1: y, 2: z) across the default view: copies shifted
+    along it stand side by side in the picture (the compare layer). ``up`` (3,),
+    optional: the data's up axis (default z); the axis is never the up one."""
+    R = np.eye(3) if up is None else up_frame(up)
+    lo, hi = _box(np.asarray(points, dtype=np.float64).reshape(-1, 3) @ R.T)
     along = _long_axis(lo, hi)
-    return 0 if along is None else 1 - along
+    across = 0 if along is None else 1 - along         # in the frame whose z is up
+    return int(np.flatnonzero(R[across])[0])            # that axis in the data's frame
 
 
 def sun_direction(view: DefaultView) -> np.ndarray:

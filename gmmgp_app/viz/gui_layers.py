@@ -60,8 +60,13 @@ def materials(rendering, scaling: float = 1.0) -> dict:
 #: Direction the sun's light travels before a scene is framed; once it is, the sun comes
 #: from over the default camera's shoulder (``gui_camera.sun_direction``).
 SUN_DIRECTION = (-0.3, 0.6, -0.75)
-#: Sun intensity (lux, Filament's unit): surfaces facing it at 0.75 grey render ~220/255.
-SUN_INTENSITY = 60000.0
+#: Sun intensity (lux, Filament's unit): the key light. A 0.75-grey face turned to it
+#: renders ~160/255 from the sun alone (pixels are linear in the light: the frames are
+#: drawn without post-processing; 96 at 60,000 lux, measured).
+SUN_INTENSITY = 100000.0
+#: Intensity of the image-based (ambient) light: a fill, about a quarter of Open3D's own
+#: (~37,500, whose brightest direction, +y, lights a 0.75-grey face to 231/255 alone).
+INDIRECT_INTENSITY = 10000.0
 
 
 def set_lighting(open3d_scene, rendering, direction=SUN_DIRECTION) -> None:
@@ -72,10 +77,22 @@ def set_lighting(open3d_scene, rendering, direction=SUN_DIRECTION) -> None:
     lit surfaces came out dark grey (a 0.75-grey sphere: 118-173 of 255, the same
     pixels for opposite directions). The sun is switched on here explicitly; no
     shadow-map pass (it costs every frame on a CPU renderer and adds nothing to
-    reading the map)."""
+    reading the map).
+
+    The sun is the key light and the image-based light a weak fill. Open3D's image-based
+    light is fixed to the world's axes and uneven (0.75-grey faces lit by it alone:
+    +y 231, +z 189, -x 169, +x 106, -z 90, -y 50 of 255) and, at its own intensity,
+    brighter than the sun was (at most 96): upward faces (a street's road) clipped to
+    white and the sun's side of a street came out darker than the other side. Now a
+    face turned to the sun is the brightest (~196 of 255: ~160 from the sun, the rest
+    fill; nothing clips), the road of a street is mid-grey (~154), the facade on the
+    sun's side (82) is brighter than the other (63), and faces away from the sun keep
+    13-62 of fill. Medians of the drawn pixels: the demo street's surface 234 -> 149,
+    the bunny's (upright) 141 -> 183."""
     d = np.asarray(direction, np.float32)
     d /= np.linalg.norm(d)
     open3d_scene.set_lighting(rendering.Open3DScene.LightingProfile.NO_SHADOWS, d)
+    open3d_scene.scene.set_indirect_light_intensity(INDIRECT_INTENSITY)
     open3d_scene.scene.set_sun_light(d, np.ones(3, np.float32), SUN_INTENSITY)
     open3d_scene.scene.enable_sun_light(True)
 
@@ -120,7 +137,7 @@ def compare_scene_points(view):
         return pts
     from .gui_tuning import compare_shift
 
-    return np.vstack([pts, pts + compare_shift(pts)])
+    return np.vstack([pts, pts + compare_shift(pts, up=getattr(view.model, "up", None))])
 
 
 def scene_view(view):
@@ -144,7 +161,7 @@ def _compare_geometry(view, r, stage):
     prev = getattr(view, "previous", None)
     if prev is None or r.scan is None or len(r.scan) == 0:
         return None, None, None, None
-    shift = compare_shift(r.scan.points)
+    shift = compare_shift(r.scan.points, up=getattr(view.model, "up", None))
     sp = prev.scan.points if prev.scan is not None else np.zeros((0, 3))
     idx = view._display_points(sp)
     grey = lambda: G.point_cloud(sp[idx] + shift, np.full((len(idx), 3), 0.72))  # noqa: E731

@@ -180,8 +180,9 @@ class ViewerModel:
         self.hgmm_cache = None
         self._cache_lock = threading.Lock()
         self._resolved = None   # (scan, what the resolution depends on, cfg, record)
-        #: (3,) the data's up axis (datasets.registry.up_axis): the default view's
-        self.up = np.array([0.0, 0.0, 1.0])
+        #: (3,) the data's up axis (``Scan.up``, or the one a map was saved with): the
+        #: default view's up, the scan's height colours and the compare copy's side
+        self.up = np.array([0.0, 0.0, 1.0]) if results.scan is None else results.scan.up
 
     # ------------------------------------------------------------------ opening
     @classmethod
@@ -210,7 +211,6 @@ class ViewerModel:
             except T.TargetError as e:
                 raise ViewerError(str(e)) from None
         from ..datasets import read_scan
-        from ..datasets.registry import up_axis
 
         if path.is_dir():
             from ..datasets import ScanReadError
@@ -227,7 +227,7 @@ class ViewerModel:
         m = cls(StageResults(config=cfg, voxel_size=voxel_size, scan=scan),
                 source=str(path))
         m.kind = "scan"
-        m.up = up_axis(path)
+        m.up = scan.up
         return m
 
     @classmethod
@@ -254,6 +254,7 @@ class ViewerModel:
                                smap=tmap, tiles=T.TiledView(tmap), summary=summary)
             m = cls(res, source=str(tdir))
             m.kind = "tiled"
+            m.up = tmap.up
             return m
         mapdir = path / "map" if (path / "map" / "map.json").is_file() else path
         smap = load_map(mapdir)
@@ -261,12 +262,13 @@ class ViewerModel:
         mesh = T.read_run_mesh(run_dir, smap.method, smap.offset)
         res = StageResults(config=smap.config, voxel_size=voxel_size,
                            scan=Scan(smap.seed_points, offset=smap.offset,
-                                     source=f"{mapdir} (surface seeds)"),
+                                     source=f"{mapdir} (surface seeds)", up=smap.up),
                            hgmm=smap.hgmm, prior=smap.prior, gp_points=gp_pts,
                            gp=smap.gp, smap=smap, mesh=mesh,
                            summary=summary or dict(smap.summary))
         m = cls(res, source=str(mapdir))
         m.kind = "run" if mesh is not None or summary else "map"
+        m.up = smap.up
         m.mesh_file = str(run_dir / f"mesh_{smap.method}.ply") if mesh is not None else None
         return m
 

@@ -99,20 +99,20 @@ def run_record(prev: Optional[StageResults], new: StageResults) -> RunRecord:
                      gp_points=c.get("gp_points"), field_change_rms=change)
 
 
-def compare_shift(points: np.ndarray, gap: float = 0.15) -> np.ndarray:
+def compare_shift(points: np.ndarray, gap: float = 0.15, up=None) -> np.ndarray:
     """(3,) translation placing the previous run's geometry beside the new one.
 
     Along the horizontal axis across the default view (:func:`gui_camera.across_axis`:
     x for a compact scene seen from -y, the short side of a street seen along its long
-    side), by the points' range on that axis plus ``gap`` of it, so the two copies
-    stand side by side in the picture and never overlap (along the line of sight one
-    copy stood behind the other).
+    side; horizontal for the data's up axis ``up``, default z), by the points' range on
+    that axis plus ``gap`` of it, so the two copies stand side by side in the picture
+    and never overlap (along the line of sight one copy stood behind the other).
     """
     from .gui_camera import across_axis
 
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     out = np.zeros(3)
     if len(pts):
-        ax = across_axis(pts)
+        ax = across_axis(pts, up)
         out[ax] = (1.0 + gap) * max(float(np.ptp(pts[:, ax])), 1e-6)
     return out
