@@ -223,7 +223,8 @@ class SurfaceMap:
                             None if is_auto(self.config.gp.length_scale)
                             else self.config.gp.length_scale,
                             self.config.far.unseen_weight, self.config.far.min_thickness,
-                            self.config.far.edge_gap, self.config.far.unseen_predictive)
+                            self.config.far.edge_gap, self.config.far.unseen_predictive,
+                            self.config.far.blend)
 
     @property
     def signed(self) -> bool:
@@ -330,6 +331,9 @@ def load_map(directory) -> SurfaceMap:
     if isinstance(far_cfg, dict) and "unseen_predictive" not in far_cfg:
         # saved before eq. unseen_mixture: the map predicts as it did (eq. unseen_var)
         far_cfg["unseen_predictive"] = "gaussian"
+    if isinstance(far_cfg, dict) and "blend" not in far_cfg:
+        # saved before eq. blend_correlated: the map mixes its mean as it did (eq. blend)
+        far_cfg["blend"] = "growth"
     cfg = MappingConfig.from_dict(cfg_dict)
     with np.load(arr_path, allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files}
