@@ -118,20 +118,37 @@ from .knn import GridKNN
 
 __all__ = ["FarField", "FarFieldError", "blend_fields", "blend_correlated", "field_variance",
            "fit_field_variance", "fit_error_correlation", "FIELD_VAR_COEF",
-           "BLEND_CORRELATION", "VARIANCE_COEF_CORRELATED", "BlendedField", "VARIANCE_COEF",
+           "BLEND_CORRELATION", "VARIANCE_COEF_CORRELATED",
+           "VARIANCE_COEF_RAW_POINTS", "variance_coef", "BlendedField", "VARIANCE_COEF",
            "calibrated_variance", "variance_features", "fit_variance_quantile",
-           "behind_width", "extent_width", "unseen_variance"]
+           "behind_width", "extent_width", "unseen_variance", "project_to_local_planes"]
 
 #: (t0, ..., t4) of eq. calibrated_var: the 0.68-quantile regression (eq.
 #: variance_quantile_fit) on the tuned scenes' observed queries (synthetic street and
-#: sphere, 10 % handed, seed 0, with the robust far field and ``far.gp_growth`` = 4;
-#: ``python scripts/fit_variance.py --fit``). Used with ``far.blend = "growth"``.
-VARIANCE_COEF = (-0.4745, -0.2282, 1.0088, 0.1706, 0.1404)
+#: sphere, 10 % handed, seed 0, robust far field of the projected points (eq.
+#: point_projection), ``far.gp_growth`` = 4; ``python scripts/fit_variance.py --fit``).
+VARIANCE_COEF = (-0.5797, -0.1890, 1.0619, 0.1583, 0.0675)
+
+#: VARIANCE_COEF of maps whose far field holds the raw hit points (``far.project_points
+#: = false``: every map saved before eq. point_projection), fitted with that mean
+#: (session 5); kept so that those maps predict as they did.
+VARIANCE_COEF_RAW_POINTS = (-0.4745, -0.2282, 1.0088, 0.1706, 0.1404)
 
 #: (t0, ..., t4) of eq. calibrated_var for the mean of eq. blend_correlated
-#: (``far.blend = "correlated"``, opt-in): the same fit with that mean
-#: (``python scripts/fit_variance.py --fit --set far.blend=correlated``).
+#: (``far.blend = "correlated"``, opt-in), raw far-field points: the same fit with that
+#: mean (``python scripts/fit_variance.py --fit --set far.blend=correlated --set
+#: far.project_points=false``).
 VARIANCE_COEF_CORRELATED = (0.8599, -0.9298, 0.9000, 0.2607, 0.5194)
+
+
+def variance_coef(blend: str = "growth", projected: bool = True):
+    """The coefficients of eq. calibrated_var fitted with the map's mean: ``blend``
+    (``far.blend``) and whether the far field's points were projected (eq.
+    point_projection, ``far.project_points``). The correlated blend was fitted with raw
+    points only; with projected points it uses the same coefficients (not refitted)."""
+    if blend == "correlated":
+        return VARIANCE_COEF_CORRELATED
+    return VARIANCE_COEF if projected else VARIANCE_COEF_RAW_POINTS
 
 #: (u0, ..., u4) of eq. field_var for the GP field (``"gp"``) and the far field
 #: (``"far"``): Gaussian maximum likelihood of each field's own error (eq.
@@ -315,6 +332,81 @@ def _imls(x, d, nbr, points, normals, rho0, growth, noise, spread_weight, beta, 
                     gc += u[j] * normals[nbr[q, j], c]
                 grad[q, c] = gc / usum
     return mean, var, spread2, n_eff, grad
+
+
+def project_to_local_planes(points, normals, rho0: float, k: int = 16,
+                            min_cos: float = 0.7, chunk: int = 200_000) -> np.ndarray:
+    """Hit points moved along their normals onto the plane through their neighbours'
+    weighted centroid (eq. point_projection; the projection step of moving least
+    squares, Alexa et al. 2003):
+
+        p_i' = p_i - (n_i . (p_i - c_i)) n_i,
+        c_i = sum_j w_ij p_j / sum_j w_ij,  w_ij = exp(-|p_i - p_j|^2 / rho0^2) [n_i . n_j > min_cos]
+
+    over the ``k`` nearest hit points (``p_i`` itself included). The range noise
+    displaces each hit point along its normal; the far field's nearest neighbours and
+    kernel weights favour the points displaced towards a query, so every plane
+    distance comes out short on both sides of the surface (the field is compressed:
+    the sphere's mean error +2.6 mm in front and -1.9 mm inside at 0-5 cm, growing with
+    the depth; docs/field.md, "The mean"). After the projection the noise along the
+    normal is averaged over the neighbours. Neighbours whose normal disagrees (the
+    other face of a thin wall, the far side of an edge) do not pull the centroid.
+
+    Parameters
+    ----------
+    points, normals : (P, 3), unit normals
+    rho0 : float, kernel width (m), the far field's rho_0
+    k : int, neighbours
+    min_cos : float, least cosine between the normals of neighbours that count
+
+    Returns
+    -------
+    (P, 3) float64
+    """
+    p = np.ascontiguousarray(np.asarray(points, dtype=np.float64))
+    n = np.ascontiguousarray(np.asarray(normals, dtype=np.float64))
+    if p.ndim != 2 or p.shape[1] != 3 or n.shape != p.shape:
+        raise FarFieldError(f"Expected hit points and normals of one shape (P, 3), found "
+                            f"{p.shape} and {n.shape}.")
+    if not (rho0 > 0 and math.isfinite(rho0)):
+        raise FarFieldError(f"Expected a positive finite rho0, found {rho0!r}.")
+    k = int(min(max(k, 1), len(p)))
+    tree = cKDTree(p)
+    out = np.empty_like(p)
+    for a in range(0, len(p), chunk):
+        d, i = tree.query(p[a:a + chunk], k=k, workers=-1)
+        d = d.reshape(len(d), -1)
+        i = i.reshape(len(i), -1)
+        _project(p, n, a, d, i, float(rho0), float(min_cos), out)
+    return out
+
+
+@nb.njit(parallel=True, cache=True)
+def _project(p, n, start, d, nbr, rho0, min_cos, out):
+    """Eq. point_projection for the points ``start ... start + len(d)``."""
+    K, k = d.shape
+    for q in nb.prange(K):
+        g = start + q
+        ws = 0.0
+        c0 = 0.0
+        c1 = 0.0
+        c2 = 0.0
+        for j in range(k):
+            m = nbr[q, j]
+            if n[g, 0] * n[m, 0] + n[g, 1] * n[m, 1] + n[g, 2] * n[m, 2] <= min_cos:
+                continue
+            w = math.exp(-(d[q, j] / rho0) ** 2)
+            ws += w
+            c0 += w * p[m, 0]
+            c1 += w * p[m, 1]
+            c2 += w * p[m, 2]
+        if ws > 0:
+            t = ((p[g, 0] - c0 / ws) * n[g, 0] + (p[g, 1] - c1 / ws) * n[g, 1]
+                 + (p[g, 2] - c2 / ws) * n[g, 2])
+        else:
+            t = 0.0
+        for c in range(3):
+            out[g, c] = p[g, c] - t * n[g, c]
 
 
 def blend_fields(m1, v1, m2, v2, g1=None, g2=None):
@@ -660,21 +752,23 @@ class BlendedField:
     variance, no added terms).
 
     ``blend="growth"`` (the default): eq. blend with the GP's raw variance raised by
-    ``(gp_growth r)^2``, calibrated variance with :data:`VARIANCE_COEF`.
-    ``blend="correlated"`` (opt-in): the two fields' errors have the variances of eq.
-    field_var and the correlation :data:`BLEND_CORRELATION`; the mean is their best
-    linear unbiased mix (eq. blend_correlated), the calibrated variance uses
-    :data:`VARIANCE_COEF_CORRELATED`."""
+    ``(gp_growth r)^2``. ``blend="correlated"`` (opt-in): the two fields' errors have
+    the variances of eq. field_var and the correlation :data:`BLEND_CORRELATION`; the
+    mean is their best linear unbiased mix (eq. blend_correlated). ``variance_coef``:
+    eq. calibrated_var's coefficients (default :func:`variance_coef` of the blend with
+    projected points; the map passes the ones its far field was fitted with)."""
 
     def __init__(self, base, far: FarField, calibrated: bool = True, gp_growth: float = 2.0,
                  disagreement_weight: float = 1.0, length_scale: float | None = None,
                  unseen_weight: float = 0.0, min_thickness: float = 2.0,
                  edge_gap: float = 1.0, unseen_predictive: str = "gaussian",
-                 blend: str = "growth"):
+                 blend: str = "growth", variance_coef=None):
         self.base, self.far, self.calibrated = base, far, bool(calibrated)
         if blend not in ("growth", "correlated"):
             raise FarFieldError(f"Expected blend 'growth' or 'correlated', found {blend!r}.")
         self.blend = blend
+        # eq. calibrated_var's coefficients (default: those fitted with this blend)
+        self.variance_coef = tuple(variance_coef) if variance_coef is not None else None
         if unseen_predictive not in ("gaussian", "mixture"):
             raise FarFieldError(f"Expected unseen_predictive 'gaussian' or 'mixture', found "
                                 f"{unseen_predictive!r}.")
@@ -722,13 +816,13 @@ class BlendedField:
             v_far = field_variance(h, sigma, c["r"], c["spread2"], d2, c["var"],
                                    FIELD_VAR_COEF["far"])
             res = blend_correlated(out[0], v_gp, c["mean"], v_far, BLEND_CORRELATION, *grads)
-            coef = VARIANCE_COEF_CORRELATED
         else:
             # the GP's weight fades with the distance to the data: beyond a length scale
             # its mean is the HGMM prior, whose variance does not know how far it is
             v_gp = out[1] + (self.gp_growth * c["r"]) ** 2
             res = blend_fields(out[0], v_gp, c["mean"], c["var"], *grads)
-            coef = VARIANCE_COEF
+        coef = self.variance_coef if self.variance_coef is not None \
+            else variance_coef(self.blend)
         if mean_only:
             return res[0], None
         dist = None
