@@ -320,15 +320,16 @@ class FarFieldConfig:
         source="fixed: three passes from the IMLS estimate remove a neighbour whose plane "
         "distance is off by 2 |f| (a flipped normal)")
     project_points: bool = _f(
-        True, "Move each hit point of the far field along its normal onto the plane "
+        False, "Move each hit point of the far field along its normal onto the plane "
         "through its neighbours' weighted centroid (eq. point_projection in "
-        "stages/farfield.py) before the IMLS: removes the range noise that makes the "
-        "nearest neighbours of a query short-biased; false: the hit points as they are "
-        "(maps saved before it keep their stored points).",
-        source="chosen on the street and sphere (docs/field.md, 'The sphere's bias'): far "
-        "field alone, sphere 0-0.05 / 0.3-0.5 / 1-2 m 4.2 / 8.8 / 20.5 -> 3.5 / 7.1 / "
-        "18.6 mm, street 5.4 / 51.7 / 187.6 -> 5.2 / 51.7 / 187.2 mm (0.1-0.2 m 21.2 -> "
-        "21.4)")
+        "stages/farfield.py) before the IMLS, removing the range noise that makes the "
+        "nearest neighbours of a query short-biased; the variance then uses "
+        "VARIANCE_COEF_PROJECTED. Opt-in; maps saved before it load with false.",
+        source="measured (docs/field.md, 'The sphere's bias'): sphere RMSE 0-0.05 / 0.3-0.5 "
+        "/ 1-2 m 4.2 / 9.1 / 22.2 -> 3.5 / 7.4 / 20.4 mm, tuned scenes' coverage bins 1 "
+        "sigma 4 -> 6, 2 sigma 8 -> 11; but the held-out four lose 4 of 70 bins (bunny 1 "
+        "sigma 5 -> 2, courtyard 2 sigma 6 -> 4, street2 0.1-0.2 m above the plane): not "
+        "the default")
     spread_weight: float = _f(
         1.0, "Weight a of the neighbours' plane disagreement in the far-field variance.",
         0.0, 100.0, symbol="a", source="chosen on the synthetic street")

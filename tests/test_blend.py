@@ -107,13 +107,14 @@ def test_map_of_a_plane_and_maps_saved_before_load_with_the_growth_blend(tmp_pat
     the noise of the exact distance z near the data and convex (between the two
     fields); it round-trips through save / load; a map saved before far.blend existed
     or eq. point_projection (no such lines in its config) loads with the growth weights
-    (eq. blend with (g r)^2), its stored far-field points and VARIANCE_COEF_RAW_POINTS,
-    and predicts as that formula; the default is still growth."""
+    (eq. blend with (g r)^2), its stored far-field points and VARIANCE_COEF, and
+    predicts as that formula; the defaults are still growth and raw points."""
     assert gm.MappingConfig().far.blend == "growth"
+    assert gm.MappingConfig().far.project_points is False
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        smap = gm.build_map(_plane_scan(),
-                            gm.MappingConfig().with_overrides(["far.blend=correlated"]))
+        smap = gm.build_map(_plane_scan(), gm.MappingConfig().with_overrides(
+            ["far.blend=correlated", "far.project_points=true"]))
     rng = np.random.default_rng(5)
     q = np.c_[rng.uniform(-1, 1, (500, 2)), rng.uniform(-0.3, 0.3, 500)]
     m, v = smap.predict(q)
@@ -150,7 +151,7 @@ def test_map_of_a_plane_and_maps_saved_before_load_with_the_growth_blend(tmp_pat
     kappa = old.config.far.disagreement_weight * np.exp(
         -(c["r"] / F.BlendedField(old.gp, old.far).length_scale) ** 2)
     v_obs = F.calibrated_variance(old.far.rho0, old.far.noise, c["r"], c["spread2"], d2, gp_v,
-                                  coef=F.VARIANCE_COEF_RAW_POINTS, disagreement_weight=kappa)
+                                  coef=F.VARIANCE_COEF, disagreement_weight=kappa)
     plain = ~old.distribution(q).mixed
     assert plain.mean() > 0.3
     np.testing.assert_allclose(ov[plain], v_obs[plain], rtol=1e-12)

@@ -119,36 +119,35 @@ from .knn import GridKNN
 __all__ = ["FarField", "FarFieldError", "blend_fields", "blend_correlated", "field_variance",
            "fit_field_variance", "fit_error_correlation", "FIELD_VAR_COEF",
            "BLEND_CORRELATION", "VARIANCE_COEF_CORRELATED",
-           "VARIANCE_COEF_RAW_POINTS", "variance_coef", "BlendedField", "VARIANCE_COEF",
+           "VARIANCE_COEF_PROJECTED", "variance_coef", "BlendedField", "VARIANCE_COEF",
            "calibrated_variance", "variance_features", "fit_variance_quantile",
            "behind_width", "extent_width", "unseen_variance", "project_to_local_planes"]
 
 #: (t0, ..., t4) of eq. calibrated_var: the 0.68-quantile regression (eq.
 #: variance_quantile_fit) on the tuned scenes' observed queries (synthetic street and
-#: sphere, 10 % handed, seed 0, robust far field of the projected points (eq.
-#: point_projection), ``far.gp_growth`` = 4; ``python scripts/fit_variance.py --fit``).
-VARIANCE_COEF = (-0.5797, -0.1890, 1.0619, 0.1583, 0.0675)
+#: sphere, 10 % handed, seed 0, with the robust far field of the raw hit points and
+#: ``far.gp_growth`` = 4; ``python scripts/fit_variance.py --fit``).
+VARIANCE_COEF = (-0.4745, -0.2282, 1.0088, 0.1706, 0.1404)
 
-#: VARIANCE_COEF of maps whose far field holds the raw hit points (``far.project_points
-#: = false``: every map saved before eq. point_projection), fitted with that mean
-#: (session 5); kept so that those maps predict as they did.
-VARIANCE_COEF_RAW_POINTS = (-0.4745, -0.2282, 1.0088, 0.1706, 0.1404)
+#: VARIANCE_COEF for a far field of projected hit points (``far.project_points = true``,
+#: eq. point_projection, opt-in): the same fit with that mean (``python
+#: scripts/fit_variance.py --fit --set far.project_points=true``).
+VARIANCE_COEF_PROJECTED = (-0.5797, -0.1890, 1.0619, 0.1583, 0.0675)
 
 #: (t0, ..., t4) of eq. calibrated_var for the mean of eq. blend_correlated
 #: (``far.blend = "correlated"``, opt-in), raw far-field points: the same fit with that
-#: mean (``python scripts/fit_variance.py --fit --set far.blend=correlated --set
-#: far.project_points=false``).
+#: mean (``python scripts/fit_variance.py --fit --set far.blend=correlated``).
 VARIANCE_COEF_CORRELATED = (0.8599, -0.9298, 0.9000, 0.2607, 0.5194)
 
 
-def variance_coef(blend: str = "growth", projected: bool = True):
+def variance_coef(blend: str = "growth", projected: bool = False):
     """The coefficients of eq. calibrated_var fitted with the map's mean: ``blend``
     (``far.blend``) and whether the far field's points were projected (eq.
     point_projection, ``far.project_points``). The correlated blend was fitted with raw
     points only; with projected points it uses the same coefficients (not refitted)."""
     if blend == "correlated":
         return VARIANCE_COEF_CORRELATED
-    return VARIANCE_COEF if projected else VARIANCE_COEF_RAW_POINTS
+    return VARIANCE_COEF_PROJECTED if projected else VARIANCE_COEF
 
 #: (u0, ..., u4) of eq. field_var for the GP field (``"gp"``) and the far field
 #: (``"far"``): Gaussian maximum likelihood of each field's own error (eq.
@@ -756,7 +755,7 @@ class BlendedField:
     the variances of eq. field_var and the correlation :data:`BLEND_CORRELATION`; the
     mean is their best linear unbiased mix (eq. blend_correlated). ``variance_coef``:
     eq. calibrated_var's coefficients (default :func:`variance_coef` of the blend with
-    projected points; the map passes the ones its far field was fitted with)."""
+    raw points; the map passes the ones its far field was fitted with)."""
 
     def __init__(self, base, far: FarField, calibrated: bool = True, gp_growth: float = 2.0,
                  disagreement_weight: float = 1.0, length_scale: float | None = None,
