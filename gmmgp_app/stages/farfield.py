@@ -37,6 +37,15 @@ distance to the data:
 
     v_far(x) = sigma^2 / n_eff + a s^2(x) + (beta r(x))^2
 
+Two opt-in variants (docs/field.md, "The mean: the GP's weight, and the sphere's
+calibration"): ``far.project_points`` moves each hit point along its normal onto the
+plane through its neighbours' weighted centroid first (eq. point_projection: the
+nearest noisy points of a query are the ones displaced towards it, which makes every
+plane distance short); ``far.blend = "correlated"`` mixes the two fields by error
+variances calibrated to each field's own squared error (eq. field_var) and their error
+correlation (eq. blend_correlated) instead of eq. blend below. Neither is the default:
+each gains on the tuned scenes and loses coverage bins on the held-out ones.
+
 The map's mean mixes the GP field (paper eqs. gpm2, gpv2) and the far field with
 weights proportional to their inverse variances (eq. blend), the GP's variance
 raised by ``(g r(x))^2`` for the weights only (``FarFieldConfig.gp_growth`` g = 4:
