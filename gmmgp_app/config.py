@@ -319,6 +319,17 @@ class FarFieldConfig:
         3, "Re-weighting passes of the robust IMLS (eq. rimls).", 0, 20,
         source="fixed: three passes from the IMLS estimate remove a neighbour whose plane "
         "distance is off by 2 |f| (a flipped normal)")
+    project_points: bool = _f(
+        False, "Move each hit point of the far field along its normal onto the plane "
+        "through its neighbours' weighted centroid (eq. point_projection in "
+        "stages/farfield.py) before the IMLS, removing the range noise that makes the "
+        "nearest neighbours of a query short-biased; the variance then uses "
+        "VARIANCE_COEF_PROJECTED. Opt-in; maps saved before it load with false.",
+        source="measured (docs/field.md, 'The sphere's bias'): sphere RMSE 0-0.05 / 0.3-0.5 "
+        "/ 1-2 m 4.2 / 9.1 / 22.2 -> 3.5 / 7.4 / 20.4 mm, tuned scenes' coverage bins 1 "
+        "sigma 4 -> 6, 2 sigma 8 -> 11; but the held-out four lose 4 of 70 bins (bunny 1 "
+        "sigma 5 -> 2, courtyard 2 sigma 6 -> 4, street2 0.1-0.2 m above the plane): not "
+        "the default")
     spread_weight: float = _f(
         1.0, "Weight a of the neighbours' plane disagreement in the far-field variance.",
         0.0, 100.0, symbol="a", source="chosen on the synthetic street")
@@ -336,13 +347,27 @@ class FarFieldConfig:
         "courtyard (docs/field.md)")
     gp_growth: float = _f(
         4.0, "For the mixing weights only, the GP variance gains (g r)^2, r the distance "
-        "to the nearest hit point.", 0.0, 100.0, symbol="g",
+        "to the nearest hit point (far.blend = 'growth', the default, only).", 0.0, 100.0,
+        symbol="g",
         source="chosen on the street and sphere (0 / 0.5 / 2): the sphere's 0.1-0.2 m "
         "RMSE 13.1 / 9.5 / 7.1 mm, the street's 19.0 / 19.5 / 20.5 mm; then 2 / 4 / 8 "
         "with the robust far field (docs/field.md): 4 is the least that puts the sphere "
         "below the tangent plane at 0.5-1 m (18.6 / 15.5 / 14.6 mm, plane 17.4), the "
         "street stays below it in every bin (0.1-0.5 m 20.8 / 21.1 / 21.2, 30.2 / 30.6 / "
         "30.7, 50.3 / 51.2 / 51.5 mm; plane 21.7, 32.2, 52.4)")
+    blend: str = _f(
+        "growth", "How the GP field and the far field are mixed into the mean: 'growth' "
+        "(eq. blend in stages/farfield.py): inverse raw variances, the GP's raised by "
+        "(g r)^2 (far.gp_growth); 'correlated' (eq. blend_correlated, opt-in): each "
+        "field's error variance calibrated to its own squared error (eq. field_var) and "
+        "their best linear unbiased mix with the error correlation rho "
+        "(BLEND_CORRELATION), variance with VARIANCE_COEF_CORRELATED. Maps saved before "
+        "this field load with 'growth'.", choices=("growth", "correlated"),
+        source="measured (scripts/fit_variance.py --blend, docs/field.md 'The mean: the "
+        "GP's weight'): 'correlated' lowers the RMSE near the data (street 0.05-0.1 m "
+        "8.5 -> 7.9 mm, street2 0.1-0.2 m 20.1 -> 19.5, courtyard 0-0.05 m 5.1 -> 4.3) "
+        "but no refit of the variance kept the calibration: bins in target over the six "
+        "scenes, 1 sigma 26 -> 17, 2 sigma 32 -> 24; 'growth' stays the default")
     growth: float = _f(
         0.1, "Standard deviation beta gained per metre from the data (unobserved "
         "surfaces may be closer than the located ones).", 0.0, 100.0, symbol="beta",

@@ -229,7 +229,10 @@ class SurfaceMap:
                             None if is_auto(self.config.gp.length_scale)
                             else self.config.gp.length_scale,
                             self.config.far.unseen_weight, self.config.far.min_thickness,
-                            self.config.far.edge_gap, self.config.far.unseen_predictive)
+                            self.config.far.edge_gap, self.config.far.unseen_predictive,
+                            self.config.far.blend,
+                            _farfield.variance_coef(self.config.far.blend,
+                                                    self.config.far.project_points))
 
     @property
     def signed(self) -> bool:
@@ -337,6 +340,12 @@ def load_map(directory) -> SurfaceMap:
     if isinstance(far_cfg, dict) and "unseen_predictive" not in far_cfg:
         # saved before eq. unseen_mixture: the map predicts as it did (eq. unseen_var)
         far_cfg["unseen_predictive"] = "gaussian"
+    if isinstance(far_cfg, dict) and "project_points" not in far_cfg:
+        # saved before eq. point_projection: its stored far-field points are the raw ones
+        far_cfg["project_points"] = False
+    if isinstance(far_cfg, dict) and "blend" not in far_cfg:
+        # saved before eq. blend_correlated: the map mixes its mean as it did (eq. blend)
+        far_cfg["blend"] = "growth"
     cfg = MappingConfig.from_dict(cfg_dict)
     with np.load(arr_path, allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files}
@@ -555,7 +564,11 @@ def far_field(data, cfg: MappingConfig):
     from .config import concrete
 
     f, g = concrete(cfg.far), concrete(cfg.gp)
-    return _farfield.FarField(data.points, data.normals, f.kernel_floor,
+    points = data.points
+    if f.project_points:  # eq. point_projection
+        points = _farfield.project_to_local_planes(points, data.normals, f.kernel_floor,
+                                                   k=f.neighbours)
+    return _farfield.FarField(points, data.normals, f.kernel_floor,
                               max(g.value_noise, 1e-30) ** 0.5, k=f.neighbours,
                               growth=f.kernel_growth, spread_weight=f.spread_weight,
                               beta=f.growth, robust_scale=f.robust_scale,

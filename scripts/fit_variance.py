@@ -54,24 +54,27 @@ from gmmgp_app.stages.unseen import UnseenMixture  # noqa: E402
 CATEGORIES = ("near", "front", "front_ext", "beh_solid", "beh_thin")
 
 
-def scene_case(name, seed, cache: Path):
-    """The per-query ingredients of one bench scene's variance (cached npz)."""
-    path = cache / f"{name}_seed{seed}.npz"
-    if path.exists():
+def scene_case(name, seed, cache: Path, overrides=()):
+    """The per-query ingredients of one bench scene's variance (cached npz; the map
+    built with the defaults and ``overrides``, e.g. ``["far.blend=correlated"]``)."""
+    tag = "".join(f"_{o.replace('=', '-')}" for o in overrides)
+    path = cache / f"{name}_seed{seed}{tag}.npz"
+    if path.exists() and "v_far" in np.load(path).files:
         d = dict(np.load(path))
         return {k: (v.item() if v.ndim == 0 else v) for k, v in d.items()}
     spec = B.SCENES[name]
     _, _, handed, q, y, dist = B.scene_queries(name, spec, seed, 20000, 6000)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        smap = gm.build_map(handed)
+        smap = gm.build_map(handed, gm.MappingConfig().with_overrides(list(overrides)))
     mean, var = smap.predict(q)[:2]
     base = smap.gp if smap.gp is not None else smap.prior
     m_gp, v_gp = base.predict(q)[:2]
     c = smap.far.components(q, True)
     f = smap.config.far
     d = dict(y=y, bin=np.digitize(dist, [b * spec["scale"] for b in B.BINS]) - 1,
-             mean=mean, var=var, m_gp=m_gp, v_gp=v_gp, m_far=c["mean"], r=c["r"],
+             mean=mean, var=var, m_gp=m_gp, v_gp=v_gp, m_far=c["mean"], v_far=c["var"],
+             r=c["r"], gp_growth=f.gp_growth,
              spread2=c["spread2"], h=smap.far.rho0, noise=smap.far.noise,
              disp=1.0 - np.linalg.norm(c["grad"], axis=1),  # the normals' dispersion
              length_scale=concrete(smap.config.gp).length_scale,
@@ -323,6 +326,109 @@ def mixture_sweep(seed, cache, baselines, names, lams=(0.05, 0.1, 0.15, 0.25, 0.
     return "\n".join(lines)
 
 
+def blend_rmse(d, w_gp, mask=None):
+    """Per bin RMSE (m) of the mean ``w_gp m_gp + (1 - w_gp) m_far`` (mask: a subset)."""
+    m = w_gp * d["m_gp"] + (1.0 - w_gp) * d["m_far"]
+    e2 = (m - d["y"]) ** 2
+    out = []
+    for i in range(len(B.BINS) - 1):
+        s = d["bin"] == i if mask is None else (d["bin"] == i) & mask
+        out.append(float(np.sqrt(e2[s].mean())) if s.any() else float("nan"))
+    return out
+
+
+def oracle_weight(d, s):
+    """The convex weight of the GP that minimises the squared error over the queries
+    ``s`` (the best one blend weight for a bin, from the truth: an oracle)."""
+    a = d["m_gp"][s] - d["m_far"][s]
+    b = d["y"][s] - d["m_far"][s]
+    den = float(a @ a)
+    return float(np.clip((a @ b) / den, 0.0, 1.0)) if den > 0 else 0.0
+
+
+def growth_weight(d):
+    """The GP's weight in eq. blend with ``(g r)^2`` (``far.blend = "growth"``)."""
+    v_gp = d["v_gp"] + (d["gp_growth"] * d["r"]) ** 2
+    return d["v_far"] / (v_gp + d["v_far"])
+
+
+def field_variances(d, coef_gp=None, coef_far=None):
+    """Eq. field_var for the GP and the far field at the queries of one scene."""
+    cg = F.FIELD_VAR_COEF["gp"] if coef_gp is None else coef_gp
+    cf = F.FIELD_VAR_COEF["far"] if coef_far is None else coef_far
+    d2 = (d["m_gp"] - d["m_far"]) ** 2
+    vg = F.field_variance(d["h"], d["noise"], d["r"], d["spread2"], d2, d["v_gp"], cg)
+    vf = F.field_variance(d["h"], d["noise"], d["r"], d["spread2"], d2, d["v_far"], cf)
+    return vg, vf
+
+
+def correlated_weight(d, coef_gp=None, coef_far=None, rho=None):
+    """The GP's weight in eq. blend_correlated (``far.blend = "correlated"``)."""
+    vg, vf = field_variances(d, coef_gp, coef_far)
+    rho = F.BLEND_CORRELATION if rho is None else rho
+    c = rho * np.sqrt(vg * vf)
+    return np.clip((vf - c) / (vg + vf - 2 * c), 0.0, 1.0)
+
+
+def fit_blend(cases):
+    """Eq. field_var_fit for each field and eq. error_correlation_fit over all queries
+    of the given scenes: (u_gp, u_far, rho, mean negative log-likelihood per field)."""
+    X, Eg, Ef = [], [], []
+    for d in cases:
+        X.append(F.variance_features(d["h"], d["noise"], d["r"], d["spread2"],
+                                     (d["m_gp"] - d["m_far"]) ** 2, d["v_gp"]))
+        Eg.append((d["m_gp"] - d["y"]) ** 2 / d["h"] ** 2)
+        Ef.append((d["m_far"] - d["y"]) ** 2 / d["h"] ** 2)
+    Xg = np.concatenate(X)
+    Eg, Ef = np.concatenate(Eg), np.concatenate(Ef)
+    ug = F.fit_field_variance(Xg, Eg)
+    Xf = [F.variance_features(d["h"], d["noise"], d["r"], d["spread2"],
+                              (d["m_gp"] - d["m_far"]) ** 2, d["v_far"]) for d in cases]
+    uf = F.fit_field_variance(np.concatenate(Xf), Ef)
+    zg, zf = [], []
+    for d in cases:
+        vg, vf = field_variances(d, ug, uf)
+        zg.append((d["m_gp"] - d["y"]) / np.sqrt(vg))
+        zf.append((d["m_far"] - d["y"]) / np.sqrt(vf))
+    rho = F.fit_error_correlation(np.concatenate(zg), np.concatenate(zf))
+    return ug, uf, rho
+
+
+def blend_table(name, d, fitted=None) -> str:
+    """RMSE per bin of the map's mean, of eq. blend (growth weights) and eq.
+    blend_correlated recomputed from the cached ingredients, the far field alone, the
+    GP field alone and the best convex blend per bin (oracle), with the GP weights."""
+    wg = growth_weight(d)
+    wc = correlated_weight(d, *(fitted or (None, None, None)))
+    e2 = (d["mean"] - d["y"]) ** 2
+    today = [float(np.sqrt(e2[d["bin"] == i].mean())) for i in range(len(B.BINS) - 1)]
+    far = blend_rmse(d, np.zeros_like(wg))
+    gp = blend_rmse(d, np.ones_like(wg))
+    orc, worc = [], []
+    for i in range(len(B.BINS) - 1):
+        s = d["bin"] == i
+        wo = oracle_weight(d, s)
+        worc.append(wo)
+        orc.append(blend_rmse(d, np.full(len(wg), wo), s)[i])
+    med = lambda w: " / ".join(f"{np.median(w[d['bin'] == i]):.3f}"  # noqa: E731
+                               for i in range(len(B.BINS) - 1))
+    sc = B.SCENES[name]["scale"]
+    labs = [f"{B.BINS[i] * sc:g}-{B.BINS[i + 1] * sc:g}" for i in range(len(B.BINS) - 1)]
+    mm = lambda xs: " / ".join(f"{1000 * x:.1f}" for x in xs)  # noqa: E731
+    rows = [f"\n**{name}** ({'tuned' if B.SCENES[name]['tuned'] else 'held out'}; bins "
+            f"{' / '.join(labs)} m)\n", "| mean | RMSE (mm) per bin |", "|---|---|",
+            f"| the map's mean | {mm(today)} |",
+            f"| eq. blend, growth weights (far.blend = growth) | {mm(blend_rmse(d, wg))} |",
+            f"| eq. blend_correlated (far.blend = correlated) | {mm(blend_rmse(d, wc))} |",
+            f"| far field alone (robust IMLS) | {mm(far)} |",
+            f"| GP field alone | {mm(gp)} |",
+            f"| best convex blend per bin (oracle) | {mm(orc)} |",
+            "| oracle's GP weight | " + " / ".join(f"{x:.2f}" for x in worc) + " |",
+            f"| median GP weight, growth | {med(wg)} |",
+            f"| median GP weight, correlated | {med(wc)} |"]
+    return "\n".join(rows)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -335,12 +441,21 @@ def main(argv=None) -> int:
     p.add_argument("--mixture", default=None, metavar="BASELINES_JSON",
                    help="eq. unseen_var against eq. unseen_mixture for several lambda; LL "
                    "margins against this bench_accuracy.py JSON (same seed)")
+    p.add_argument("--fit-blend", action="store_true",
+                   help="fit FIELD_VAR_COEF and BLEND_CORRELATION on the tuned scenes "
+                   "(eqs. field_var_fit, error_correlation_fit); with --blend the tables "
+                   "use the fitted values")
+    p.add_argument("--blend", action="store_true",
+                   help="RMSE per bin of the blend, the far field alone, the GP alone and "
+                   "the best convex blend per bin (oracle)")
     p.add_argument("--predictive", default="gaussian", choices=("gaussian", "mixture"),
                    help="predictive of --categories (default: gaussian, eq. unseen_var)")
     p.add_argument("--tau", type=float, default=0.68)
     p.add_argument("--coef", default=None,
                    help="t0,...,t4 for --categories (default: VARIANCE_COEF)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--set", action="append", default=[],
+                   help="config override of the maps (a.b=v), e.g. far.blend=correlated")
     p.add_argument("--cache", default="out/calib")
     p.add_argument("--out", default=None, help="also write the tables to this markdown file")
     a = p.parse_args(argv)
@@ -350,8 +465,9 @@ def main(argv=None) -> int:
         print(f"error: unknown scene(s) {', '.join(bad)}; expected some of "
               f"{', '.join(B.SCENES)}", file=sys.stderr)
         return 2
-    if not (a.fit or a.categories or a.sweep or a.mixture):
-        print("error: nothing to do; give --fit, --categories, --sweep and/or --mixture",
+    if not (a.fit or a.categories or a.sweep or a.mixture or a.blend or a.fit_blend):
+        print("error: nothing to do; give --fit, --categories, --sweep, --mixture and/or "
+              "--blend",
               file=sys.stderr)
         return 2
     cache = Path(a.cache)
@@ -359,7 +475,7 @@ def main(argv=None) -> int:
     coef = F.VARIANCE_COEF if a.coef is None else tuple(float(x) for x in a.coef.split(","))
     if a.fit:
         tuned = [n for n in B.SCENES if B.SCENES[n]["tuned"]]
-        t = fit([scene_case(n, a.seed, cache) for n in tuned], a.tau)
+        t = fit([scene_case(n, a.seed, cache, a.set) for n in tuned], a.tau)
         text.append(f"VARIANCE_COEF = ({', '.join(f'{x:.4f}' for x in t)})  "
                     f"# tau {a.tau}, fitted on {', '.join(tuned)}")
     if a.categories:
@@ -367,7 +483,19 @@ def main(argv=None) -> int:
             if n == "bunny" and not B.BUNNY.is_dir():
                 print("bunny: skipped, ../shared not found", file=sys.stderr)
                 continue
-            text.append(category_table(n, scene_case(n, a.seed, cache), coef, a.predictive))
+            text.append(category_table(n, scene_case(n, a.seed, cache, a.set), coef, a.predictive))
+    fitted = None
+    if a.fit_blend:
+        tuned = [n for n in B.SCENES if B.SCENES[n]["tuned"]]
+        ug, uf, rho = fitted = fit_blend([scene_case(n, a.seed, cache, a.set) for n in tuned])
+        text.append(f'FIELD_VAR_COEF = {{"gp": ({", ".join(f"{x:.4f}" for x in ug)}),\n'
+                    f'                  "far": ({", ".join(f"{x:.4f}" for x in uf)})}}\n'
+                    f"BLEND_CORRELATION = {rho:.4f}  # fitted on {', '.join(tuned)}")
+    if a.blend:
+        for n in names:
+            if n == "bunny" and not B.BUNNY.is_dir():
+                continue
+            text.append(blend_table(n, scene_case(n, a.seed, cache, a.set), fitted))
     if a.sweep:
         text.append(sweep(a.seed, cache, a.sweep))
     if a.mixture:

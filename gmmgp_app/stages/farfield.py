@@ -37,6 +37,15 @@ distance to the data:
 
     v_far(x) = sigma^2 / n_eff + a s^2(x) + (beta r(x))^2
 
+Two opt-in variants (docs/field.md, "The mean: the GP's weight, and the sphere's
+calibration"): ``far.project_points`` moves each hit point along its normal onto the
+plane through its neighbours' weighted centroid first (eq. point_projection: the
+nearest noisy points of a query are the ones displaced towards it, which makes every
+plane distance short); ``far.blend = "correlated"`` mixes the two fields by error
+variances calibrated to each field's own squared error (eq. field_var) and their error
+correlation (eq. blend_correlated) instead of eq. blend below. Neither is the default:
+each gains on the tuned scenes and loses coverage bins on the held-out ones.
+
 The map's mean mixes the GP field (paper eqs. gpm2, gpv2) and the far field with
 weights proportional to their inverse variances (eq. blend), the GP's variance
 raised by ``(g r(x))^2`` for the weights only (``FarFieldConfig.gp_growth`` g = 4:
@@ -116,15 +125,49 @@ from scipy.spatial import cKDTree
 
 from .knn import GridKNN
 
-__all__ = ["FarField", "FarFieldError", "blend_fields", "BlendedField", "VARIANCE_COEF",
+__all__ = ["FarField", "FarFieldError", "blend_fields", "blend_correlated", "field_variance",
+           "fit_field_variance", "fit_error_correlation", "FIELD_VAR_COEF",
+           "BLEND_CORRELATION", "VARIANCE_COEF_CORRELATED",
+           "VARIANCE_COEF_PROJECTED", "variance_coef", "BlendedField", "VARIANCE_COEF",
            "calibrated_variance", "variance_features", "fit_variance_quantile",
-           "behind_width", "extent_width", "unseen_variance"]
+           "behind_width", "extent_width", "unseen_variance", "project_to_local_planes"]
 
 #: (t0, ..., t4) of eq. calibrated_var: the 0.68-quantile regression (eq.
 #: variance_quantile_fit) on the tuned scenes' observed queries (synthetic street and
-#: sphere, 10 % handed, seed 0, with the robust far field and ``far.gp_growth`` = 4;
-#: ``python scripts/fit_variance.py --fit``).
+#: sphere, 10 % handed, seed 0, with the robust far field of the raw hit points and
+#: ``far.gp_growth`` = 4; ``python scripts/fit_variance.py --fit``).
 VARIANCE_COEF = (-0.4745, -0.2282, 1.0088, 0.1706, 0.1404)
+
+#: VARIANCE_COEF for a far field of projected hit points (``far.project_points = true``,
+#: eq. point_projection, opt-in): the same fit with that mean (``python
+#: scripts/fit_variance.py --fit --set far.project_points=true``).
+VARIANCE_COEF_PROJECTED = (-0.5797, -0.1890, 1.0619, 0.1583, 0.0675)
+
+#: (t0, ..., t4) of eq. calibrated_var for the mean of eq. blend_correlated
+#: (``far.blend = "correlated"``, opt-in), raw far-field points: the same fit with that
+#: mean (``python scripts/fit_variance.py --fit --set far.blend=correlated``).
+VARIANCE_COEF_CORRELATED = (0.8599, -0.9298, 0.9000, 0.2607, 0.5194)
+
+
+def variance_coef(blend: str = "growth", projected: bool = False):
+    """The coefficients of eq. calibrated_var fitted with the map's mean: ``blend``
+    (``far.blend``) and whether the far field's points were projected (eq.
+    point_projection, ``far.project_points``). The correlated blend was fitted with raw
+    points only; with projected points it uses the same coefficients (not refitted)."""
+    if blend == "correlated":
+        return VARIANCE_COEF_CORRELATED
+    return VARIANCE_COEF_PROJECTED if projected else VARIANCE_COEF
+
+#: (u0, ..., u4) of eq. field_var for the GP field (``"gp"``) and the far field
+#: (``"far"``): Gaussian maximum likelihood of each field's own error (eq.
+#: field_var_fit) on the tuned scenes' queries (synthetic street and sphere, 10 %
+#: handed, seed 0; ``python scripts/fit_variance.py --fit-blend``).
+FIELD_VAR_COEF = {"gp": (1.8365, -0.3350, 0.5700, 0.7054, 0.4425),
+                  "far": (1.3425, -0.6136, 0.5134, 0.1227, 0.8008)}
+
+#: rho of eq. blend_correlated: the correlation of the two fields' standardised errors,
+#: maximum likelihood on the same queries (eq. error_correlation_fit).
+BLEND_CORRELATION = 0.6661
 
 
 class FarFieldError(ValueError):
@@ -299,6 +342,81 @@ def _imls(x, d, nbr, points, normals, rho0, growth, noise, spread_weight, beta, 
     return mean, var, spread2, n_eff, grad
 
 
+def project_to_local_planes(points, normals, rho0: float, k: int = 16,
+                            min_cos: float = 0.7, chunk: int = 200_000) -> np.ndarray:
+    """Hit points moved along their normals onto the plane through their neighbours'
+    weighted centroid (eq. point_projection; the projection step of moving least
+    squares, Alexa et al. 2003):
+
+        p_i' = p_i - (n_i . (p_i - c_i)) n_i,
+        c_i = sum_j w_ij p_j / sum_j w_ij,  w_ij = exp(-|p_i - p_j|^2 / rho0^2) [n_i . n_j > min_cos]
+
+    over the ``k`` nearest hit points (``p_i`` itself included). The range noise
+    displaces each hit point along its normal; the far field's nearest neighbours and
+    kernel weights favour the points displaced towards a query, so every plane
+    distance comes out short on both sides of the surface (the field is compressed:
+    the sphere's mean error +2.6 mm in front and -1.9 mm inside at 0-5 cm, growing with
+    the depth; docs/field.md, "The mean"). After the projection the noise along the
+    normal is averaged over the neighbours. Neighbours whose normal disagrees (the
+    other face of a thin wall, the far side of an edge) do not pull the centroid.
+
+    Parameters
+    ----------
+    points, normals : (P, 3), unit normals
+    rho0 : float, kernel width (m), the far field's rho_0
+    k : int, neighbours
+    min_cos : float, least cosine between the normals of neighbours that count
+
+    Returns
+    -------
+    (P, 3) float64
+    """
+    p = np.ascontiguousarray(np.asarray(points, dtype=np.float64))
+    n = np.ascontiguousarray(np.asarray(normals, dtype=np.float64))
+    if p.ndim != 2 or p.shape[1] != 3 or n.shape != p.shape:
+        raise FarFieldError(f"Expected hit points and normals of one shape (P, 3), found "
+                            f"{p.shape} and {n.shape}.")
+    if not (rho0 > 0 and math.isfinite(rho0)):
+        raise FarFieldError(f"Expected a positive finite rho0, found {rho0!r}.")
+    k = int(min(max(k, 1), len(p)))
+    tree = cKDTree(p)
+    out = np.empty_like(p)
+    for a in range(0, len(p), chunk):
+        d, i = tree.query(p[a:a + chunk], k=k, workers=-1)
+        d = d.reshape(len(d), -1)
+        i = i.reshape(len(i), -1)
+        _project(p, n, a, d, i, float(rho0), float(min_cos), out)
+    return out
+
+
+@nb.njit(parallel=True, cache=True)
+def _project(p, n, start, d, nbr, rho0, min_cos, out):
+    """Eq. point_projection for the points ``start ... start + len(d)``."""
+    K, k = d.shape
+    for q in nb.prange(K):
+        g = start + q
+        ws = 0.0
+        c0 = 0.0
+        c1 = 0.0
+        c2 = 0.0
+        for j in range(k):
+            m = nbr[q, j]
+            if n[g, 0] * n[m, 0] + n[g, 1] * n[m, 1] + n[g, 2] * n[m, 2] <= min_cos:
+                continue
+            w = math.exp(-(d[q, j] / rho0) ** 2)
+            ws += w
+            c0 += w * p[m, 0]
+            c1 += w * p[m, 1]
+            c2 += w * p[m, 2]
+        if ws > 0:
+            t = ((p[g, 0] - c0 / ws) * n[g, 0] + (p[g, 1] - c1 / ws) * n[g, 1]
+                 + (p[g, 2] - c2 / ws) * n[g, 2])
+        else:
+            t = 0.0
+        for c in range(3):
+            out[g, c] = p[g, c] - t * n[g, c]
+
+
 def blend_fields(m1, v1, m2, v2, g1=None, g2=None):
     """Inverse-variance mixture of two predictions (eq. blend).
 
@@ -331,6 +449,143 @@ def blend_fields(m1, v1, m2, v2, g1=None, g2=None):
         g = np.where(only2[:, None], g2, np.where(only1[:, None], g1, g))
         return mean, var, g
     return mean, var
+
+
+def blend_correlated(m1, v1, m2, v2, rho, g1=None, g2=None):
+    """Best linear unbiased mix of two estimates with correlated errors (eq.
+    blend_correlated; the generalised least squares of two measurements):
+
+        c = rho sqrt(v1 v2),   w = clip((v2 - c) / (v1 + v2 - 2 c), 0, 1),
+        mean = w m1 + (1 - w) m2,   var = w^2 v1 + (1 - w)^2 v2 + 2 w (1 - w) c
+
+    ``v1``, ``v2`` are the two estimates' error variances and ``rho`` the correlation
+    of their errors. With ``rho = 0`` it is eq. blend's inverse-variance weight. When
+    the errors correlate, the worse estimate adds little: at ``rho >= sqrt(v2 / v1)``
+    (e.g. v1 10x v2 and rho 0.32) the better one alone is the best convex mix (the
+    unclipped weight would extrapolate beyond it; the clip keeps the mean between the
+    two fields). ``var`` is the error variance of the mix. An infinite variance gets
+    weight 0 exactly (where both are infinite, the second estimate).
+
+    Returns
+    -------
+    mean (K,), var (K,)[, grad (K, 3) with the same weights when g1, g2 are given]
+    """
+    v1 = np.maximum(np.asarray(v1, dtype=np.float64), 1e-300)
+    v2 = np.maximum(np.asarray(v2, dtype=np.float64), 1e-300)
+    m1 = np.asarray(m1, dtype=np.float64)
+    m2 = np.asarray(m2, dtype=np.float64)
+    if not -1.0 < float(rho) < 1.0:
+        raise FarFieldError(f"Expected an error correlation rho in (-1, 1), found {rho!r}.")
+    only2, only1 = np.isinf(v1), np.isinf(v2) & ~np.isinf(v1)
+    with np.errstate(invalid="ignore", over="ignore"):  # inf terms, replaced below
+        c = float(rho) * np.sqrt(v1) * np.sqrt(v2)
+        w = np.clip((v2 - c) / (v1 + v2 - 2.0 * c), 0.0, 1.0)
+        mean = w * m1 + (1 - w) * m2
+        var = w * w * v1 + (1 - w) ** 2 * v2 + 2.0 * w * (1 - w) * c
+    w = np.where(only2, 0.0, np.where(only1, 1.0, w))
+    mean = np.where(only2, m2, np.where(only1, m1, mean))
+    var = np.where(only2, v2, np.where(only1, v1, var))
+    if g1 is not None and g2 is not None:
+        g = w[:, None] * np.where(only2[:, None], 0.0, g1) \
+            + (1 - w)[:, None] * np.where(only1[:, None], 0.0, g2)
+        return mean, var, g
+    return mean, var
+
+
+def field_variance(h, noise, r, spread2, disagreement2, v_own, coef):
+    """Error variance of one field (the GP field or the far field) at the queries, for
+    the mixing weights (eq. field_var):
+
+        v_k(x) = h^2 exp(u_k . X(x)),   X = variance_features(h, sigma, r, s^2, d^2, v_k^raw)
+
+    the five features of eq. calibrated_var with the field's own raw variance
+    ``v_own`` (the GP posterior variance, paper eq. gpv2, or the far field's eq.
+    far_var) in the place of ``v_gp``. The raw variances are not comparable with each
+    other: the GP's describes its noise model where it has points and its prior's
+    width elsewhere (it is 5-6x below the GP's squared error 0.1-0.5 m from the street
+    and about equal to it next to the sphere), the far field's sums noise, spread
+    and distance terms of another model. Calibrating each to its own squared error on
+    the tuned scenes (eq. field_var_fit) puts both in the same unit, the expected
+    squared error.
+
+    Parameters
+    ----------
+    h, noise : float, the kernel floor (training spacing) and the noise sigma (m)
+    r, spread2, disagreement2, v_own : (K,) as in :func:`variance_features`
+    coef : 5 floats, u_k
+
+    Returns
+    -------
+    (K,) float64, m^2 (infinite where ``v_own`` is)
+    """
+    X = variance_features(h, noise, r, spread2, disagreement2, v_own)
+    v = h * h * np.exp(X @ np.asarray(coef, dtype=np.float64))
+    return np.where(np.isinf(np.asarray(v_own, dtype=np.float64)), np.inf, v)
+
+
+def fit_field_variance(features, err2_over_h2):
+    """Coefficients u of eq. field_var by Gaussian maximum likelihood (eq.
+    field_var_fit):
+
+        u = argmin_u sum_i [ X_i u + (e_i^2 / h^2) exp(-X_i u) ] / 2
+
+    the negative log-likelihood of ``e_i ~ N(0, h^2 exp(X_i u))`` (up to constants),
+    convex in u. Its minimiser matches the *mean* squared error at every value of the
+    features (the gradient is ``sum_i X_i (1 - e_i^2 / v_i) / 2``), which is what an
+    inverse-variance weight needs (not a quantile: eq. variance_quantile_fit serves the
+    coverage). Solved by L-BFGS from u = 0 with the exact gradient.
+
+    Parameters
+    ----------
+    features : (N, P) design rows (e.g. :func:`variance_features`)
+    err2_over_h2 : (N,) ``e^2 / h^2``, finite, >= 0
+
+    Returns
+    -------
+    (P,) float64
+    """
+    from scipy.optimize import minimize
+
+    X = np.asarray(features, dtype=np.float64)
+    e2 = np.asarray(err2_over_h2, dtype=np.float64)
+    if X.ndim != 2 or len(X) != len(e2) or len(e2) <= X.shape[1] or not np.isfinite(X).all() \
+            or not np.isfinite(e2).all() or (e2 < 0).any():
+        raise ValueError(f"Expected finite features (N, P) and squared errors (N,) >= 0, "
+                         f"N > P, found {X.shape} and {e2.shape}.")
+
+    def nll(u):
+        lv = X @ u
+        iv = np.exp(-lv)
+        return 0.5 * np.mean(lv + e2 * iv), 0.5 * ((1.0 - e2 * iv) @ X) / len(e2)
+
+    res = minimize(nll, np.zeros(X.shape[1]), jac=True, method="L-BFGS-B",
+                   options=dict(maxiter=2000, gtol=1e-10, ftol=1e-15))
+    return res.x
+
+
+def fit_error_correlation(z1, z2):
+    """rho of eq. blend_correlated by maximum likelihood (eq. error_correlation_fit):
+    the correlation of a standard bivariate Gaussian given the two fields' standardised
+    errors ``z_k = e_k / sqrt(v_k)``,
+
+        rho = argmin_rho  mean[ log(1 - rho^2) / 2 + (z1^2 - 2 rho z1 z2 + z2^2) / (2 (1 - rho^2)) ]
+
+    (bounded scalar search on (-0.999, 0.999))."""
+    from scipy.optimize import minimize_scalar
+
+    a = np.asarray(z1, dtype=np.float64)
+    b = np.asarray(z2, dtype=np.float64)
+    if a.shape != b.shape or a.ndim != 1 or len(a) < 3 or not np.isfinite(a).all() \
+            or not np.isfinite(b).all():
+        raise ValueError(f"Expected two finite (N,) arrays, N >= 3, found {a.shape} and "
+                         f"{b.shape}.")
+    aa, bb, ab = np.mean(a * a), np.mean(b * b), np.mean(a * b)
+
+    def nll(r):
+        return 0.5 * np.log1p(-r * r) + (aa - 2 * r * ab + bb) / (2 * (1 - r * r))
+
+    return float(minimize_scalar(nll, bounds=(-0.999, 0.999), method="bounded",
+                                 options=dict(xatol=1e-10)).x)
 
 
 def variance_features(h, noise, r, spread2, disagreement2, v_gp):
@@ -498,17 +753,30 @@ def unseen_variance(w_behind, w_extent, weight):
 
 
 class BlendedField:
-    """The GP field and the far field mixed (eq. blend), variance from eq.
-    calibrated_var plus the unseen-geometry term: eq. unseen_var, or with
-    ``unseen_predictive="mixture"`` the predictive of eq. unseen_mixture
-    (stages/unseen.py; :meth:`distribution`), whose 68.27 % half-width squared is the
-    variance (``calibrated=False``: the mixture's own variance, no added terms)."""
+    """The GP field and the far field mixed, variance from eq. calibrated_var plus the
+    unseen-geometry term: eq. unseen_var, or with ``unseen_predictive="mixture"`` the
+    predictive of eq. unseen_mixture (stages/unseen.py; :meth:`distribution`), whose
+    68.27 % half-width squared is the variance (``calibrated=False``: the mix's own
+    variance, no added terms).
+
+    ``blend="growth"`` (the default): eq. blend with the GP's raw variance raised by
+    ``(gp_growth r)^2``. ``blend="correlated"`` (opt-in): the two fields' errors have
+    the variances of eq. field_var and the correlation :data:`BLEND_CORRELATION`; the
+    mean is their best linear unbiased mix (eq. blend_correlated). ``variance_coef``:
+    eq. calibrated_var's coefficients (default :func:`variance_coef` of the blend with
+    raw points; the map passes the ones its far field was fitted with)."""
 
     def __init__(self, base, far: FarField, calibrated: bool = True, gp_growth: float = 2.0,
                  disagreement_weight: float = 1.0, length_scale: float | None = None,
                  unseen_weight: float = 0.0, min_thickness: float = 2.0,
-                 edge_gap: float = 1.0, unseen_predictive: str = "gaussian"):
+                 edge_gap: float = 1.0, unseen_predictive: str = "gaussian",
+                 blend: str = "growth", variance_coef=None):
         self.base, self.far, self.calibrated = base, far, bool(calibrated)
+        if blend not in ("growth", "correlated"):
+            raise FarFieldError(f"Expected blend 'growth' or 'correlated', found {blend!r}.")
+        self.blend = blend
+        # eq. calibrated_var's coefficients (default: those fitted with this blend)
+        self.variance_coef = tuple(variance_coef) if variance_coef is not None else None
         if unseen_predictive not in ("gaussian", "mixture"):
             raise FarFieldError(f"Expected unseen_predictive 'gaussian' or 'mixture', found "
                                 f"{unseen_predictive!r}.")
@@ -545,22 +813,34 @@ class BlendedField:
         out = self.base.predict(xyz, return_grad=return_grad) if base_out is None \
             else tuple(base_out)
         c = self.far.components(xyz, return_grad)
-        # the GP's weight fades with the distance to the data: beyond a length scale
-        # its mean is the HGMM prior, whose variance does not know how far it is
-        v_gp = out[1] + (self.gp_growth * c["r"]) ** 2
-        res = blend_fields(out[0], v_gp, c["mean"], c["var"],
-                           *((out[2], c["grad"]) if return_grad else ()))
+        grads = (out[2], c["grad"]) if return_grad else ()
+        d2 = (out[0] - c["mean"]) ** 2
+        h, sigma = self.far.rho0, self.far.noise
+        if self.blend == "correlated":
+            # eq. field_var: each field's raw variance calibrated to its own squared
+            # error; eq. blend_correlated: their best linear unbiased mix
+            v_gp = field_variance(h, sigma, c["r"], c["spread2"], d2, out[1],
+                                  FIELD_VAR_COEF["gp"])
+            v_far = field_variance(h, sigma, c["r"], c["spread2"], d2, c["var"],
+                                   FIELD_VAR_COEF["far"])
+            res = blend_correlated(out[0], v_gp, c["mean"], v_far, BLEND_CORRELATION, *grads)
+        else:
+            # the GP's weight fades with the distance to the data: beyond a length scale
+            # its mean is the HGMM prior, whose variance does not know how far it is
+            v_gp = out[1] + (self.gp_growth * c["r"]) ** 2
+            res = blend_fields(out[0], v_gp, c["mean"], c["var"], *grads)
+        coef = self.variance_coef if self.variance_coef is not None \
+            else variance_coef(self.blend)
         if mean_only:
             return res[0], None
         dist = None
         if self.calibrated:
-            d2 = (out[0] - c["mean"]) ** 2
             # within a length scale of the data the GP mean is the data's (beyond, it is
             # the HGMM prior): there its disagreement with the far field measures the
             # error of the mixed mean; the weight fades as exp(-r^2 / l^2)
             kappa = self.disagreement_weight * np.exp(-(c["r"] / self.length_scale) ** 2)
-            var = calibrated_variance(self.far.rho0, self.far.noise, c["r"], c["spread2"],
-                                      d2, out[1], disagreement_weight=kappa)
+            var = calibrated_variance(h, sigma, c["r"], c["spread2"], d2, out[1], coef=coef,
+                                      disagreement_weight=kappa)
             if self.unseen_weight > 0:
                 wb = behind_width(res[0], self.min_thickness)
                 we = extent_width(res[0], c["r"], self.edge_gap)
