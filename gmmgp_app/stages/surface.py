@@ -20,7 +20,7 @@ import numpy as np
 from .._atomic import atomic_path
 from ..types import SurfaceMesh
 
-__all__ = ["extract_surface", "surface_seeds", "mesh_field", "check_surface_grid",
+__all__ = ["extract_surface", "surface_seeds", "mesh_field", "project_vertices", "check_surface_grid",
            "check_grid_size", "std_colour_max", "variance_colors", "write_mesh_ply",
            "write_mesh_obj", "read_mesh_ply", "estimate_grid_nodes", "GridTooLargeError"]
 
@@ -113,20 +113,28 @@ def surface_reach(seeds: np.ndarray, voxel_size: float) -> float:
 def mesh_field(predict: Callable, seeds: np.ndarray, cfg, voxel_size: Optional[float] = None,
                max_std: Optional[float] = None, progress=None,
                reach: Optional[float] = None,
-               predict_mean: Optional[Callable] = None) -> SurfaceMesh:
-    """:func:`extract_surface` with the voxel and std cut of ``cfg`` (SurfaceConfig)
-    unless given: the one place where a map's surface settings are resolved."""
+               predict_mean: Optional[Callable] = None,
+               project: Optional[Callable] = None) -> SurfaceMesh:
+    """:func:`extract_surface` with the voxel, std cut and vertex projection of ``cfg``
+    (SurfaceConfig) unless given: the one place where a map's surface settings are
+    resolved. ``project`` (the field's ``predict(xyz, return_grad=True)``) is used only
+    when ``cfg.project_steps`` > 0."""
+    steps = int(getattr(cfg, "project_steps", 0) or 0)
     return extract_surface(predict, seeds,
                            voxel_size=cfg.voxel_size if voxel_size is None else voxel_size,
                            max_std=cfg.max_std if max_std is None else max_std,
-                           progress=progress, reach=reach, predict_mean=predict_mean)
+                           progress=progress, reach=reach, predict_mean=predict_mean,
+                           project=project if steps > 0 else None, project_steps=steps,
+                           project_clamp=float(getattr(cfg, "project_clamp", 0.5)))
 
 
 def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.05, *,
                     max_std: Optional[float] = None, block_cells: int = 32,
                     dilate: Optional[int] = None, batch: int = 65_536,
                     progress=None, reach: Optional[float] = None,
-                    predict_mean: Optional[Callable] = None) -> SurfaceMesh:
+                    predict_mean: Optional[Callable] = None,
+                    project: Optional[Callable] = None, project_steps: int = 1,
+                    project_clamp: float = 0.5) -> SurfaceMesh:
     """Zero level set of a field as a triangle mesh with per-vertex variance.
 
     The lattice is evaluated only where the surface is: starting from the cells
@@ -157,9 +165,21 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
         voxel); a map passes the reach of its own voxel at any voxel
         (``SurfaceMap.surface_reach``).
     predict_mean : callable, optional
-        ``predict_mean(xyz (K,3)) -> mean (K,)``, the same mean as ``predict``'s without
-        its variance: what the lattice nodes need (only the mesh vertices need the
-        variance). Default: ``predict(xyz)[0]``.
+        ``predict_mean(xyz (K,3)) -> mean (K,)``: the field the lattice nodes are
+        evaluated with (only the mesh vertices need the variance). Default:
+        ``predict(xyz)[0]``. Without ``project`` it must be ``predict``'s mean (the mesh
+        is then ``predict``'s zero level, linearly interpolated along lattice edges);
+        with ``project`` it may be a cheaper field whose zero level is near
+        ``predict``'s: it only locates the surface and sets the mesh's connectivity.
+    project : callable, optional
+        ``project(xyz (K,3)) -> (mean (K,), var (K,), grad (K, 3))``: ``predict`` with a
+        gradient of its mean. When given, each (stitched, unique) vertex takes
+        ``project_steps`` Newton steps onto ``predict``'s zero level,
+        ``v <- v - m(v) g / |g|^2`` (:func:`project_vertices`), each step clamped to
+        ``project_clamp`` voxels so that a vertex cannot jump to another sheet; the
+        vertex variance is then ``predict``'s at the projected position.
+    project_steps, project_clamp : int, float
+        Newton steps per vertex (>= 1), and the largest step in voxels.
 
     Returns
     -------
@@ -286,6 +306,8 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
                   & (faces[:, 0] != faces[:, 2])]
     verts, faces, _ = _drop_unused(verts, faces, np.zeros(len(verts)))
+    if project is not None:
+        verts = project_vertices(project, verts, project_steps, project_clamp * h, batch)
     var = np.empty(len(verts))
     for s in range(0, len(verts), batch):
         var[s:s + batch] = predict(verts[s:s + batch])[1]
@@ -294,6 +316,49 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
         faces = faces[~bad[faces].any(1)]
     verts, faces, var = _drop_unused(verts, faces, var)
     return SurfaceMesh(verts, faces, var)
+
+
+def project_vertices(project: Callable, verts: np.ndarray, steps: int = 1,
+                     max_step: float = np.inf, batch: int = 65_536) -> np.ndarray:
+    """Newton steps of points onto a field's zero level along its gradient.
+
+    ``v <- v - m(v) g(v) / |g(v)|^2`` (the root of the field's first-order expansion
+    along its gradient), ``steps`` times, each step's length clamped to ``max_step`` (m)
+    so that a point cannot jump to another sheet of the level set; a point whose
+    gradient vanishes (or is not finite) stays where it is.
+
+    Parameters
+    ----------
+    project : callable
+        ``project(xyz (K,3)) -> (mean (K,), var (K,), grad (K, 3))``.
+    verts : (V, 3) float64
+    steps : int
+        Newton steps (>= 1).
+    max_step : float
+        Largest step length (m).
+
+    Returns
+    -------
+    (V, 3) float64: the moved points (a new array).
+    """
+    if steps < 1:
+        raise ValueError(f"Expected project_steps >= 1, found {steps}.")
+    if not max_step > 0:
+        raise ValueError(f"Expected a positive largest projection step, found {max_step}.")
+    out = np.array(verts, dtype=np.float64, copy=True)
+    for s in range(0, len(out), batch):
+        x = out[s:s + batch]
+        for _ in range(steps):
+            m, _, g = project(x)[:3]
+            g2 = np.einsum("ij,ij->i", g, g)
+            ok = np.isfinite(m) & np.isfinite(g2) & (g2 > 1e-12)
+            t = np.where(ok, m / np.where(ok, g2, 1.0), 0.0)
+            step = t[:, None] * np.where(ok[:, None], g, 0.0)
+            length = np.sqrt(np.einsum("ij,ij->i", step, step))
+            scale = np.minimum(1.0, max_step / np.maximum(length, 1e-300))
+            x = x - step * scale[:, None]
+        out[s:s + batch] = x
+    return out
 
 
 def _median_spacing(points: np.ndarray, n: int = 20000) -> float:
