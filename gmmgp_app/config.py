@@ -395,6 +395,24 @@ class SurfaceConfig:
 
     voxel_size: float = _f(AUTO, "Grid cell size ('auto': from the point spacing).", 1e-4,
                            100.0, unit="m", urban=0.05)
+    extent_cell: float = _f(
+        AUTO, "Cell e that sets where the surface is sought, whatever the voxel: the seeds "
+        "are one scan point per cell of e/2, and the surface is followed into voxels whose "
+        "centre is within (sqrt(3)/2) e + s_seed of a seed (s_seed: the seeds' median "
+        "spacing) ('auto': 0.6 h_t, the extent of the old automatic voxel).", 1e-4, 100.0,
+        unit="m", symbol="e", urban=0.05,
+        source="docs/speed.md 'Fourth pass' (the reach kept at 0.6 h_t's when meshing "
+        "coarser) and 'Seventh pass'")
+    project_steps: int = _f(
+        1, "Newton steps of each mesh vertex onto the map's zero level along its gradient "
+        "(v <- v - m g / |g|^2, clamped to project_clamp voxels); the lattice then only "
+        "locates the surface and is evaluated with the far field alone. 0: the lattice "
+        "evaluates the map's mean and the vertices stay on the lattice edges (linear "
+        "interpolation).", 0, 10,
+        source="docs/speed.md 'Seventh pass'")
+    project_clamp: float = _f(
+        0.5, "Largest projection step, in voxels (a vertex cannot jump to another sheet).",
+        0.01, 10.0)
     max_std: Optional[float] = _f(
         None, "Cut away surface where the predicted standard deviation exceeds this.",
         0.0, 1000.0, unit="m", optional=True)

@@ -61,6 +61,12 @@ from gmmgp_app.config import MappingConfig, is_auto
 __all__ = ["ScanScale", "AutoScaleError", "measure_scan", "auto_values", "resolve_config",
            "TRAIN_BUDGET", "clip_to_field"]
 
+#: The automatic surface voxel in units of h_t, and the reason printed with it
+#: (docs/speed.md "Seventh pass").
+SURFACE_VOXEL = 1.0
+SURFACE_VOXEL_REASON = ("1.0 h_t: vertices projected onto the map's zero level, faces "
+                        "trimmed to the 0.6 h_t extent")
+
 #: Hit points trained on before the voxel subset starts (about 2 s of prepare + HGMM
 #: per 100k points here).
 TRAIN_BUDGET = 100_000
@@ -230,7 +236,9 @@ def auto_values(scale: ScanScale, budget: int = TRAIN_BUDGET, *,
         "gp.value_noise": (sig ** 2, "sigma^2: the noise along the normals"),
         "gp.gradient_noise": (gn, "(2 sigma / r_n)^2 in [1e-4, 0.05]: PCA normal angle error"),
         "gp.prior_scale": (1.0, "1: the prior's sigma_p scales the kernel (eq. kernel2)"),
-        "surface.voxel_size": (0.6 * ht, "0.6 h_t"),
+        "surface.voxel_size": (SURFACE_VOXEL * ht, SURFACE_VOXEL_REASON),
+        "surface.extent_cell": (0.6 * ht, "0.6 h_t: the surface reaches as far from the "
+                                "data as the old 0.6 h_t voxel's did"),
         "far.kernel_floor": (ht, "h_t: a few tangent planes near the data"),
     }
     return {k: {"value": float(v), "reason": r} for k, (v, r) in out.items()}

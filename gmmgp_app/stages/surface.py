@@ -20,8 +20,8 @@ import numpy as np
 from .._atomic import atomic_path
 from ..types import SurfaceMesh
 
-__all__ = ["extract_surface", "surface_seeds", "mesh_field", "project_vertices", "check_surface_grid",
-           "check_grid_size", "std_colour_max", "variance_colors", "write_mesh_ply",
+__all__ = ["extract_surface", "surface_seeds", "mesh_field", "project_vertices",
+           "check_surface_grid", "check_grid_size", "std_colour_max", "variance_colors", "write_mesh_ply",
            "write_mesh_obj", "read_mesh_ply", "estimate_grid_nodes", "GridTooLargeError"]
 
 # Refuse grids that would need more than this many field evaluations up front.
@@ -78,9 +78,10 @@ def surface_seeds(points: np.ndarray, cfg) -> np.ndarray:
     points : (N, 3) float64
         The scan's points (local frame).
     cfg : SurfaceConfig
-        ``voxel_size`` (m): the cell is half of it.
+        The cell is half of ``extent_cell`` (m) when that is a number, else half of
+        ``voxel_size`` (maps made before the extent cell).
     """
-    cell = cfg.voxel_size / 2
+    cell = _extent_cell(cfg) / 2
     keys = np.floor(points / cell).astype(np.int64)
     if len(keys) == 0:
         return points[:0]
@@ -95,6 +96,13 @@ def surface_seeds(points: np.ndarray, cfg) -> np.ndarray:
     else:
         _, first = np.unique(keys, axis=0, return_index=True)
     return points[np.sort(first)]
+
+
+def _extent_cell(cfg) -> float:
+    """The cell bounding the surface's extent (SurfaceConfig ``extent_cell``), the voxel
+    where it is not a number."""
+    e = getattr(cfg, "extent_cell", None)
+    return float(cfg.voxel_size) if e is None or isinstance(e, str) else float(e)
 
 
 def check_surface_grid(points: np.ndarray, cfg) -> int:
@@ -124,7 +132,7 @@ def mesh_field(predict: Callable, seeds: np.ndarray, cfg, voxel_size: Optional[f
                            voxel_size=cfg.voxel_size if voxel_size is None else voxel_size,
                            max_std=cfg.max_std if max_std is None else max_std,
                            progress=progress, reach=reach, predict_mean=predict_mean,
-                           project=project if steps > 0 else None, project_steps=steps,
+                           project=project if steps > 0 else None, project_steps=max(steps, 1),
                            project_clamp=float(getattr(cfg, "project_clamp", 0.5)))
 
 
