@@ -286,9 +286,11 @@ def test_projection_puts_the_vertices_on_the_fields_zero_level():
     # one step: the root of the linear expansion along the gradient
     v = plain.vertices[:100]
     f, _, g = _ellipsoid(v)
-    one = project_vertices(_ellipsoid, v, 1)
+    one, m1, v1 = project_vertices(_ellipsoid, v, 1)
     np.testing.assert_allclose(one, v - (f / np.sum(g * g, 1))[:, None] * g, rtol=0,
                                atol=1e-15)
+    np.testing.assert_array_equal(m1, _ellipsoid(one)[0])
+    np.testing.assert_array_equal(v1, _ellipsoid(one)[1])
 
 
 def test_projected_sphere_is_closer_to_the_exact_surface_at_a_coarse_voxel():
@@ -320,9 +322,16 @@ def test_projection_step_is_clamped_and_a_flat_field_leaves_points_alone():
     def plane(x):  # zero level at z = 10, far from the points
         return x[:, 2] - 10.0, np.ones(len(x)), np.tile([0.0, 0.0, 1.0], (len(x), 1))
 
-    out = project_vertices(plane, x, steps=1, max_step=0.25)
+    out, m, _ = project_vertices(plane, x, steps=1, max_step=0.25)
     np.testing.assert_allclose(out - x, [[0, 0, 0.25], [0, 0, 0.25]])
+    np.testing.assert_allclose(m, x[:, 2] + 0.25 - 10.0)
     flat = lambda x: (np.ones(len(x)), np.ones(len(x)), np.zeros((len(x), 3)))  # noqa: E731
-    np.testing.assert_array_equal(project_vertices(flat, x, steps=3), x)
+    np.testing.assert_array_equal(project_vertices(flat, x, steps=3)[0], x)
+    # a step that leads away from the zero level (a wrong gradient) is undone
+    wrong = lambda x: (x[:, 2] - 10.0, np.ones(len(x)), np.tile([0.0, 0.0, -1.0],  # noqa
+                                                                  (len(x), 1)))
+    back, m, _ = project_vertices(wrong, x, steps=2, max_step=0.25)
+    np.testing.assert_array_equal(back, x)
+    np.testing.assert_array_equal(m, x[:, 2] - 10.0)
     with pytest.raises(ValueError, match="project_steps >= 1"):
         project_vertices(plane, x, steps=0)

@@ -184,8 +184,9 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
         gradient of its mean. When given, each (stitched, unique) vertex takes
         ``project_steps`` Newton steps onto ``predict``'s zero level,
         ``v <- v - m(v) g / |g|^2`` (:func:`project_vertices`), each step clamped to
-        ``project_clamp`` voxels so that a vertex cannot jump to another sheet; the
-        vertex variance is then ``predict``'s at the projected position.
+        ``project_clamp`` voxels so that a vertex cannot jump to another sheet, and
+        each vertex kept at its iterate nearest the zero level (its lattice position
+        included); its variance is ``predict``'s there.
     project_steps, project_clamp : int, float
         Newton steps per vertex (>= 1), and the largest step in voxels.
 
@@ -315,10 +316,12 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
                   & (faces[:, 0] != faces[:, 2])]
     verts, faces, _ = _drop_unused(verts, faces, np.zeros(len(verts)))
     if project is not None:
-        verts = project_vertices(project, verts, project_steps, project_clamp * h, batch)
-    var = np.empty(len(verts))
-    for s in range(0, len(verts), batch):
-        var[s:s + batch] = predict(verts[s:s + batch])[1]
+        verts, _, var = project_vertices(project, verts, project_steps, project_clamp * h,
+                                         batch, predict)
+    else:
+        var = np.empty(len(verts))
+        for s in range(0, len(verts), batch):
+            var[s:s + batch] = predict(verts[s:s + batch])[1]
     if max_std is not None:
         bad = np.sqrt(np.maximum(var, 0)) > max_std
         faces = faces[~bad[faces].any(1)]
@@ -327,13 +330,16 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
 
 
 def project_vertices(project: Callable, verts: np.ndarray, steps: int = 1,
-                     max_step: float = np.inf, batch: int = 65_536) -> np.ndarray:
+                     max_step: float = np.inf, batch: int = 65_536,
+                     predict: Optional[Callable] = None) -> tuple:
     """Newton steps of points onto a field's zero level along its gradient.
 
     ``v <- v - m(v) g(v) / |g(v)|^2`` (the root of the field's first-order expansion
     along its gradient), ``steps`` times, each step's length clamped to ``max_step`` (m)
     so that a point cannot jump to another sheet of the level set; a point whose
-    gradient vanishes (or is not finite) stays where it is.
+    gradient vanishes (or is not finite) stays where it is. Each point ends at the
+    iterate (its start included) where ``|m|`` is least, so a step that does not bring
+    it nearer the zero level (a gradient that misleads, a clamped step) is undone.
 
     Parameters
     ----------
@@ -344,20 +350,26 @@ def project_vertices(project: Callable, verts: np.ndarray, steps: int = 1,
         Newton steps (>= 1).
     max_step : float
         Largest step length (m).
+    predict : callable, optional
+        ``predict(xyz) -> (mean, var)``, the same field without the gradient: evaluates
+        the last iterate (default: ``project``).
 
     Returns
     -------
-    (V, 3) float64: the moved points (a new array).
+    points (V, 3), mean (V,), var (V,): the field's mean and variance at the points.
     """
     if steps < 1:
         raise ValueError(f"Expected project_steps >= 1, found {steps}.")
     if not max_step > 0:
         raise ValueError(f"Expected a positive largest projection step, found {max_step}.")
-    out = np.array(verts, dtype=np.float64, copy=True)
+    predict = predict if predict is not None else (lambda x: project(x)[:2])
+    out = np.array(verts, dtype=np.float64, copy=True).reshape(-1, 3)
+    mean, var = np.empty(len(out)), np.empty(len(out))
     for s in range(0, len(out), batch):
         x = out[s:s + batch]
-        for _ in range(steps):
-            m, _, g = project(x)[:3]
+        m, v, g = project(x)[:3]
+        best_x, best_m, best_v = x, np.asarray(m, np.float64), np.asarray(v, np.float64)
+        for it in range(steps):
             g2 = np.einsum("ij,ij->i", g, g)
             ok = np.isfinite(m) & np.isfinite(g2) & (g2 > 1e-12)
             t = np.where(ok, m / np.where(ok, g2, 1.0), 0.0)
@@ -365,8 +377,15 @@ def project_vertices(project: Callable, verts: np.ndarray, steps: int = 1,
             length = np.sqrt(np.einsum("ij,ij->i", step, step))
             scale = np.minimum(1.0, max_step / np.maximum(length, 1e-300))
             x = x - step * scale[:, None]
-        out[s:s + batch] = x
-    return out
+            if it < steps - 1:
+                m, v, g = project(x)[:3]
+            else:
+                m, v = predict(x)[:2]
+            better = np.abs(m) < np.abs(best_m)     # False where m is not finite
+            best_x = np.where(better[:, None], x, best_x)
+            best_m, best_v = np.where(better, m, best_m), np.where(better, v, best_v)
+        out[s:s + batch], mean[s:s + batch], var[s:s + batch] = best_x, best_m, best_v
+    return out, mean, var
 
 
 def _median_spacing(points: np.ndarray, n: int = 20000) -> float:
