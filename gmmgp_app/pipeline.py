@@ -237,11 +237,12 @@ class SurfaceMap:
         ``voxel_size`` and ``max_std`` default to ``config.surface``; ``reach`` (m), how
         far from a seed the surface is followed, defaults to :meth:`surface_reach`.
 
-        With ``surface.project_steps`` > 0 (the default) the lattice only locates the
-        surface: it is evaluated with the far field's mean alone (:meth:`lattice_mean`),
-        and each vertex then takes Newton steps onto :meth:`predict`'s zero level along
-        its gradient, where its variance is :meth:`predict`'s (``stages.surface``,
-        ``project_vertices``); the field itself is unchanged.
+        The lattice is evaluated with :meth:`lattice_mean` (``surface.lattice_field``:
+        by default the far field's mean alone, which carries the map's mean there); with
+        ``surface.project_steps`` > 0 each vertex then takes Newton steps onto
+        :meth:`predict`'s zero level along its gradient (``stages.surface``,
+        ``project_vertices``). The vertex variance is :meth:`predict`'s at the vertex;
+        the field itself is unchanged.
         """
         if not self.signed:
             raise PipelineError(f"A {self.method} map predicts an unsigned distance, which "
@@ -250,16 +251,15 @@ class SurfaceMap:
         return _surface.mesh_field(self.predict, self.seed_points, self.config.surface,
                                    voxel_size, max_std, progress,
                                    self.surface_reach() if reach is None else reach,
-                                   predict_mean=self.lattice_mean if project
-                                   else self.predict_mean,
+                                   predict_mean=self.lattice_mean,
                                    project=self._predict_with_grad if project else None)
 
     def lattice_mean(self, xyz) -> np.ndarray:
-        """(K,) the field that locates the surface on the lattice before the vertices are
-        projected onto :meth:`predict`'s zero level: the far field's mean (robust IMLS,
-        which carries :meth:`predict`'s mean at the lattice, blend weight median
-        0.99), or :meth:`predict_mean` for a map without a far field."""
-        if self.far is None:
+        """(K,) the field the surface lattice is evaluated with (``surface.lattice_field``):
+        the far field's mean ("far": robust IMLS, which carries :meth:`predict`'s mean at
+        the lattice, blend weight median 0.99), or :meth:`predict_mean` ("map", and for a
+        map without a far field)."""
+        if self.far is None or getattr(self.config.surface, "lattice_field", "map") != "far":
             return self.predict_mean(xyz)
         return self.far.components(as_queries(xyz))["mean"]
 

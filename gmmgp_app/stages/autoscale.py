@@ -33,17 +33,20 @@ gradient noise               ``(2 sigma / r_n)^2`` clipped to [1e-4, 0.05]: the 
                              error of a PCA normal from noise sigma over radius r_n
 GP prior scale ``c``         1 (the GMR's ``sigma_p``, eq. kernel2)
 surface voxel                ``0.6 h_t``
+surface extent cell ``e``    ``0.6 h_t``
 HGMM ``reg_covar``           ``(0.004 s)^2`` (1e-6 m^2 at s = 0.25 m)
 GMR ``far_growth_floor``     ``1.2 s``
 far field kernel floor       ``h_t`` (see :mod:`.farfield`)
 ===========================  =======================================================
 
-The surface is followed at most ``(sqrt(3) / 2) 0.6 h_t + s_seed`` from a seed point
-(``s_seed``: the seeds' median spacing; ``SurfaceMap.surface_reach``): the reach of the
-0.6 h_t voxel, kept when a map is meshed at another voxel. Coarser voxels with that
-reach (0.8 and 1.0 h_t) mesh the street 1.8-2.9x faster at equal accuracy, but are less
-accurate on the held-out demo (mean 9.3 vs 8.2 mm) and KITTI (33.6-34.2 vs 31.9 mm),
-so the voxel stays 0.6 h_t (docs/speed.md, "Fourth pass").
+The surface is sought from one scan point per cell of e / 2 and followed at most
+``(sqrt(3) / 2) e + s_seed`` from a seed point (``s_seed``: the seeds' median spacing;
+``SurfaceMap.surface_reach``), e = 0.6 h_t whatever the voxel (the old 0.6 h_t voxel's
+reach). Coarser voxels with that reach (0.8-1.2 h_t) mesh the street 2-4x faster at
+equal accuracy, but are 6-15 % less accurate on the held-out demo and KITTI, with the
+vertices projected onto the map's zero level (``surface.project_steps``) as without
+(the extra surface lies further from the data), so the voxel stays 0.6 h_t
+(docs/speed.md, "Fourth pass" and "Seventh pass").
 """
 
 from __future__ import annotations
@@ -63,9 +66,8 @@ __all__ = ["ScanScale", "AutoScaleError", "measure_scan", "auto_values", "resolv
 
 #: The automatic surface voxel in units of h_t, and the reason printed with it
 #: (docs/speed.md "Seventh pass").
-SURFACE_VOXEL = 1.0
-SURFACE_VOXEL_REASON = ("1.0 h_t: vertices projected onto the map's zero level, faces "
-                        "trimmed to the 0.6 h_t extent")
+SURFACE_VOXEL = 0.6
+SURFACE_VOXEL_REASON = "0.6 h_t"
 
 #: Hit points trained on before the voxel subset starts (about 2 s of prepare + HGMM
 #: per 100k points here).
