@@ -409,17 +409,19 @@ class SurfaceConfig:
         "0.99; the GP and its GMR prior are evaluated at the mesh vertices only, for their "
         "variance), or 'map', the map's mean. Maps without a far field use their mean.",
         choices=("far", "map"),
-        source="docs/speed.md 'Seventh pass': 'far' takes 29 % less CPU on the street's "
-        "surface, the mesh within 1 % in accuracy and 0.1 point in completeness, its "
-        "vertices as near the map's zero level as 'map''s (p99 0.078 voxels)")
+        source="docs/speed.md 'Seventh pass': 'far' takes 10-29 % less surface CPU "
+        "(street 29 %), the meshes of four scenes within 1 % in accuracy and 0.1 point in "
+        "completeness, the vertices as near the map's zero level as with 'map' (street "
+        "p99 0.078 voxels both)")
     project_steps: int = _f(
         0, "Newton steps of each mesh vertex onto the map's zero level along the map's "
         "gradient (v <- v - m g / |g|^2, clamped to project_clamp voxels, a step kept only "
         "where it lowers |m|); 0: the vertices stay on the lattice edges (linear "
         "interpolation).", 0, 10,
         source="docs/speed.md 'Seventh pass': one step puts the vertices on the zero level "
-        "(p99 0.078 -> 0.024 voxels) but costs a full evaluation with gradient per vertex "
-        "(+40-55 % surface CPU) for 0-3 % accuracy (none on the street)")
+        "(street p99 0.078 -> 0.024 voxels) but costs a full evaluation with gradient per "
+        "vertex (+40-60 % surface CPU) for 0-3 % accuracy (none on the street), and "
+        "coarser voxels stay less accurate on held-out scenes with it")
     project_clamp: float = _f(
         0.5, "Largest projection step, in voxels (a vertex cannot jump to another sheet).",
         0.01, 10.0)

@@ -239,8 +239,8 @@ def auto_values(scale: ScanScale, budget: int = TRAIN_BUDGET, *,
         "gp.gradient_noise": (gn, "(2 sigma / r_n)^2 in [1e-4, 0.05]: PCA normal angle error"),
         "gp.prior_scale": (1.0, "1: the prior's sigma_p scales the kernel (eq. kernel2)"),
         "surface.voxel_size": (SURFACE_VOXEL * ht, SURFACE_VOXEL_REASON),
-        "surface.extent_cell": (0.6 * ht, "0.6 h_t: the surface reaches as far from the "
-                                "data as the old 0.6 h_t voxel's did"),
+        "surface.extent_cell": (0.6 * ht, "0.6 h_t: the surface is sought as far from the "
+                                "data as at the 0.6 h_t voxel, whatever the voxel"),
         "far.kernel_floor": (ht, "h_t: a few tangent planes near the data"),
     }
     return {k: {"value": float(v), "reason": r} for k, (v, r) in out.items()}
