@@ -6,6 +6,11 @@ Each block runs scikit-image's marching cubes on its own (B+1)^3 nodes; blocks
 share their boundary nodes, so a vertex on a shared face is computed from the
 same two node values in both blocks and the seams are stitched by merging
 vertices with the same lattice-edge key (no duplicates, no cracks).
+
+The lattice may be evaluated with a cheaper field than the one whose variance the
+vertices carry (a map's far field, which carries its mean near the surface), and the
+stitched vertices may be projected onto the full field's zero level by Newton steps
+(:func:`project_vertices`).
 """
 
 from __future__ import annotations
@@ -21,8 +26,8 @@ from .._atomic import atomic_path
 from ..types import SurfaceMesh
 
 __all__ = ["extract_surface", "surface_seeds", "mesh_field", "project_vertices",
-           "check_surface_grid", "check_grid_size", "std_colour_max", "variance_colors", "write_mesh_ply",
-           "write_mesh_obj", "read_mesh_ply", "estimate_grid_nodes", "GridTooLargeError"]
+           "check_surface_grid", "check_grid_size", "std_colour_max", "variance_colors",
+           "write_mesh_ply", "write_mesh_obj", "read_mesh_ply", "estimate_grid_nodes", "GridTooLargeError"]
 
 # Refuse grids that would need more than this many field evaluations up front.
 MAX_GRID_NODES = 200_000_000
@@ -175,10 +180,11 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     predict_mean : callable, optional
         ``predict_mean(xyz (K,3)) -> mean (K,)``: the field the lattice nodes are
         evaluated with (only the mesh vertices need the variance). Default:
-        ``predict(xyz)[0]``. Without ``project`` it must be ``predict``'s mean (the mesh
-        is then ``predict``'s zero level, linearly interpolated along lattice edges);
-        with ``project`` it may be a cheaper field whose zero level is near
-        ``predict``'s: it only locates the surface and sets the mesh's connectivity.
+        ``predict(xyz)[0]``. Without ``project`` the mesh is this field's zero level,
+        linearly interpolated along the lattice edges (``predict``'s own when it is
+        ``predict``'s mean; a map may pass a cheaper field whose zero level is within
+        the interpolation's error of its own, ``SurfaceMap.lattice_mean``); with
+        ``project`` it only locates the surface and sets the mesh's connectivity.
     project : callable, optional
         ``project(xyz (K,3)) -> (mean (K,), var (K,), grad (K, 3))``: ``predict`` with a
         gradient of its mean. When given, each (stitched, unique) vertex takes
