@@ -335,3 +335,17 @@ def test_projection_step_is_clamped_and_a_flat_field_leaves_points_alone():
     np.testing.assert_array_equal(m, x[:, 2] - 10.0)
     with pytest.raises(ValueError, match="project_steps >= 1"):
         project_vertices(plane, x, steps=0)
+
+
+def test_seeds_follow_the_extent_cell_not_the_voxel():
+    # surface.extent_cell (a number) sets the seeds' cell (e / 2) whatever the voxel; a
+    # config without one (a map saved before it: 'auto' unresolved) keeps the voxel's.
+    from gmmgp_app.config import SurfaceConfig
+    from gmmgp_app.stages.surface import surface_seeds
+
+    pts = _sphere_seeds(20000)
+    fine = surface_seeds(pts, SurfaceConfig(voxel_size=0.05))
+    coarse = surface_seeds(pts, SurfaceConfig(voxel_size=0.2))
+    np.testing.assert_array_equal(
+        surface_seeds(pts, SurfaceConfig(voxel_size=0.2, extent_cell=0.05)), fine)
+    assert len(coarse) < len(fine)
