@@ -399,8 +399,8 @@ class SurfaceConfig:
         AUTO, "Cell e that sets where the surface is sought, whatever the voxel: the seeds "
         "are one scan point per cell of e/2, and the surface is followed into voxels whose "
         "centre is within (sqrt(3)/2) e + s_seed of a seed (s_seed: the seeds' median "
-        "spacing) ('auto': 0.6 h_t, the extent of the old automatic voxel).", 1e-4, 100.0,
-        unit="m", symbol="e", urban=0.05,
+        "spacing) ('auto': 0.6 h_t, the automatic voxel's own; it keeps that extent when "
+        "a coarser voxel is set).", 1e-4, 100.0, unit="m", urban=0.05,
         source="docs/speed.md 'Fourth pass' (the reach kept at 0.6 h_t's when meshing "
         "coarser) and 'Seventh pass'")
     lattice_field: str = _f(
