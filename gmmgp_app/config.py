@@ -420,6 +420,36 @@ class SurfaceConfig:
 
     voxel_size: float = _f(AUTO, "Grid cell size ('auto': from the point spacing).", 1e-4,
                            100.0, unit="m", urban=0.05)
+    extent_cell: float = _f(
+        AUTO, "Cell e that sets where the surface is sought, whatever the voxel: the seeds "
+        "are one scan point per cell of e/2, and the surface is followed into voxels whose "
+        "centre is within (sqrt(3)/2) e + s_seed of a seed (s_seed: the seeds' median "
+        "spacing) ('auto': 0.6 h_t, the automatic voxel's own; it keeps that extent when "
+        "a coarser voxel is set).", 1e-4, 100.0, unit="m", urban=0.05,
+        source="docs/speed.md 'Fourth pass' (the reach kept at 0.6 h_t's when meshing "
+        "coarser) and 'Seventh pass'")
+    lattice_field: str = _f(
+        "far", "Field the marching-cubes lattice is evaluated with: 'far', the far field's "
+        "mean alone (robust IMLS, which carries the map's mean there: blend weight median "
+        "0.99; the GP and its GMR prior are evaluated at the mesh vertices only, for their "
+        "variance), or 'map', the map's mean. Maps without a far field use their mean.",
+        choices=("far", "map"),
+        source="docs/speed.md 'Seventh pass': 'far' takes 10-29 % less surface CPU "
+        "(street 29 %), the meshes of four scenes within 1 % in accuracy and 0.1 point in "
+        "completeness, the vertices as near the map's zero level as with 'map' (street "
+        "p99 0.078 voxels both)")
+    project_steps: int = _f(
+        0, "Newton steps of each mesh vertex onto the map's zero level along the map's "
+        "gradient (v <- v - m g / |g|^2, clamped to project_clamp voxels, a step kept only "
+        "where it lowers |m|); 0: the vertices stay on the lattice edges (linear "
+        "interpolation).", 0, 10,
+        source="docs/speed.md 'Seventh pass': one step puts the vertices on the zero level "
+        "(street p99 0.078 -> 0.024 voxels) but costs a full evaluation with gradient per "
+        "vertex (+40-60 % surface CPU) for 0-3 % accuracy (none on the street), and "
+        "coarser voxels stay less accurate on held-out scenes with it")
+    project_clamp: float = _f(
+        0.5, "Largest projection step, in voxels (a vertex cannot jump to another sheet).",
+        0.01, 10.0)
     max_std: Optional[float] = _f(
         None, "Cut away surface where the predicted standard deviation exceeds this.",
         0.0, 1000.0, unit="m", optional=True)

@@ -245,24 +245,49 @@ class SurfaceMap:
 
         ``voxel_size`` and ``max_std`` default to ``config.surface``; ``reach`` (m), how
         far from a seed the surface is followed, defaults to :meth:`surface_reach`.
+
+        The lattice is evaluated with :meth:`lattice_mean` (``surface.lattice_field``:
+        by default the far field's mean alone, which carries the map's mean there); with
+        ``surface.project_steps`` > 0 each vertex then takes Newton steps onto
+        :meth:`predict`'s zero level along its gradient (``stages.surface``,
+        ``project_vertices``). The vertex variance is :meth:`predict`'s at the vertex;
+        the field itself is unchanged.
         """
         if not self.signed:
             raise PipelineError(f"A {self.method} map predicts an unsigned distance, which "
                                 "has no zero level set to mesh; map with --method gmmgp.")
+        project = int(self.config.surface.project_steps) > 0
         return _surface.mesh_field(self.predict, self.seed_points, self.config.surface,
                                    voxel_size, max_std, progress,
                                    self.surface_reach() if reach is None else reach,
-                                   predict_mean=self.predict_mean)
+                                   predict_mean=self.lattice_mean,
+                                   project=self._predict_with_grad if project else None)
+
+    def lattice_mean(self, xyz) -> np.ndarray:
+        """(K,) the field the surface lattice is evaluated with (``surface.lattice_field``):
+        the far field's mean ("far": robust IMLS, which carries :meth:`predict`'s mean at
+        the lattice, blend weight median 0.99), or :meth:`predict_mean` ("map", and for a
+        map without a far field)."""
+        if self.far is None or getattr(self.config.surface, "lattice_field", "map") != "far":
+            return self.predict_mean(xyz)
+        return self.far.components(as_queries(xyz))["mean"]
+
+    def _predict_with_grad(self, xyz):
+        return self.predict(xyz, return_grad=True)
 
     def surface_reach(self) -> Optional[float]:
         """How far from a seed point the surface is followed (m), whatever voxel it is
-        meshed at: the reach of the map's configured voxel,
-        ``(sqrt(3) / 2) voxel + s_seed`` (:func:`stages.surface.surface_reach`;
-        ``s_seed``, the seeds' median spacing). With the automatic voxel 0.6 h_t that is
-        ``(sqrt(3) / 2) 0.6 h_t + s_seed``, a length of the data: meshing coarser no
-        longer follows fins further from the data, and the map's own mesh is unchanged.
+        meshed at: the reach of the map's extent cell ``e`` (``surface.extent_cell``;
+        for a map made before it, its configured voxel),
+        ``(sqrt(3) / 2) e + s_seed`` (:func:`stages.surface.surface_reach`;
+        ``s_seed``, the seeds' median spacing). With the automatic e = 0.6 h_t that is
+        ``(sqrt(3) / 2) 0.6 h_t + s_seed``, a length of the data: meshing coarser does not
+        follow fins further from the data (the faces are also trimmed to it,
+        ``stages.surface.extract_surface(extent_cell=)``).
         None (the voxel's own rule) for a map without seeds or a concrete voxel."""
-        v = self.config.surface.voxel_size
+        v = self.config.surface.extent_cell
+        if is_auto(v):  # a map made before the extent cell: its voxel's
+            v = self.config.surface.voxel_size
         if is_auto(v) or len(self.seed_points) == 0:
             return None
         return _surface.surface_reach(self.seed_points, float(v))

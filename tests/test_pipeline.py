@@ -1,5 +1,6 @@
 """build_map end to end on scenes with exact SDF: the GP must improve on its HGMM prior."""
 
+import copy
 import json
 
 import numpy as np
@@ -190,33 +191,84 @@ def test_recipes_only_name_stages_of_the_table():
         gm.build_map(gm.Scan(np.zeros((20, 3))), method="hgmm", stop_after="gp")
 
 
-def test_map_surface_reach_is_the_auto_voxels_whatever_the_voxel(sphere):
-    # The map follows its surface as far from the data as it does at its own voxel
-    # (automatic: 0.6 h_t): at that voxel the mesh is the voxel rule's (as before)
-    # exactly, and meshing at h_t keeps that reach instead of growing it with the cell.
+@pytest.fixture(scope="module")
+def sphere_map(sphere):
+    return gm.build_map(sphere[0], gm.MappingConfig(), method="gmmgp")
+
+
+def test_map_surface_reach_is_the_extent_cells_whatever_the_voxel(sphere_map):
+    # The map follows its surface as far from the data as its extent cell (automatic:
+    # 0.6 h_t) says, whatever voxel it is meshed at; a coarser voxel keeps that reach
+    # instead of growing it with the cell. The lattice takes the far field's mean
+    # (surface.lattice_field "far"); "map" gives the mesh of the map's mean, as before.
+    from gmmgp_app.stages.autoscale import SURFACE_VOXEL
     from gmmgp_app.stages.surface import extract_surface, surface_reach
 
-    scan, _ = sphere
-    smap = gm.build_map(scan, gm.MappingConfig(), method="gmmgp")
+    smap = copy.copy(sphere_map)
     ht = smap.summary["auto"]["train_spacing"]["value"]
-    vox = smap.config.surface.voxel_size
-    assert np.isclose(vox, 0.6 * ht)
-    assert smap.surface_reach() == surface_reach(smap.seed_points, vox)
+    vox, ext = smap.config.surface.voxel_size, smap.config.surface.extent_cell
+    assert np.isclose(vox, SURFACE_VOXEL * ht) and np.isclose(ext, 0.6 * ht)
+    assert smap.surface_reach() == surface_reach(smap.seed_points, ext)
+    far_mean = lambda x: smap.far.components(x)["mean"]  # noqa: E731
     a = smap.extract_surface()
-    b = extract_surface(smap.predict, smap.seed_points, vox)   # the voxel's own reach
-    np.testing.assert_array_equal(a.vertices, b.vertices)
-    np.testing.assert_array_equal(a.faces, b.faces)
-    # the map's lattice takes the mean alone (predict_mean): the same values bit for bit
-    np.testing.assert_array_equal(a.vertex_variance, b.vertex_variance)
+    b = extract_surface(smap.predict, smap.seed_points, vox, reach=smap.surface_reach(),
+                        predict_mean=far_mean)
+    for x, y in ((a, b),):
+        np.testing.assert_array_equal(x.vertices, y.vertices)
+        np.testing.assert_array_equal(x.faces, y.faces)
+        np.testing.assert_array_equal(x.vertex_variance, y.vertex_variance)
+    # the map's mean on the lattice: the mesh as before this option, bit for bit
+    # (predict_mean is predict's mean)
+    smap.config = sphere_map.config.replace({"surface.lattice_field": "map"})
+    c = smap.extract_surface()
+    d = extract_surface(smap.predict, smap.seed_points, vox, reach=smap.surface_reach())
+    np.testing.assert_array_equal(c.vertices, d.vertices)
+    np.testing.assert_array_equal(c.faces, d.faces)
+    np.testing.assert_array_equal(c.vertex_variance, d.vertex_variance)
     q = a.vertices[::7]
     q = q + np.random.default_rng(1).normal(scale=0.05, size=q.shape)
     np.testing.assert_array_equal(smap.predict_mean(q), smap.predict(q)[0])
-    c = smap.extract_surface(ht)
-    d = extract_surface(smap.predict, smap.seed_points, ht, reach=smap.surface_reach())
-    e = extract_surface(smap.predict, smap.seed_points, ht)    # the old, growing reach
-    np.testing.assert_array_equal(c.faces, d.faces)
-    assert surface_reach(smap.seed_points, ht) > smap.surface_reach()
-    assert len(e.faces) >= len(c.faces)
+    # the two lattices' meshes differ by the GP's share of the mean only
+    assert abs(len(a.faces) - len(c.faces)) < 0.01 * len(c.faces)
+    # projection on: the same as extract_surface with the map's gradient
+    smap.config = sphere_map.config.replace({"surface.project_steps": 1})
+    e = smap.extract_surface()
+    f = extract_surface(smap.predict, smap.seed_points, vox, reach=smap.surface_reach(),
+                        predict_mean=far_mean, project=smap._predict_with_grad,
+                        project_steps=1, project_clamp=smap.config.surface.project_clamp)
+    np.testing.assert_array_equal(e.vertices, f.vertices)
+    np.testing.assert_array_equal(e.faces, f.faces)
+    np.testing.assert_array_equal(e.vertex_variance, f.vertex_variance)
+    # the voxel's own (growing) reach follows further at a coarse voxel
+    g = extract_surface(smap.predict, smap.seed_points, 2 * ht,
+                        predict_mean=smap.predict_mean)
+    h = smap.extract_surface(2 * ht)
+    assert surface_reach(smap.seed_points, 2 * ht) > smap.surface_reach()
+    assert len(g.faces) >= len(h.faces)
+
+
+def test_map_mesh_vertices_lie_on_the_maps_zero_level(sphere_map):
+    # With projection, the vertices (located with the far field alone) are moved onto the
+    # map's own zero level (checked with the map's predict), far nearer it than the
+    # lattice vertices; the vertex variance is the map's at the projected vertex.
+    smap = copy.copy(sphere_map)
+    smap.config = sphere_map.config.replace({"surface.project_steps": 1})
+    vox = smap.config.surface.voxel_size
+    mesh = smap.extract_surface()
+    m, var = smap.predict(mesh.vertices)
+    # (batches of another size: the same values within round-off)
+    np.testing.assert_allclose(mesh.vertex_variance, var, rtol=1e-12, atol=0)
+    r = np.abs(m) / vox
+    smap.config = sphere_map.config.replace({"surface.lattice_field": "map"})
+    r0 = np.abs(smap.predict_mean(smap.extract_surface().vertices)) / vox
+    # one step (measured: median / p90 / p99 2e-4 / 3e-3 / 0.014 voxels against the
+    # map-lattice vertices' 4e-3 / 0.019 / 0.051)
+    assert np.median(r) < 1e-3 and np.quantile(r, 0.99) < 0.02
+    assert np.median(r) < 0.1 * np.median(r0) and np.quantile(r, 0.9) < 0.5 * np.quantile(r0, 0.9)
+    # no cracks: every edge of the projected mesh is shared by at most two faces
+    f = mesh.faces
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    assert np.unique(e, axis=0, return_counts=True)[1].max() <= 2
 
 
 def test_build_map_builds_one_kd_tree_of_the_scan_with_the_same_fields(

@@ -245,3 +245,107 @@ def test_reach_bounds_how_far_the_surface_is_followed():
     np.testing.assert_array_equal(a.faces, b.faces)
     with pytest.raises(ValueError, match="Expected reach > 0"):
         extract_surface(_sphere_field, cap, voxel_size=h, reach=0.0)
+
+
+# ------------------------------------------------------------ projection onto the zero level
+def _ellipsoid(x, axes=(1.0, 0.7, 0.5)):
+    """An implicit ellipsoid (not a distance: its gradient is not unit), with gradient."""
+    a = np.asarray(axes)
+    f = np.sum((x / a) ** 2, axis=1) - 1.0
+    return f, np.full(len(x), 1e-4), 2 * x / a ** 2
+
+
+def _ellipsoid_seeds(n=20000, axes=(1.0, 0.7, 0.5)):
+    return _sphere_seeds(n) * np.asarray(axes)
+
+
+def test_projection_puts_the_vertices_on_the_fields_zero_level():
+    # The lattice located with a cheap, biased field (the ellipsoid grown by 2 % of a
+    # voxel's worth): the vertices are then projected onto the true field's zero level.
+    from gmmgp_app.stages.surface import project_vertices
+
+    h = 0.1
+    seeds = _ellipsoid_seeds()
+    cheap = lambda x: _ellipsoid(x)[0] - 0.02  # noqa: E731
+    plain = extract_surface(lambda x: _ellipsoid(x)[:2], seeds, voxel_size=h,
+                            predict_mean=lambda x: _ellipsoid(x)[0])
+    proj = extract_surface(lambda x: _ellipsoid(x)[:2], seeds, voxel_size=h,
+                           predict_mean=cheap, project=_ellipsoid, project_steps=2)
+    f_plain = np.abs(_ellipsoid(plain.vertices)[0])
+    f_proj = np.abs(_ellipsoid(proj.vertices)[0])
+    # linear interpolation of a curved field leaves ~h^2 curvature; two Newton steps
+    # (quadratic convergence) leave round-off-level residuals
+    assert np.median(f_plain) > 1e-4
+    assert f_proj.max() < 1e-6 and f_proj.max() < 1e-3 * np.median(f_plain)
+    # same connectivity as the located lattice's (no cracks, closed, genus 0)
+    counts = _edge_counts(proj.faces)
+    assert np.all(counts == 2)
+    assert len(proj.vertices) - len(counts) + len(proj.faces) == 2
+    # the vertex variance is the field's at the projected vertex
+    np.testing.assert_array_equal(proj.vertex_variance, _ellipsoid(proj.vertices)[1])
+    # one step: the root of the linear expansion along the gradient
+    v = plain.vertices[:100]
+    f, _, g = _ellipsoid(v)
+    one, m1, v1 = project_vertices(_ellipsoid, v, 1)
+    np.testing.assert_allclose(one, v - (f / np.sum(g * g, 1))[:, None] * g, rtol=0,
+                               atol=1e-15)
+    np.testing.assert_array_equal(m1, _ellipsoid(one)[0])
+    np.testing.assert_array_equal(v1, _ellipsoid(one)[1])
+
+
+def test_projected_sphere_is_closer_to_the_exact_surface_at_a_coarse_voxel():
+    # An exact SDF meshed at a coarse voxel: linear interpolation along the lattice edges
+    # cuts the sphere's chords (error ~h^2 / (8R)); projected vertices lie on it.
+    seeds = _sphere_seeds()
+
+    def with_grad(x):
+        n = np.linalg.norm(x, axis=1)
+        return n - 1.0, np.full(len(x), 1e-4), x / n[:, None]
+
+    for h in (0.1, 0.2):
+        plain = extract_surface(_sphere_field, seeds, voxel_size=h)
+        proj = extract_surface(_sphere_field, seeds, voxel_size=h, project=with_grad)
+        e_plain = np.abs(np.linalg.norm(plain.vertices, axis=1) - 1)
+        e_proj = np.abs(np.linalg.norm(proj.vertices, axis=1) - 1)
+        assert e_proj.max() < 1e-12 < 1e-4 < np.sqrt(np.mean(e_plain ** 2))
+        # the faces' midpoints, too, are nearer the sphere (chords of the same lattice)
+        mid = lambda m: np.abs(np.linalg.norm(m.vertices[m.faces].mean(1), axis=1) - 1)  # noqa
+        assert np.sqrt(np.mean(mid(proj) ** 2)) < np.sqrt(np.mean(mid(plain) ** 2))
+        assert np.all(_edge_counts(proj.faces) == 2)
+
+
+def test_projection_step_is_clamped_and_a_flat_field_leaves_points_alone():
+    from gmmgp_app.stages.surface import project_vertices
+
+    x = np.array([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]])
+
+    def plane(x):  # zero level at z = 10, far from the points
+        return x[:, 2] - 10.0, np.ones(len(x)), np.tile([0.0, 0.0, 1.0], (len(x), 1))
+
+    out, m, _ = project_vertices(plane, x, steps=1, max_step=0.25)
+    np.testing.assert_allclose(out - x, [[0, 0, 0.25], [0, 0, 0.25]])
+    np.testing.assert_allclose(m, x[:, 2] + 0.25 - 10.0)
+    flat = lambda x: (np.ones(len(x)), np.ones(len(x)), np.zeros((len(x), 3)))  # noqa: E731
+    np.testing.assert_array_equal(project_vertices(flat, x, steps=3)[0], x)
+    # a step that leads away from the zero level (a wrong gradient) is undone
+    wrong = lambda x: (x[:, 2] - 10.0, np.ones(len(x)), np.tile([0.0, 0.0, -1.0],  # noqa
+                                                                  (len(x), 1)))
+    back, m, _ = project_vertices(wrong, x, steps=2, max_step=0.25)
+    np.testing.assert_array_equal(back, x)
+    np.testing.assert_array_equal(m, x[:, 2] - 10.0)
+    with pytest.raises(ValueError, match="project_steps >= 1"):
+        project_vertices(plane, x, steps=0)
+
+
+def test_seeds_follow_the_extent_cell_not_the_voxel():
+    # surface.extent_cell (a number) sets the seeds' cell (e / 2) whatever the voxel; a
+    # config without one (a map saved before it: 'auto' unresolved) keeps the voxel's.
+    from gmmgp_app.config import SurfaceConfig
+    from gmmgp_app.stages.surface import surface_seeds
+
+    pts = _sphere_seeds(20000)
+    fine = surface_seeds(pts, SurfaceConfig(voxel_size=0.05))
+    coarse = surface_seeds(pts, SurfaceConfig(voxel_size=0.2))
+    np.testing.assert_array_equal(
+        surface_seeds(pts, SurfaceConfig(voxel_size=0.2, extent_cell=0.05)), fine)
+    assert len(coarse) < len(fine)

@@ -33,17 +33,20 @@ gradient noise               ``(2 sigma / r_n)^2`` clipped to [1e-4, 0.05]: the 
                              error of a PCA normal from noise sigma over radius r_n
 GP prior scale ``c``         1 (the GMR's ``sigma_p``, eq. kernel2)
 surface voxel                ``0.6 h_t``
+surface extent cell ``e``    ``0.6 h_t``
 HGMM ``reg_covar``           ``(0.004 s)^2`` (1e-6 m^2 at s = 0.25 m)
 GMR ``far_growth_floor``     ``1.2 s``
 far field kernel floor       ``h_t`` (see :mod:`.farfield`)
 ===========================  =======================================================
 
-The surface is followed at most ``(sqrt(3) / 2) 0.6 h_t + s_seed`` from a seed point
-(``s_seed``: the seeds' median spacing; ``SurfaceMap.surface_reach``): the reach of the
-0.6 h_t voxel, kept when a map is meshed at another voxel. Coarser voxels with that
-reach (0.8 and 1.0 h_t) mesh the street 1.8-2.9x faster at equal accuracy, but are less
-accurate on the held-out demo (mean 9.3 vs 8.2 mm) and KITTI (33.6-34.2 vs 31.9 mm),
-so the voxel stays 0.6 h_t (docs/speed.md, "Fourth pass").
+The surface is sought from one scan point per cell of e / 2 and followed at most
+``(sqrt(3) / 2) e + s_seed`` from a seed point (``s_seed``: the seeds' median spacing;
+``SurfaceMap.surface_reach``), e = 0.6 h_t whatever the voxel (the old 0.6 h_t voxel's
+reach). Coarser voxels with that reach (0.8-1.2 h_t) mesh the street 2-4x faster at
+equal accuracy, but are 6-15 % less accurate on the held-out demo and KITTI, with the
+vertices projected onto the map's zero level (``surface.project_steps``) as without
+(the extra surface lies further from the data), so the voxel stays 0.6 h_t
+(docs/speed.md, "Fourth pass" and "Seventh pass").
 """
 
 from __future__ import annotations
@@ -60,6 +63,11 @@ from gmmgp_app.config import MappingConfig, is_auto
 
 __all__ = ["ScanScale", "AutoScaleError", "measure_scan", "auto_values", "resolve_config",
            "TRAIN_BUDGET", "clip_to_field"]
+
+#: The automatic surface voxel in units of h_t, and the reason printed with it
+#: (docs/speed.md "Seventh pass").
+SURFACE_VOXEL = 0.6
+SURFACE_VOXEL_REASON = "0.6 h_t"
 
 #: Hit points trained on before the voxel subset starts (about 2 s of prepare + HGMM
 #: per 100k points here).
@@ -230,7 +238,9 @@ def auto_values(scale: ScanScale, budget: int = TRAIN_BUDGET, *,
         "gp.value_noise": (sig ** 2, "sigma^2: the noise along the normals"),
         "gp.gradient_noise": (gn, "(2 sigma / r_n)^2 in [1e-4, 0.05]: PCA normal angle error"),
         "gp.prior_scale": (1.0, "1: the prior's sigma_p scales the kernel (eq. kernel2)"),
-        "surface.voxel_size": (0.6 * ht, "0.6 h_t"),
+        "surface.voxel_size": (SURFACE_VOXEL * ht, SURFACE_VOXEL_REASON),
+        "surface.extent_cell": (0.6 * ht, "0.6 h_t: the surface is sought as far from the "
+                                "data as at the 0.6 h_t voxel, whatever the voxel"),
         "far.kernel_floor": (ht, "h_t: a few tangent planes near the data"),
     }
     return {k: {"value": float(v), "reason": r} for k, (v, r) in out.items()}

@@ -6,6 +6,11 @@ Each block runs scikit-image's marching cubes on its own (B+1)^3 nodes; blocks
 share their boundary nodes, so a vertex on a shared face is computed from the
 same two node values in both blocks and the seams are stitched by merging
 vertices with the same lattice-edge key (no duplicates, no cracks).
+
+The lattice may be evaluated with a cheaper field than the one whose variance the
+vertices carry (a map's far field, which carries its mean near the surface), and the
+stitched vertices may be projected onto the full field's zero level by Newton steps
+(:func:`project_vertices`).
 """
 
 from __future__ import annotations
@@ -20,9 +25,9 @@ import numpy as np
 from .._atomic import atomic_path
 from ..types import SurfaceMesh
 
-__all__ = ["extract_surface", "surface_seeds", "mesh_field", "check_surface_grid",
-           "check_grid_size", "std_colour_max", "variance_colors", "write_mesh_ply",
-           "write_mesh_obj", "read_mesh_ply", "estimate_grid_nodes", "GridTooLargeError"]
+__all__ = ["extract_surface", "surface_seeds", "mesh_field", "project_vertices",
+           "check_surface_grid", "check_grid_size", "std_colour_max", "variance_colors",
+           "write_mesh_ply", "write_mesh_obj", "read_mesh_ply", "estimate_grid_nodes", "GridTooLargeError"]
 
 # Refuse grids that would need more than this many field evaluations up front.
 MAX_GRID_NODES = 200_000_000
@@ -78,9 +83,10 @@ def surface_seeds(points: np.ndarray, cfg) -> np.ndarray:
     points : (N, 3) float64
         The scan's points (local frame).
     cfg : SurfaceConfig
-        ``voxel_size`` (m): the cell is half of it.
+        The cell is half of ``extent_cell`` (m) when that is a number, else half of
+        ``voxel_size`` (maps made before the extent cell).
     """
-    cell = cfg.voxel_size / 2
+    cell = _extent_cell(cfg) / 2
     keys = np.floor(points / cell).astype(np.int64)
     if len(keys) == 0:
         return points[:0]
@@ -95,6 +101,13 @@ def surface_seeds(points: np.ndarray, cfg) -> np.ndarray:
     else:
         _, first = np.unique(keys, axis=0, return_index=True)
     return points[np.sort(first)]
+
+
+def _extent_cell(cfg) -> float:
+    """The cell bounding the surface's extent (SurfaceConfig ``extent_cell``), the voxel
+    where it is not a number."""
+    e = getattr(cfg, "extent_cell", None)
+    return float(cfg.voxel_size) if e is None or isinstance(e, str) else float(e)
 
 
 def check_surface_grid(points: np.ndarray, cfg) -> int:
@@ -113,20 +126,28 @@ def surface_reach(seeds: np.ndarray, voxel_size: float) -> float:
 def mesh_field(predict: Callable, seeds: np.ndarray, cfg, voxel_size: Optional[float] = None,
                max_std: Optional[float] = None, progress=None,
                reach: Optional[float] = None,
-               predict_mean: Optional[Callable] = None) -> SurfaceMesh:
-    """:func:`extract_surface` with the voxel and std cut of ``cfg`` (SurfaceConfig)
-    unless given: the one place where a map's surface settings are resolved."""
+               predict_mean: Optional[Callable] = None,
+               project: Optional[Callable] = None) -> SurfaceMesh:
+    """:func:`extract_surface` with the voxel, std cut and vertex projection of ``cfg``
+    (SurfaceConfig) unless given: the one place where a map's surface settings are
+    resolved. ``project`` (the field's ``predict(xyz, return_grad=True)``) is used only
+    when ``cfg.project_steps`` > 0."""
+    steps = int(getattr(cfg, "project_steps", 0) or 0)
     return extract_surface(predict, seeds,
                            voxel_size=cfg.voxel_size if voxel_size is None else voxel_size,
                            max_std=cfg.max_std if max_std is None else max_std,
-                           progress=progress, reach=reach, predict_mean=predict_mean)
+                           progress=progress, reach=reach, predict_mean=predict_mean,
+                           project=project if steps > 0 else None, project_steps=max(steps, 1),
+                           project_clamp=float(getattr(cfg, "project_clamp", 0.5)))
 
 
 def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.05, *,
                     max_std: Optional[float] = None, block_cells: int = 32,
                     dilate: Optional[int] = None, batch: int = 65_536,
                     progress=None, reach: Optional[float] = None,
-                    predict_mean: Optional[Callable] = None) -> SurfaceMesh:
+                    predict_mean: Optional[Callable] = None,
+                    project: Optional[Callable] = None, project_steps: int = 1,
+                    project_clamp: float = 0.5) -> SurfaceMesh:
     """Zero level set of a field as a triangle mesh with per-vertex variance.
 
     The lattice is evaluated only where the surface is: starting from the cells
@@ -157,9 +178,23 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
         voxel); a map passes the reach of its own voxel at any voxel
         (``SurfaceMap.surface_reach``).
     predict_mean : callable, optional
-        ``predict_mean(xyz (K,3)) -> mean (K,)``, the same mean as ``predict``'s without
-        its variance: what the lattice nodes need (only the mesh vertices need the
-        variance). Default: ``predict(xyz)[0]``.
+        ``predict_mean(xyz (K,3)) -> mean (K,)``: the field the lattice nodes are
+        evaluated with (only the mesh vertices need the variance). Default:
+        ``predict(xyz)[0]``. Without ``project`` the mesh is this field's zero level,
+        linearly interpolated along the lattice edges (``predict``'s own when it is
+        ``predict``'s mean; a map may pass a cheaper field whose zero level is within
+        the interpolation's error of its own, ``SurfaceMap.lattice_mean``); with
+        ``project`` it only locates the surface and sets the mesh's connectivity.
+    project : callable, optional
+        ``project(xyz (K,3)) -> (mean (K,), var (K,), grad (K, 3))``: ``predict`` with a
+        gradient of its mean. When given, each (stitched, unique) vertex takes
+        ``project_steps`` Newton steps onto ``predict``'s zero level,
+        ``v <- v - m(v) g / |g|^2`` (:func:`project_vertices`), each step clamped to
+        ``project_clamp`` voxels so that a vertex cannot jump to another sheet, and
+        each vertex kept at its iterate nearest the zero level (its lattice position
+        included); its variance is ``predict``'s there.
+    project_steps, project_clamp : int, float
+        Newton steps per vertex (>= 1), and the largest step in voxels.
 
     Returns
     -------
@@ -286,14 +321,77 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
                   & (faces[:, 0] != faces[:, 2])]
     verts, faces, _ = _drop_unused(verts, faces, np.zeros(len(verts)))
-    var = np.empty(len(verts))
-    for s in range(0, len(verts), batch):
-        var[s:s + batch] = predict(verts[s:s + batch])[1]
+    if project is not None:
+        verts, _, var = project_vertices(project, verts, project_steps, project_clamp * h,
+                                         batch, predict)
+    else:
+        var = np.empty(len(verts))
+        for s in range(0, len(verts), batch):
+            var[s:s + batch] = predict(verts[s:s + batch])[1]
     if max_std is not None:
         bad = np.sqrt(np.maximum(var, 0)) > max_std
         faces = faces[~bad[faces].any(1)]
     verts, faces, var = _drop_unused(verts, faces, var)
     return SurfaceMesh(verts, faces, var)
+
+
+def project_vertices(project: Callable, verts: np.ndarray, steps: int = 1,
+                     max_step: float = np.inf, batch: int = 65_536,
+                     predict: Optional[Callable] = None) -> tuple:
+    """Newton steps of points onto a field's zero level along its gradient.
+
+    ``v <- v - m(v) g(v) / |g(v)|^2`` (the root of the field's first-order expansion
+    along its gradient), ``steps`` times, each step's length clamped to ``max_step`` (m)
+    so that a point cannot jump to another sheet of the level set; a point whose
+    gradient vanishes (or is not finite) stays where it is. Each point ends at the
+    iterate (its start included) where ``|m|`` is least, so a step that does not bring
+    it nearer the zero level (a gradient that misleads, a clamped step) is undone.
+
+    Parameters
+    ----------
+    project : callable
+        ``project(xyz (K,3)) -> (mean (K,), var (K,), grad (K, 3))``.
+    verts : (V, 3) float64
+    steps : int
+        Newton steps (>= 1).
+    max_step : float
+        Largest step length (m).
+    predict : callable, optional
+        ``predict(xyz) -> (mean, var)``, the same field without the gradient: evaluates
+        the last iterate (default: ``project``).
+
+    Returns
+    -------
+    points (V, 3), mean (V,), var (V,): the field's mean and variance at the points.
+    """
+    if steps < 1:
+        raise ValueError(f"Expected project_steps >= 1, found {steps}.")
+    if not max_step > 0:
+        raise ValueError(f"Expected a positive largest projection step, found {max_step}.")
+    predict = predict if predict is not None else (lambda x: project(x)[:2])
+    out = np.array(verts, dtype=np.float64, copy=True).reshape(-1, 3)
+    mean, var = np.empty(len(out)), np.empty(len(out))
+    for s in range(0, len(out), batch):
+        x = out[s:s + batch]
+        m, v, g = project(x)[:3]
+        best_x, best_m, best_v = x, np.asarray(m, np.float64), np.asarray(v, np.float64)
+        for it in range(steps):
+            g2 = np.einsum("ij,ij->i", g, g)
+            ok = np.isfinite(m) & np.isfinite(g2) & (g2 > 1e-12)
+            t = np.where(ok, m / np.where(ok, g2, 1.0), 0.0)
+            step = t[:, None] * np.where(ok[:, None], g, 0.0)
+            length = np.sqrt(np.einsum("ij,ij->i", step, step))
+            scale = np.minimum(1.0, max_step / np.maximum(length, 1e-300))
+            x = x - step * scale[:, None]
+            if it < steps - 1:
+                m, v, g = project(x)[:3]
+            else:
+                m, v = predict(x)[:2]
+            better = np.abs(m) < np.abs(best_m)     # False where m is not finite
+            best_x = np.where(better[:, None], x, best_x)
+            best_m, best_v = np.where(better, m, best_m), np.where(better, v, best_v)
+        out[s:s + batch], mean[s:s + batch], var[s:s + batch] = best_x, best_m, best_v
+    return out, mean, var
 
 
 def _median_spacing(points: np.ndarray, n: int = 20000) -> float:
