@@ -523,6 +523,19 @@ def field_variance(h, noise, r, spread2, disagreement2, v_own, coef):
     return np.where(np.isinf(np.asarray(v_own, dtype=np.float64)), np.inf, v)
 
 
+def _design_rows(features, target, what: str, nonneg: bool = False):
+    """Design matrix (N, P) and target (N,) of a variance fit as float64, checked: finite,
+    N > P (and the target >= 0 when ``nonneg``); else a ValueError naming ``what``."""
+    X = np.asarray(features, dtype=np.float64)
+    y = np.asarray(target, dtype=np.float64)
+    if X.ndim != 2 or y.ndim != 1 or len(X) != len(y) or len(y) <= X.shape[1] \
+            or not np.isfinite(X).all() or not np.isfinite(y).all() \
+            or (nonneg and (y < 0).any()):
+        raise ValueError(f"Expected finite features (N, P) and {what}, N > P, found "
+                         f"{X.shape} and {y.shape}.")
+    return X, y
+
+
 def fit_field_variance(features, err2_over_h2):
     """Coefficients u of eq. field_var by Gaussian maximum likelihood (eq.
     field_var_fit):
@@ -546,12 +559,7 @@ def fit_field_variance(features, err2_over_h2):
     """
     from scipy.optimize import minimize
 
-    X = np.asarray(features, dtype=np.float64)
-    e2 = np.asarray(err2_over_h2, dtype=np.float64)
-    if X.ndim != 2 or len(X) != len(e2) or len(e2) <= X.shape[1] or not np.isfinite(X).all() \
-            or not np.isfinite(e2).all() or (e2 < 0).any():
-        raise ValueError(f"Expected finite features (N, P) and squared errors (N,) >= 0, "
-                         f"N > P, found {X.shape} and {e2.shape}.")
+    X, e2 = _design_rows(features, err2_over_h2, "squared errors (N,) >= 0", nonneg=True)
 
     def nll(u):
         lv = X @ u
@@ -673,12 +681,7 @@ def fit_variance_quantile(features, log_err2, tau: float = 0.68):
     from scipy.optimize import linprog
     from scipy.sparse import eye, hstack, csr_matrix
 
-    X = np.asarray(features, dtype=np.float64)
-    y = np.asarray(log_err2, dtype=np.float64)
-    if X.ndim != 2 or len(X) != len(y) or len(y) <= X.shape[1] or not np.isfinite(X).all() \
-            or not np.isfinite(y).all():
-        raise ValueError(f"Expected finite features (N, P) and log errors (N,), N > P, found "
-                         f"{X.shape} and {y.shape}.")
+    X, y = _design_rows(features, log_err2, "log errors (N,)")
     if not 0.0 < tau < 1.0:
         raise ValueError(f"Expected a quantile tau in (0, 1), found {tau!r}.")
     n, k = X.shape
