@@ -26,10 +26,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_peers import mesh_metrics, read_ref_mesh  # noqa: E402
-from surface_voxel_study import boundary_fraction  # noqa: E402
+from bench_peers import mesh_metrics  # noqa: E402
+from surface_voxel_study import boundary_fraction, load_case  # noqa: E402
 
-from gmmgp_app.pipeline import load_map  # noqa: E402
 from gmmgp_app.stages.surface import extract_surface  # noqa: E402
 
 
@@ -70,12 +69,7 @@ def main(argv=None) -> int:
     if args.out and Path(args.out).is_file():
         res = json.loads(Path(args.out).read_text())
     for case in args.cases:
-        tag, _, spec = case.partition("=")
-        mp, scan, refp = spec.split(":")
-        m = load_map(mp)
-        pts = np.load(scan)["points"]
-        ref = read_ref_mesh(refp) if refp else None
-        ht = m.summary["auto"]["train_spacing"]["value"]
+        tag, m, pts, ref, ht = load_case(case)
         m.predict(m.seed_points[:1000])   # lazy structures (GMR cells, k-NN grid) built once
         for fac in (float(x) for x in args.factors.split(",")):
             for mode in args.modes.split(","):

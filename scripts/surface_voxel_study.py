@@ -30,6 +30,16 @@ def boundary_fraction(faces) -> float:
     return float((c == 1).sum() / len(c))
 
 
+def load_case(case: str):
+    """``TAG=MAP_DIR:SCAN.npz:REF.ply`` (REF may be empty) -> tag, the loaded map, the scan's
+    points, the reference mesh (None: score against the points) and the map's h_t."""
+    tag, _, spec = case.partition("=")
+    mp, scan, refp = spec.split(":")
+    m = load_map(mp)
+    ref = read_ref_mesh(refp) if refp else None
+    return tag, m, np.load(scan)["points"], ref, m.summary["auto"]["train_spacing"]["value"]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -40,12 +50,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     res = {}
     for case in args.cases:
-        tag, _, spec = case.partition("=")
-        mp, scan, refp = spec.split(":")
-        m = load_map(mp)
-        pts = np.load(scan)["points"]
-        ref = read_ref_mesh(refp) if refp else None
-        ht = m.summary["auto"]["train_spacing"]["value"]
+        tag, m, pts, ref, ht = load_case(case)
         if not np.isclose(m.config.surface.voxel_size, 0.6 * ht):
             print(f"{tag}: the map's voxel is not its automatic 0.6 h_t; skipped", file=sys.stderr)
             continue
