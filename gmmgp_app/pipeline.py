@@ -282,8 +282,8 @@ class SurfaceMap:
         ``(sqrt(3) / 2) e + s_seed`` (:func:`stages.surface.surface_reach`;
         ``s_seed``, the seeds' median spacing). With the automatic e = 0.6 h_t that is
         ``(sqrt(3) / 2) 0.6 h_t + s_seed``, a length of the data: meshing coarser does not
-        follow fins further from the data (the faces are also trimmed to it,
-        ``stages.surface.extract_surface(extent_cell=)``).
+        follow fins further from the data (a coarse cell once followed is meshed whole:
+        faces are not trimmed to the reach, docs/speed.md 'Seventh pass').
         None (the voxel's own rule) for a map without seeds or a concrete voxel."""
         v = self.config.surface.extent_cell
         if is_auto(v):  # a map made before the extent cell: its voxel's
@@ -763,7 +763,7 @@ def run_stages(names, state: dict, ctx: RunContext, *, observer=None,
 def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gmmgp",
               observer=None, *, stop_after: Optional[str] = None, executor=None,
               progress=None, loggpis_lambda: Optional[float] = None,
-              check_grid: bool = False, tree=None) -> SurfaceMap:
+              check_grid: bool = False, tree=None, resolved=None) -> SurfaceMap:
     """Map a scan into a probabilistic signed distance field.
 
     Parameters
@@ -795,6 +795,9 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
         The k-d tree of ``scan.points`` (:func:`scan_tree`) when the caller has it
         (``gmmgp run`` checks the grid with it before starting a cluster); else built
         here, once, for the scale measurement and the prepare stage.
+    resolved : tuple, optional
+        ``(cfg, record)``, what :func:`resolve_config` (or :func:`check_surface_grid`)
+        returned for this ``scan`` and ``cfg``, when the caller has it: not measured again.
 
     Returns
     -------
@@ -814,7 +817,8 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
     # one k-d tree of the scan for the scale measurement and the prepare stage
     state = {"scan": scan, "summary": summary,
              "tree": scan_tree(scan) if tree is None else tree}
-    cfg, summary["auto"] = resolve_config(cfg, scan, tree=state["tree"])
+    cfg, summary["auto"] = (resolve_config(cfg, scan, tree=state["tree"]) if resolved is None
+                            else (resolved[0], dict(resolved[1])))
     if check_grid:
         _surface.check_surface_grid(scan.points, cfg.surface)
     on_config = getattr(observer, "on_config", None)
@@ -863,43 +867,15 @@ def with_map_values(cfg: MappingConfig, map_cfg: MappingConfig) -> MappingConfig
     return cfg.replace(updates) if updates else cfg
 
 
-_RESOLVED: list = []   # [(key of the scan's arrays, cfg, result)]
-
-
 def resolve_config(cfg: MappingConfig, scan: Scan, *, tree=None) -> tuple:
     """``cfg`` with every ``"auto"`` field computed from ``scan`` (stages/autoscale.py),
     and the record of the chosen values and their reasons (empty when nothing was auto).
     ``tree``: the k-d tree of ``scan.points`` (:func:`scan_tree`) when the caller has it.
-
-    The last result is remembered for the same point and origin arrays (the same
-    objects, still alive, with the same sampled contents) and an equal ``cfg``:
-    ``gmmgp run`` checks the surface grid and then builds the map with the same
-    resolution, measured once (~5 s on 1.3M points).
+    A caller that needs the resolution before :func:`build_map` (``gmmgp run`` checks the
+    surface grid first) passes it on with ``build_map(resolved=...)``: measured once
+    (~5 s on 1.3M points).
     """
-    key = _arrays_key(scan)
-    if _RESOLVED and key is not None:
-        key0, cfg0, (cfg1, auto1) = _RESOLVED[0]
-        if key0[0]() is key[0]() and key0[1]() is key[1]() and key0[2:] == key[2:] \
-                and cfg0 == cfg:
-            return cfg1, dict(auto1)
-    cfg1, auto1 = _resolve_config(cfg, scan, tree)
-    _RESOLVED[:] = [] if key is None else [(key, cfg, (cfg1, dict(auto1)))]
-    return cfg1, auto1
-
-
-def _arrays_key(scan: Scan):
-    """Weak references to the scan's arrays and a fingerprint of their contents
-    (shape, every ~1000th row), or None when they cannot be weakly referenced."""
-    import weakref
-
-    try:
-        refs = [weakref.ref(a) if a is not None else (lambda: None)
-                for a in (scan.points, scan.origins)]
-    except TypeError:
-        return None
-    step = max(1, len(scan.points) // 1000)
-    sample = [a[::step].tobytes() if a is not None else b"" for a in (scan.points, scan.origins)]
-    return (*refs, scan.points.shape, hash(tuple(sample)))
+    return _resolve_config(cfg, scan, tree)
 
 
 def scan_tree(scan: Scan):
@@ -956,13 +932,14 @@ def format_auto(record: dict) -> str:
                                for k, v in rows])
 
 
-def check_surface_grid(scan: Scan, cfg: MappingConfig, *, tree=None) -> int:
+def check_surface_grid(scan: Scan, cfg: MappingConfig, *, tree=None) -> tuple:
     """Refuse, before any fitting, a surface grid too large to extract: the surface voxel
     is the one ``build_map`` will use (``"auto"`` resolved from ``scan``; ``tree``, the
-    k-d tree of its points when the caller has it: :func:`resolve_config` remembers the
-    resolution, so ``build_map`` on the same scan and ``cfg`` does not measure again)."""
-    cfg, _ = resolve_config(cfg, scan, tree=tree)
-    return _surface.check_surface_grid(scan.points, cfg.surface)
+    k-d tree of its points when the caller has it). Returns the resolution
+    (:func:`resolve_config`'s ``(cfg, record)``), for ``build_map(resolved=...)``."""
+    resolved = resolve_config(cfg, scan, tree=tree)
+    _surface.check_surface_grid(scan.points, resolved[0].surface)
+    return resolved
 
 
 def surface_seeds(scan: Scan, cfg: MappingConfig) -> np.ndarray:

@@ -33,11 +33,9 @@ def box_scene(tmp_path_factory):
 def count_scan_trees(monkeypatch):
     """``count(points) -> list``: from then on every k-d tree built (by scipy, the scale
     measurement or the prepare stage) appends whether it was of ``points`` (the same
-    array object) to the returned list; the measured-scan cache is cleared so that the
-    scan is measured in the test."""
+    array object) to the returned list."""
     import scipy.spatial
 
-    import gmmgp_app.pipeline as P
     from gmmgp_app.stages import autoscale, prepare
 
     def count(points):
@@ -50,7 +48,6 @@ def count_scan_trees(monkeypatch):
 
         for mod in (scipy.spatial, autoscale, prepare):
             monkeypatch.setattr(mod, "cKDTree", counting)
-        P._RESOLVED.clear()
         return built
 
     return count

@@ -827,7 +827,6 @@ def test_the_apps_first_run_builds_one_kd_tree_of_the_scan(count_scan_trees):
                       cancelled=lambda: bool(shown))
     assert sum(built) == 1, built
     data = shown[0].data
-    P._RESOLVED.clear()
     ref = gm.prepare(scan, P.resolve_config(cfg, scan)[0])
     for k in ("rows", "kinds", "points", "normals", "groups"):
         np.testing.assert_array_equal(getattr(data, k), getattr(ref, k))

@@ -107,14 +107,14 @@ def run(args) -> int:
     scan = read_scan_args(args.scan, args)
     read_s = time.perf_counter() - t0
     stop = None if args.stage == "all" else args.stage
-    tree = None
+    tree = resolved = None
     if stop is None and not args.no_mesh and args.method != "loggpis":
         # refuse an impossible grid before fitting and before a cluster starts; the
         # scale measured for it (and its k-d tree of the scan) is build_map's own
         from ..pipeline import check_surface_grid, scan_tree
 
         tree = scan_tree(scan) if spec is None else None
-        check_surface_grid(scan, cfg, tree=tree)
+        resolved = check_surface_grid(scan, cfg, tree=tree)
     if spec is not None:
         return _run_tiled(args, cfg, spec, scan, out, console, t0, read_s, fallback=fallback)
     from ..distributed import open_executor
@@ -123,7 +123,7 @@ def run(args) -> int:
                        kind="processes" if args.processes else "dask") as executor:
         bar = _TaskBar(console, "GP blocks")
         smap = build_map(scan, cfg, method=args.method, observer=observer, stop_after=stop,
-                         executor=executor, progress=bar, tree=tree)
+                         executor=executor, progress=bar, tree=tree, resolved=resolved)
         bar.close()
     del scan  # the map keeps what it needs (seeds, GP points): free the scan before meshing
     smap.summary["seconds"] = {"read": read_s, **smap.summary["seconds"]}
