@@ -197,6 +197,33 @@ def check_dir(plane, tmp_path_factory):
     return root / "out", patch
 
 
+def test_a_check_keeps_the_maps_up_axis(plane, check_dir, tmp_path):
+    """check.json records the map's up axis and the viewer stands the check on it: a
+    check against a y-up map (a Stanford set) opens y up, a z-up one z up, a check.json
+    written before the up axis was kept z up."""
+    import shutil
+
+    from gmmgp_app.cli import main
+
+    out, _ = check_dir
+    assert json.loads((out / "check.json").read_text())["up"] == [0.0, 0.0, 1.0]
+    np.testing.assert_array_equal(ViewerModel.open(out).up, [0, 0, 1])
+    _, run = plane
+    y_map = tmp_path / "map"
+    shutil.copytree(run / "map", y_map)
+    meta = json.loads((y_map / "map.json").read_text())
+    meta["up"] = [0.0, 1.0, 0.0]
+    (y_map / "map.json").write_text(json.dumps(meta))
+    assert main(["check", str(out.parent / "second.npz"), "--map", str(y_map), "--out",
+                 str(tmp_path / "out"), "-q"]) == 0
+    summary = json.loads((tmp_path / "out" / "check.json").read_text())
+    assert summary["up"] == [0.0, 1.0, 0.0]
+    np.testing.assert_array_equal(ViewerModel.open(tmp_path / "out").up, [0, 1, 0])
+    del summary["up"]
+    (tmp_path / "out" / "check.json").write_text(json.dumps(summary))
+    np.testing.assert_array_equal(ViewerModel.open(tmp_path / "out").up, [0, 0, 1])
+
+
 def test_check_result_opens_coloured_by_z_with_its_segments(check_dir):
     out, patch = check_dir
     m = ViewerModel.open(out)
