@@ -135,6 +135,8 @@ from typing import Optional
 
 import numpy as np
 
+from .types import as_up_axis
+
 __all__ = ["CheckError", "CheckResult", "ChangeSegment", "DegenerateDirection", "check_scan",
            "load_transform", "AXIS_NAMES"]
 
@@ -1250,6 +1252,8 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
         "iterations": 0 if fit is None else fit.iterations,
         "converged": None if fit is None else bool(fit.converged),
         "seconds": {"align": t_align, "total": time.perf_counter() - t0},
+        # the map's up axis (map.json / tiled.json "up"): a viewer stands the check on it
+        "up": [float(v) for v in as_up_axis(getattr(smap, "up", None))],
     }
     if fit is not None:
         summary.update({"registration_points": fit.n_used,

@@ -993,3 +993,26 @@ def test_a_tiled_build_into_a_work_folder_holds_a_few_tile_maps_not_all(street, 
     for a, b in zip(tm.predict(q, return_grad=True), tiled.predict(q, return_grad=True)):
         assert np.array_equal(a, b)
     assert held() <= 2                            # cache_tiles loaded, no more
+
+
+def test_a_tiled_build_warns_when_the_scan_is_not_z_up():
+    """Tiles are cut in x and y (z up): a y-up scan (a Stanford set) gets one warning
+    line saying so; a z-up scan none. The scans are too small to map: the build stops
+    right after with its own error, so the test maps nothing."""
+    import warnings
+
+    from gmmgp_app.tiling import TilingWarning
+
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(0, 1, size=(50, 3))
+    spec = TileSpec(size=5.0, overlap=0.5, min_points=200)
+    with pytest.warns(TilingWarning, match="up axis is y") as rec, \
+            pytest.raises(TilingError, match="at least one tile"):
+        build_tiled_map(gm.Scan(pts, up=(0.0, 1.0, 0.0)), spec=spec)
+    msgs = [str(w.message) for w in rec if issubclass(w.category, TilingWarning)]
+    assert len(msgs) == 1 and "\n" not in msgs[0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", TilingWarning)
+        for up in (None, (0.0, 0.0, -1.0)):
+            with pytest.raises(TilingError, match="at least one tile"):
+                build_tiled_map(gm.Scan(pts, up=up), spec=spec)

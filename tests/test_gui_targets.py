@@ -197,6 +197,65 @@ def check_dir(plane, tmp_path_factory):
     return root / "out", patch
 
 
+def test_a_check_keeps_the_maps_up_axis(plane, check_dir, tmp_path):
+    """check.json records the map's up axis and the viewer stands the check on it: a
+    check against a y-up map (a Stanford set) opens y up, a z-up one z up, a check.json
+    written before the up axis was kept z up."""
+    from gmmgp_app.cli import main
+
+    out, _ = check_dir
+    assert json.loads((out / "check.json").read_text())["up"] == [0.0, 0.0, 1.0]
+    np.testing.assert_array_equal(ViewerModel.open(out).up, [0, 0, 1])
+    y_map = _y_up_copy(plane, tmp_path)
+    assert main(["check", str(out.parent / "second.npz"), "--map", str(y_map), "--out",
+                 str(tmp_path / "out"), "-q"]) == 0
+    summary = json.loads((tmp_path / "out" / "check.json").read_text())
+    assert summary["up"] == [0.0, 1.0, 0.0]
+    np.testing.assert_array_equal(ViewerModel.open(tmp_path / "out").up, [0, 1, 0])
+    del summary["up"]
+    (tmp_path / "out" / "check.json").write_text(json.dumps(summary))
+    np.testing.assert_array_equal(ViewerModel.open(tmp_path / "out").up, [0, 0, 1])
+
+
+def test_a_check_recording_stands_on_the_maps_up_axis(plane, check_dir, tmp_path):
+    """The check's .rrd logs the map's up axis as the view's coordinates (y for a y-up
+    map, z for a z-up one): read back from the file."""
+    pytest.importorskip("rerun")
+    from rerun.chunk import RrdReader
+
+    from gmmgp_app.cli import main
+
+    out, _ = check_dir
+
+    def logged_up(maps, name):
+        assert main(["check", str(out.parent / "second.npz"), "--map", str(maps), "--out",
+                     str(tmp_path / name), "-q", "--rrd", str(tmp_path / f"{name}.rrd")]) == 0
+        rows = []
+        for c in RrdReader(tmp_path / f"{name}.rrd").stream().to_chunks():
+            if c.entity_path == "/world":
+                rb = c.to_record_batch()
+                rows += [rb.column(n).to_pylist() for n in rb.schema.names
+                         if n.endswith("ViewCoordinates:xyz")]
+        assert len(rows) == 1, rows
+        return rows[0][0][0].index(1)             # rerun's ViewDir.Up = 1
+
+    assert logged_up(_y_up_copy(plane, tmp_path), "y") == 1
+    assert logged_up(plane[1] / "map", "z") == 2
+
+
+def _y_up_copy(plane, tmp_path):
+    """A copy of the plane's map saved as if its scan had been y up."""
+    import shutil
+
+    _, run = plane
+    y_map = tmp_path / "map"
+    shutil.copytree(run / "map", y_map)
+    meta = json.loads((y_map / "map.json").read_text())
+    meta["up"] = [0.0, 1.0, 0.0]
+    (y_map / "map.json").write_text(json.dumps(meta))
+    return y_map
+
+
 def test_check_result_opens_coloured_by_z_with_its_segments(check_dir):
     out, patch = check_dir
     m = ViewerModel.open(out)
@@ -520,7 +579,10 @@ def test_a_tiled_map_keeps_its_scans_up_axis(tmp_path):
 
     scan = _plane_scan(n=1200)
     y_up = Scan(scan.points, origins=scan.origins, up=(0.0, 1.0, 0.0))
-    tmap = build_tiled_map(y_up, CFG, TileSpec(size=5.0, overlap=0.5, min_points=50))
+    from gmmgp_app.tiling import TilingWarning
+
+    with pytest.warns(TilingWarning, match="up axis is y"):   # tiles cut in x and y
+        tmap = build_tiled_map(y_up, CFG, TileSpec(size=5.0, overlap=0.5, min_points=50))
     np.testing.assert_array_equal(tmap.up, [0, 1, 0])
     tmap.save(tmp_path / "tiled")
     np.testing.assert_array_equal(load_tiled_map(tmp_path / "tiled").up, [0, 1, 0])

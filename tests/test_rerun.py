@@ -454,3 +454,47 @@ def test_sweep_records_one_step_per_value(tiny, tmp_path):
     clears = [c for c in ch if c.entity_path == "/world" and "sweep" in c.timeline_names]
     assert sorted(s for c in clears for s in c.to_record_batch().column("sweep").to_pylist()) \
         == [0, 1, 2]
+
+
+# --------------------------------------------------------------------------- up axis
+def _logged_up_axis(path) -> int:
+    """The axis (0, 1, 2) the ViewCoordinates logged at /world name Up (rerun's ViewDir.Up
+    = 1), read back from the file."""
+    rows = [v for _, v in _column(_chunks(path), "/world", "ViewCoordinates:xyz")]
+    assert len(rows) == 1, rows
+    dirs = rows[0][0]
+    return dirs.index(1)
+
+
+@pytest.mark.parametrize("up, axis", [(None, 2), ((0.0, 1.0, 0.0), 1)])
+def test_recording_stands_the_views_on_the_scans_up_axis(tmp_path, up, axis):
+    """A y-up scan (a Stanford set) is recorded with y as the views' up axis, z-up data
+    with z: the .rrd opens upright."""
+    rng = np.random.default_rng(2)
+    scan = gm.Scan(points=rng.normal(size=(200, 3)), up=up)
+    path = tmp_path / "up.rrd"
+    obs = ro.RerunObserver(path)
+    obs.on_stage("scan", StagePayload(scan, 0.0))
+    obs.close()
+    assert _logged_up_axis(path) == axis
+
+
+def test_view_coordinates_of_every_up_axis_are_right_handed_with_that_axis_up():
+    for axis in range(3):
+        for sign in (1.0, -1.0):
+            up = np.zeros(3)
+            up[axis] = sign
+            dirs = [d.value for d in ro.view_coordinates(up).coordinates]
+            # ViewDir: Up 1, Down 2, Right 3, Left 4, Forward 5, Back 6
+            assert dirs[axis] == (1 if sign > 0 else 2)
+
+
+def test_scan_eye_of_a_y_up_object_looks_from_above_along_y():
+    """A y-up bunny-like blob: the camera is raised along +y, not +z."""
+    rng = np.random.default_rng(1)
+    pts = rng.normal(size=(500, 3)) * [0.05, 0.08, 0.04]
+    pos, target = ro.scan_eye(pts, up=(0.0, 1.0, 0.0))
+    pos_z, target_z = ro.scan_eye(pts)
+    assert pos[1] > target[1] + 0.01
+    np.testing.assert_allclose(target, target_z)
+    assert pos_z[2] > target_z[2] + 0.01           # z-up data: raised along z, as before

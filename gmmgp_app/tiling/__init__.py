@@ -36,11 +36,11 @@ small tiles, point sets), :mod:`.tiled_map` (the stitched map, build/save/load),
 into tiles, with its plan).
 """
 
-from .geometry import TileSpec, TilingError, split_into_tiles, tile_owners
+from .geometry import TileSpec, TilingError, TilingWarning, split_into_tiles, tile_owners
 from .las import build_tiled_map_from_las, spill_las_to_tiles, stream_plan, stream_tiles
 from .tiled_map import TiledMap, build_tiled_map, load_any_map, load_tiled_map
 from .update import update_gp_blocks
 
-__all__ = ["TilingError", "TileSpec", "TiledMap", "build_tiled_map", "split_into_tiles",
+__all__ = ["TilingError", "TilingWarning", "TileSpec", "TiledMap", "build_tiled_map", "split_into_tiles",
            "tile_owners", "load_tiled_map", "load_any_map", "update_gp_blocks",
            "spill_las_to_tiles", "build_tiled_map_from_las", "stream_plan", "stream_tiles"]

@@ -13,7 +13,7 @@ import numpy as np
 from ..config import MappingConfig
 from ..types import Scan, as_up_axis
 from .geometry import (TileSpec, TilingError, members, owners_summary, tile_dirname,
-                       union_points, split_into_tiles, tile_owners)
+                       union_points, split_into_tiles, tile_owners, warn_if_not_z_up)
 from .store import TileStore
 from .tasks import map_tiles_to_store, run_tiles
 
@@ -436,6 +436,7 @@ def build_tiled_map(scan: Scan, cfg: Optional[MappingConfig] = None,
     """
     cfg = MappingConfig() if cfg is None else cfg
     spec = TileSpec() if spec is None else spec
+    warn_if_not_z_up(scan)                       # tiles are cut in x and y
     tiles = split_into_tiles(scan, spec)
     owners = tile_owners({k: len(t) for k, t in tiles.items()}, spec.min_points)
     tasks = []

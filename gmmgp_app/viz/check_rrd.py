@@ -3,6 +3,8 @@
 Entity paths (one explicit ``rr.RecordingStream``, all static):
 
 =========================  ===========================================================
+``world``                  the map's up axis (check.json "up") as the 3D view's
+                           coordinate convention: a check of a y-up map opens upright
 ``world/points``           the scan's points in the map frame (after the registration),
                            coloured by z: blue (d < 0, behind the map's surface) -
                            white (0) - red (in front of it), saturated at
@@ -50,6 +52,9 @@ def write_check_rrd(result, path, *, application_id: str = "gmmgp-check") -> Pat
         rec.set_log_tick_enabled(False)
         rec.save(str(tmp))
         pts = result.points[ok]
+        from .rerun_observer import view_coordinates
+
+        rec.log("world", view_coordinates(result.summary.get("up")), static=True)
         rec.log("world/points", rr.Points3D(pts, colors=z_colors(result.z[ok], result.known[ok],
                                                                  z_thr), radii=-1.5),
                 rr.AnyValues(distance=result.distance[ok], std=result.std[ok], z=result.z[ok]),

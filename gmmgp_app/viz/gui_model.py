@@ -243,6 +243,7 @@ class ViewerModel:
                                summary=check.summary)
             m = cls(res, source=str(path))
             m.kind = "check"
+            m.up = scan.up                 # the map's up axis, from check.json
             return m
         run_dir = path.parent if path.name == "map" else path
         summary = T.read_summary(run_dir)

@@ -323,7 +323,8 @@ def read_check(folder) -> tuple:
 
     The points are read from ``aligned.ply`` when the check aligned the scan (the
     map's frame, where the segments are), else from ``points.ply``; a local offset
-    (the rounded median) is subtracted from both points and segments.
+    (the rounded median) is subtracted from both points and segments. The scan stands
+    on the map's up axis (check.json "up"; a check written before it was kept: z).
     """
     import open3d as o3d
 
@@ -353,5 +354,5 @@ def read_check(folder) -> tuple:
                      known=f["known"][keep] > 0.5, changed=f["changed"][keep] > 0.5,
                      segment=seg, segments=tuple(segs),
                      z_threshold=float(summary.get("z_threshold", 3.0)), summary=summary)
-    scan = Scan(pos[keep] - offset, offset=offset, source=str(ply))
+    scan = Scan(pos[keep] - offset, offset=offset, source=str(ply), up=summary.get("up"))
     return scan, view

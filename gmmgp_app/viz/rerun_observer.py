@@ -3,6 +3,9 @@
 Entity paths (all logged through an explicit ``rr.RecordingStream``):
 
 ===================================  ==================================================
+``world``                            the scan's up axis as the 3D views' coordinate
+                                     convention (``ViewCoordinates``, static: a y-up
+                                     Stanford set opens upright)
 ``world/scan``                       the input points, coloured by class or height
 ``world/prepare/hits``               subsampled hit points (d = 0), grey
 ``world/prepare/virtual``            virtual points coloured by d (blue -s .. red +s)
@@ -53,6 +56,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..types import as_up_axis
+from .gui_camera import up_frame
 from .gui_model import STAGES as STAGE_ORDER  # the stages shown, in pipeline order
 
 __all__ = [
@@ -61,6 +66,7 @@ __all__ = [
     "RerunObserver",
     "default_blueprint",
     "scan_eye",
+    "view_coordinates",
     "ellipsoid_params",
     "repair_recording",
     "rerun_executable",
@@ -379,17 +385,20 @@ class RerunObserver:
     def _log_scan(self, scan, extra) -> None:
         rr = self.rr
         pts = scan.points
+        up = as_up_axis(getattr(scan, "up", None))
+        # the views' up axis and default eye follow the scan's (y for a Stanford set)
+        self.log("world", view_coordinates(up), static=True)
         if scan.labels is not None:
             self.log("world/scan", rr.Points3D(pts, class_ids=scan.labels.astype(np.uint16),
                                                radii=-1.0))
         else:
-            z = pts[:, 2]
-            t = (z - z.min()) / max(float(np.ptp(z)), 1e-9) if len(z) else z
+            h = pts @ up                                  # height along the up axis
+            t = (h - h.min()) / max(float(np.ptp(h)), 1e-9) if len(h) else h
             self.log("world/scan", rr.Points3D(pts, colors=_colormap(t, "turbo"), radii=-1.0))
         self.count("scan_points", len(pts))
         if self._frame_views and len(pts):
             self._frame_views = False
-            self.blueprint = default_blueprint(eye=scan_eye(pts, scan.origins))
+            self.blueprint = default_blueprint(eye=scan_eye(pts, scan.origins, up=up), up=up)
             self.rec.send_blueprint(self.blueprint)
 
     def _log_prepare(self, data, extra) -> None:
@@ -510,27 +519,41 @@ class RerunObserver:
 
 
 # --------------------------------------------------------------------------- blueprint
-def scan_eye(points, origins=None) -> tuple:
+def view_coordinates(up=None):
+    """rerun's ``ViewCoordinates`` of a right-handed frame whose up axis is ``up``
+    (+-x, +-y or +-z; default z): logged at ``world``, the 3D views' eye, navigation
+    and grid stand on it (``RIGHT_HAND_Y_UP`` for a Stanford set)."""
+    import rerun as rr
+
+    u = as_up_axis(up)
+    axis = "XYZ"[int(np.flatnonzero(u)[0])]
+    return getattr(rr.ViewCoordinates, f"RIGHT_HAND_{axis}_{'UP' if u.sum() > 0 else 'DOWN'}")
+
+
+def scan_eye(points, origins=None, up=None) -> tuple:
     """A camera (position, look target) that shows a scan from its sensor's side.
 
     Looks at the middle of the bounding box from the side where the sensor origins
     lie on average (a street scan is seen from the street, not from behind its
-    facades), from 0.6 box diagonals away and 0.25 diagonals up.
+    facades), from 0.6 box diagonals away and 0.25 diagonals up. ``up`` (3,),
+    optional: the scan's up axis (default z); "side" and "up" are taken in the frame
+    whose z is ``up`` (without origins: from that frame's -y).
     """
-    pts = np.asarray(points, dtype=np.float64)
+    R = up_frame(up)                                  # data -> a frame whose z is up
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3) @ R.T
     lo, hi = pts.min(0), pts.max(0)
     target = 0.5 * (lo + hi)
     diag = max(float(np.linalg.norm(hi - lo)), 1e-3)
     side = np.array([0.0, -1.0])
     if origins is not None and len(origins):
-        v = np.asarray(origins, dtype=np.float64).mean(0)[:2] - target[:2]
+        v = (np.asarray(origins, dtype=np.float64).reshape(-1, 3) @ R.T).mean(0)[:2] - target[:2]
         if np.linalg.norm(v) > 1e-6 * diag:
             side = v / np.linalg.norm(v)
     position = target + np.r_[0.6 * diag * side, 0.25 * diag]
-    return position, target
+    return R.T @ position, R.T @ target
 
 
-def default_blueprint(timeline: str = "stage", sweep: bool = False, eye=None):
+def default_blueprint(timeline: str = "stage", sweep: bool = False, eye=None, up=None):
     """One 3D view per stage group, metrics, summary and config; time on ``timeline``.
 
     Parameters
@@ -540,7 +563,9 @@ def default_blueprint(timeline: str = "stage", sweep: bool = False, eye=None):
     sweep : bool
         Add the sweep metrics (``sweep/**``) and the sweep table as first tabs.
     eye : (position, look target), optional
-        Same camera for every 3D view (z up), e.g. :func:`scan_eye`.
+        Same camera for every 3D view, e.g. :func:`scan_eye`.
+    up : (3,), optional
+        The camera's up vector with ``eye`` (the scan's up axis; default z).
     """
     import rerun.blueprint as rrb
 
@@ -548,7 +573,7 @@ def default_blueprint(timeline: str = "stage", sweep: bool = False, eye=None):
         kw = {}
         if eye is not None:
             kw["eye_controls"] = rrb.EyeControls3D(position=eye[0], look_target=eye[1],
-                                                   eye_up=[0.0, 0.0, 1.0])
+                                                   eye_up=as_up_axis(up).tolist())
         return rrb.Spatial3DView(name=name, origin="world", contents=contents, **kw)
 
     side = []
