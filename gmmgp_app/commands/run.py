@@ -125,7 +125,9 @@ def run(args) -> int:
         smap = build_map(scan, cfg, method=args.method, observer=observer, stop_after=stop,
                          executor=executor, progress=bar, tree=tree, resolved=resolved)
         bar.close()
-    del scan  # the map keeps what it needs (seeds, GP points): free the scan before meshing
+    # the map keeps what it needs (seeds, GP points): free the scan and its k-d tree
+    # (~50 MB on the 1.3M-point street) before meshing
+    del scan, tree, resolved
     smap.summary["seconds"] = {"read": read_s, **smap.summary["seconds"]}
     if smap.summary.get("auto") and not args.quiet:
         from ..pipeline import format_auto
