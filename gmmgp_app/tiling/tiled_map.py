@@ -191,10 +191,26 @@ class TiledMap:
         return UnseenMixture(m, v, reported_var=v), v
 
     def predict_mean(self, xyz) -> np.ndarray:
-        """(K,) the mean of :meth:`predict` alone, the same values bit for bit (what the
-        surface lattice needs): the stitching weights depend on the query's position
-        only, not on the tiles' variances, so the stitched mean ``sum w_t m_t / sum w_t``
-        needs each tile's mean alone (:meth:`SurfaceMap.predict_mean`)."""
+        """(K,) the mean of :meth:`predict` alone, the same values bit for bit: the
+        stitching weights depend on the query's position only, not on the tiles'
+        variances, so the stitched mean ``sum w_t m_t / sum w_t`` needs each tile's mean
+        alone (:meth:`SurfaceMap.predict_mean`)."""
+        return self._stitched_mean(xyz, "predict_mean")
+
+    def lattice_mean(self, xyz) -> np.ndarray:
+        """(K,) the field the stitched surface lattice is evaluated with: each tile's
+        :meth:`SurfaceMap.lattice_mean` (its own ``surface.lattice_field``: the far
+        field's mean with "far", the default, its :meth:`predict_mean` with "map"),
+        stitched by :meth:`predict`'s weights, as :meth:`predict_mean` stitches the
+        tiles' means (the nearest tile beyond every tile). With every tile on "map" it
+        is :meth:`predict_mean` bit for bit; the vertices' mean and variance are
+        :meth:`predict`'s either way."""
+        return self._stitched_mean(xyz, "lattice_mean")
+
+    def _stitched_mean(self, xyz, field: str) -> np.ndarray:
+        """``sum w_t f_t / sum w_t`` of each tile's method ``field`` (one order of
+        operations for :meth:`predict_mean` and :meth:`lattice_mean`, the same as
+        :class:`_StitchSums`' mean)."""
         from ..pipeline import as_queries
 
         x = as_queries(xyz)
@@ -202,14 +218,15 @@ class TiledMap:
         W = np.zeros(K)
         Wm = np.zeros(K)
         for owner, rows, w, _ in self._tile_weights(x):
-            m = self.tiles[owner].predict_mean(x[rows])
+            m = getattr(self.tiles[owner], field)(x[rows])
             W[rows] += w
             Wm[rows] += w * m
         mean = np.zeros(K)
         ok = W > 0
         mean[ok] = Wm[ok] / W[ok]
         if (~ok).any() and self.tiles:
-            self._nearest_tile_mean(x, ~ok, mean)
+            for key, r in self._nearest_tiles(x, ~ok):
+                mean[r] = getattr(self.tiles[key], field)(x[r])
         return mean
 
     def _tile_weights(self, x) -> list:
@@ -257,10 +274,6 @@ class TiledMap:
             if return_grad:
                 grad[r] = out[2]
 
-    def _nearest_tile_mean(self, x, miss, mean):
-        for key, r in self._nearest_tiles(x, miss):
-            mean[r] = self.tiles[key].predict_mean(x[r])
-
     def _weighs(self, key, xyz) -> np.ndarray:
         """Where mapped tile ``key`` has a non-zero weight (its square or one it owns)."""
         w = np.zeros(len(xyz))
@@ -271,7 +284,10 @@ class TiledMap:
     def extract_surface(self, voxel_size: Optional[float] = None, max_std=None,
                         progress=None, reach: Optional[float] = None):
         """Marching cubes on the stitched field (seamless: one field, one lattice);
-        ``reach`` defaults to :meth:`surface_reach`."""
+        ``reach`` defaults to :meth:`surface_reach`. The lattice is evaluated with
+        :meth:`lattice_mean` (each tile's ``surface.lattice_field``, stitched), the
+        vertices' mean and variance with :meth:`predict`, as
+        :meth:`SurfaceMap.extract_surface` does for one map."""
         from ..pipeline import mesh_field
 
         seeds = self.stitched_seeds()
@@ -279,7 +295,7 @@ class TiledMap:
             voxel_size = self.surface_voxel()
         return mesh_field(self.predict, seeds, self.config.surface, voxel_size, max_std,
                           progress, self.surface_reach(seeds) if reach is None else reach,
-                          predict_mean=self.predict_mean)
+                          predict_mean=self.lattice_mean)
 
     def stitched_seeds(self) -> np.ndarray:
         """Where the stitched surface is sought: every tile's seed points (with smooth
