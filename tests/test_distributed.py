@@ -348,6 +348,14 @@ def test_tiled_lattice_is_the_tiles_far_fields_stitched(street, tiled):
     assert np.quantile(r, 0.99) < 1.1 * np.quantile(r_map, 0.99)
     assert np.quantile(r, 0.99) < 2 * np.quantile(r_one, 0.99)
     assert np.median(r) < 5e-3 and np.median(r) < 5 * np.median(r_one)
+    # surface.project_steps (the tiled config's): Newton steps onto the stitched zero level
+    proj = TiledMap(tiled.spec, tiled.tiles,
+                    tiled.config.replace({"surface.project_steps": 1}), tiled.method,
+                    owners=tiled.owners)
+    pm = proj.extract_surface(voxel_size=vox)
+    assert len(pm.faces) == len(mesh.faces)
+    rp = np.abs(tiled.predict(pm.vertices)[0]) / vox
+    assert np.median(rp) < 0.1 * np.median(r) and np.quantile(rp, 0.9) < np.quantile(r, 0.9)
 
 
 def _blend_queries(scan, rng):

@@ -302,7 +302,9 @@ class TiledMap:
         ``reach`` defaults to :meth:`surface_reach`. The lattice is evaluated with
         :meth:`lattice_mean` (each tile's ``surface.lattice_field``, stitched), the
         vertices' mean and variance with :meth:`predict`, as
-        :meth:`SurfaceMap.extract_surface` does for one map."""
+        :meth:`SurfaceMap.extract_surface` does for one map; with the tiled config's
+        ``surface.project_steps`` > 0 the vertices take Newton steps onto
+        :meth:`predict`'s zero level (its stitched gradient)."""
         from ..pipeline import mesh_field
 
         seeds = self.stitched_seeds()
@@ -310,7 +312,8 @@ class TiledMap:
             voxel_size = self.surface_voxel()
         return mesh_field(self.predict, seeds, self.config.surface, voxel_size, max_std,
                           progress, self.surface_reach(seeds) if reach is None else reach,
-                          predict_mean=self.lattice_mean)
+                          predict_mean=self.lattice_mean,
+                          project=lambda x: self.predict(x, return_grad=True))
 
     def stitched_seeds(self) -> np.ndarray:
         """Where the stitched surface is sought: every tile's seed points (with smooth
