@@ -316,6 +316,8 @@ class _PriorOnly:
         """(K,) the prior's mean (what a stitched surface's lattice asks each tile)."""
         return self.predict(xyz)[0]
 
+    lattice_mean = predict_mean  # the prior has no far field: its own mean on the lattice
+
     def extract_surface(self, voxel_size=None):
         return self.smap.prior_surface(voxel_size)
 

@@ -275,14 +275,87 @@ def test_tiled_predict_mean_is_predicts_mean_and_the_mesh_is_unchanged(street, t
                     tiled.config, tiled.method)
     for tm in (tiled, core, _tiled_priors(tiled)):
         assert np.array_equal(tm.predict_mean(q), tm.predict(q)[0])
-    seeds = tiled.stitched_seeds()
-    full = mesh_field(tiled.predict, seeds, tiled.config.surface, 0.1, None, None,
-                      tiled.surface_reach(seeds))
-    mesh = tiled.extract_surface(voxel_size=0.1)
+    # tiles on surface.lattice_field "map": the lattice is predict's mean, the stitched
+    # surface the mesh of the full predict, array for array (as before "far")
+    tmap = _with_lattice_field(tiled, "map")
+    for tm in (tmap, _tiled_priors(tiled)):  # (the prior has no far field: its mean)
+        assert np.array_equal(tm.lattice_mean(q), tm.predict(q)[0])
+    seeds = tmap.stitched_seeds()
+    full = mesh_field(tmap.predict, seeds, tmap.config.surface, 0.1, None, None,
+                      tmap.surface_reach(seeds))
+    mesh = tmap.extract_surface(voxel_size=0.1)
     assert len(mesh.faces) > 1000
     for a, b in ((mesh.vertices, full.vertices), (mesh.faces, full.faces),
                  (mesh.vertex_variance, full.vertex_variance)):
         assert np.array_equal(a, b)
+
+
+def _with_lattice_field(tm, field):
+    """``tm`` with every tile's ``surface.lattice_field`` set to ``field`` (copies of
+    the tiles; the fixture's are left as they are)."""
+    import copy
+
+    tiles = {}
+    for k, t in tm.tiles.items():
+        tiles[k] = copy.copy(t)
+        tiles[k].config = t.config.replace({"surface.lattice_field": field})
+    return TiledMap(tm.spec, tiles, tm.config, tm.method, owners=tm.owners)
+
+
+def test_tiled_lattice_is_the_tiles_far_fields_stitched(street, tiled):
+    """With the tiles' surface.lattice_field "far" (the default) the stitched lattice
+    field is each tile's far-field mean, stitched by predict's weights (checked against
+    the weights of TileSpec.weights by hand, the nearest tile beyond every tile); the
+    mesh's vertices carry predict's mean and variance, and lie as near the tiled map's
+    zero level as the untiled map's vertices lie near its own (|m(v)| / voxel, the
+    seventh pass's statistic, docs/speed.md)."""
+    from gmmgp_app.tiling.geometry import members
+
+    scan, _ = street
+    assert all(t.config.surface.lattice_field == "far" for _, t in tiled.tiles.items())
+    q = _blend_queries(scan, np.random.default_rng(5))
+    # by hand: sum_t w_t far_t(q) / sum_t w_t over the squares' weights
+    W, Wm = np.zeros(len(q)), np.zeros(len(q))
+    for k in tiled.keys:
+        w = sum(tiled.spec.weights(q[:, :2], s)[0] for s in members(tiled.owners, k))
+        on = w > 0
+        W[on] += w[on]
+        Wm[on] += w[on] * tiled.tiles[k].far.components(q[on])["mean"]
+    ok = W > 0
+    assert ok.sum() > 500 and (~ok).sum() > 10
+    lat = tiled.lattice_mean(q)
+    np.testing.assert_allclose(lat[ok], Wm[ok] / W[ok], rtol=1e-12, atol=1e-12)
+    for key, r in tiled._nearest_tiles(q, ~ok):
+        assert np.array_equal(lat[r], tiled.tiles[key].far.components(q[r])["mean"])
+    # the far field is not the map's mean: the lattice differs from predict_mean
+    assert np.abs(lat - tiled.predict_mean(q)).max() > 1e-6
+
+    vox = 0.1
+    mesh = tiled.extract_surface(voxel_size=vox)
+    assert len(mesh.faces) > 1000
+    m, var = tiled.predict(mesh.vertices)
+    np.testing.assert_allclose(mesh.vertex_variance, var, rtol=1e-12, atol=0)
+    r = np.abs(m) / vox
+    r_map = np.abs(tiled.predict_mean(_with_lattice_field(tiled, "map")
+                                      .extract_surface(voxel_size=vox).vertices)) / vox
+    single = gm.build_map(scan, gm.MappingConfig())
+    r_one = np.abs(single.predict_mean(single.extract_surface(voxel_size=vox).vertices)) / vox
+    # measured (median / p99 voxels): tiled "far" 1.7e-3 / 0.43, tiled "map" 5.6e-4 /
+    # 0.42, untiled "far" 5.1e-4 / 0.25. The tail is the tiled map's own (its "map"
+    # lattice has it too: the sparse tiles resolve a 5x coarser automatic h_t than the
+    # untiled map); the median grows where those tiles' far field departs from their
+    # map's mean (3-4e-3 voxels there, 2e-5 - 3e-4 in the dense tiles, 1e-4 untiled).
+    assert np.quantile(r, 0.99) < 1.1 * np.quantile(r_map, 0.99)
+    assert np.quantile(r, 0.99) < 2 * np.quantile(r_one, 0.99)
+    assert np.median(r) < 5e-3 and np.median(r) < 5 * np.median(r_one)
+    # surface.project_steps (the tiled config's): Newton steps onto the stitched zero level
+    proj = TiledMap(tiled.spec, tiled.tiles,
+                    tiled.config.replace({"surface.project_steps": 1}), tiled.method,
+                    owners=tiled.owners)
+    pm = proj.extract_surface(voxel_size=vox)
+    assert len(pm.faces) == len(mesh.faces)
+    rp = np.abs(tiled.predict(pm.vertices)[0]) / vox
+    assert np.median(rp) < 0.1 * np.median(r) and np.quantile(rp, 0.9) < np.quantile(r, 0.9)
 
 
 def _blend_queries(scan, rng):

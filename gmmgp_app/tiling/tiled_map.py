@@ -53,6 +53,22 @@ class _StitchSums:
         return mean, var, ok
 
 
+def _rows_by_key(key_arr) -> list:
+    """``[(key, rows)]``: the distinct rows ``key`` (tuples of ints) of an (n, 2) integer
+    array in ``np.unique(key_arr, axis=0)``'s lexicographic order, each with the indices
+    of the rows equal to it. Each key packed into one int64 that keeps that order (a
+    1-D unique; ``np.unique(axis=0)``'s row sort took 47 of 123 s of a tiled street's
+    surface, docs/speed.md 'Seventh pass, tiled')."""
+    k = np.asarray(key_arr, dtype=np.int64)
+    if len(k) == 0:
+        return []
+    lo = k.min(0)
+    span = int(k[:, 1].max() - lo[1]) + 1
+    packed = (k[:, 0] - lo[0]) * span + (k[:, 1] - lo[1])
+    return [((int(u // span + lo[0]), int(u % span + lo[1])), np.flatnonzero(packed == u))
+            for u in np.unique(packed)]
+
+
 class TiledMap:
     """A SurfaceMap-like field made of independently mapped, overlapping tiles.
 
@@ -191,10 +207,26 @@ class TiledMap:
         return UnseenMixture(m, v, reported_var=v), v
 
     def predict_mean(self, xyz) -> np.ndarray:
-        """(K,) the mean of :meth:`predict` alone, the same values bit for bit (what the
-        surface lattice needs): the stitching weights depend on the query's position
-        only, not on the tiles' variances, so the stitched mean ``sum w_t m_t / sum w_t``
-        needs each tile's mean alone (:meth:`SurfaceMap.predict_mean`)."""
+        """(K,) the mean of :meth:`predict` alone, the same values bit for bit: the
+        stitching weights depend on the query's position only, not on the tiles'
+        variances, so the stitched mean ``sum w_t m_t / sum w_t`` needs each tile's mean
+        alone (:meth:`SurfaceMap.predict_mean`)."""
+        return self._stitched_mean(xyz, "predict_mean")
+
+    def lattice_mean(self, xyz) -> np.ndarray:
+        """(K,) the field the stitched surface lattice is evaluated with: each tile's
+        :meth:`SurfaceMap.lattice_mean` (its own ``surface.lattice_field``: the far
+        field's mean with "far", the default, its :meth:`predict_mean` with "map"),
+        stitched by :meth:`predict`'s weights, as :meth:`predict_mean` stitches the
+        tiles' means (the nearest tile beyond every tile). With every tile on "map" it
+        is :meth:`predict_mean` bit for bit; the vertices' mean and variance are
+        :meth:`predict`'s either way."""
+        return self._stitched_mean(xyz, "lattice_mean")
+
+    def _stitched_mean(self, xyz, field: str) -> np.ndarray:
+        """``sum w_t f_t / sum w_t`` of each tile's method ``field`` (one order of
+        operations for :meth:`predict_mean` and :meth:`lattice_mean`, the same as
+        :class:`_StitchSums`' mean)."""
         from ..pipeline import as_queries
 
         x = as_queries(xyz)
@@ -202,14 +234,15 @@ class TiledMap:
         W = np.zeros(K)
         Wm = np.zeros(K)
         for owner, rows, w, _ in self._tile_weights(x):
-            m = self.tiles[owner].predict_mean(x[rows])
+            m = getattr(self.tiles[owner], field)(x[rows])
             W[rows] += w
             Wm[rows] += w * m
         mean = np.zeros(K)
         ok = W > 0
         mean[ok] = Wm[ok] / W[ok]
         if (~ok).any() and self.tiles:
-            self._nearest_tile_mean(x, ~ok, mean)
+            for key, r in self._nearest_tiles(x, ~ok):
+                mean[r] = getattr(self.tiles[key], field)(x[r])
         return mean
 
     def _tile_weights(self, x) -> list:
@@ -218,11 +251,10 @@ class TiledMap:
         a mapped tile is its own square's plus those of the squares it owns."""
         parts: dict = {}
         for key_arr in self.spec.candidate_keys(x[:, :2]):
-            for key in map(tuple, np.unique(key_arr, axis=0).tolist()):
+            for key, rows in _rows_by_key(key_arr):
                 owner = self._owner(key)
                 if owner is None:
                     continue
-                rows = np.flatnonzero(np.all(key_arr == np.array(key), axis=1))
                 w, dw = self.spec.weights(x[rows, :2], key)
                 keep = w > 0
                 if keep.any():
@@ -257,10 +289,6 @@ class TiledMap:
             if return_grad:
                 grad[r] = out[2]
 
-    def _nearest_tile_mean(self, x, miss, mean):
-        for key, r in self._nearest_tiles(x, miss):
-            mean[r] = self.tiles[key].predict_mean(x[r])
-
     def _weighs(self, key, xyz) -> np.ndarray:
         """Where mapped tile ``key`` has a non-zero weight (its square or one it owns)."""
         w = np.zeros(len(xyz))
@@ -271,7 +299,12 @@ class TiledMap:
     def extract_surface(self, voxel_size: Optional[float] = None, max_std=None,
                         progress=None, reach: Optional[float] = None):
         """Marching cubes on the stitched field (seamless: one field, one lattice);
-        ``reach`` defaults to :meth:`surface_reach`."""
+        ``reach`` defaults to :meth:`surface_reach`. The lattice is evaluated with
+        :meth:`lattice_mean` (each tile's ``surface.lattice_field``, stitched), the
+        vertices' mean and variance with :meth:`predict`, as
+        :meth:`SurfaceMap.extract_surface` does for one map; with the tiled config's
+        ``surface.project_steps`` > 0 the vertices take Newton steps onto
+        :meth:`predict`'s zero level (its stitched gradient)."""
         from ..pipeline import mesh_field
 
         seeds = self.stitched_seeds()
@@ -279,7 +312,8 @@ class TiledMap:
             voxel_size = self.surface_voxel()
         return mesh_field(self.predict, seeds, self.config.surface, voxel_size, max_std,
                           progress, self.surface_reach(seeds) if reach is None else reach,
-                          predict_mean=self.predict_mean)
+                          predict_mean=self.lattice_mean,
+                          project=lambda x: self.predict(x, return_grad=True))
 
     def stitched_seeds(self) -> np.ndarray:
         """Where the stitched surface is sought: every tile's seed points (with smooth

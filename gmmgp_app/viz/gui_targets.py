@@ -191,7 +191,8 @@ class TiledView:
             if mesh and len(seeds):
                 full = mesh_field(self.tmap.predict, seeds, self.tmap.config.surface,
                                   voxel_size, reach=self._reach,
-                                  predict_mean=self.tmap.predict_mean)
+                                  predict_mean=self.tmap.lattice_mean,
+                                  project=lambda x: self.tmap.predict(x, return_grad=True))
                 m = _crop_faces(full, lambda c, k=key: self._in_squares(c[:, :2], k))
             gp = np.asarray(t.gp_points, float)
             self.pieces[key] = TilePiece(key, seeds, gp[self._in_squares(gp[:, :2], key)]
