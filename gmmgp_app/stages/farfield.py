@@ -417,6 +417,17 @@ def _project(p, n, start, d, nbr, rho0, min_cos, out):
             out[g, c] = p[g, c] - t * n[g, c]
 
 
+def _two_predictions(m1, v1, m2, v2):
+    """Two predictions as float64 (variances floored at 1e-300) and the masks of the
+    queries where only the second (``v1`` infinite) or only the first carries
+    information."""
+    v1 = np.maximum(np.asarray(v1, dtype=np.float64), 1e-300)
+    v2 = np.maximum(np.asarray(v2, dtype=np.float64), 1e-300)
+    only2, only1 = np.isinf(v1), np.isinf(v2) & ~np.isinf(v1)
+    return (np.asarray(m1, dtype=np.float64), v1, np.asarray(m2, dtype=np.float64), v2,
+            only2, only1)
+
+
 def blend_fields(m1, v1, m2, v2, g1=None, g2=None):
     """Inverse-variance mixture of two predictions (eq. blend).
 
@@ -431,11 +442,7 @@ def blend_fields(m1, v1, m2, v2, g1=None, g2=None):
     -------
     mean (K,), var (K,)[, grad (K, 3) with the same weights when g1, g2 are given]
     """
-    v1 = np.maximum(np.asarray(v1, dtype=np.float64), 1e-300)
-    v2 = np.maximum(np.asarray(v2, dtype=np.float64), 1e-300)
-    m1 = np.asarray(m1, dtype=np.float64)
-    m2 = np.asarray(m2, dtype=np.float64)
-    only2, only1 = np.isinf(v1), np.isinf(v2) & ~np.isinf(v1)
+    m1, v1, m2, v2, only2, only1 = _two_predictions(m1, v1, m2, v2)
     with np.errstate(invalid="ignore"):  # inf / inf and 0 * inf, replaced below
         w = v2 / (v1 + v2)
         mean = w * m1 + (1 - w) * m2
@@ -470,13 +477,9 @@ def blend_correlated(m1, v1, m2, v2, rho, g1=None, g2=None):
     -------
     mean (K,), var (K,)[, grad (K, 3) with the same weights when g1, g2 are given]
     """
-    v1 = np.maximum(np.asarray(v1, dtype=np.float64), 1e-300)
-    v2 = np.maximum(np.asarray(v2, dtype=np.float64), 1e-300)
-    m1 = np.asarray(m1, dtype=np.float64)
-    m2 = np.asarray(m2, dtype=np.float64)
     if not -1.0 < float(rho) < 1.0:
         raise FarFieldError(f"Expected an error correlation rho in (-1, 1), found {rho!r}.")
-    only2, only1 = np.isinf(v1), np.isinf(v2) & ~np.isinf(v1)
+    m1, v1, m2, v2, only2, only1 = _two_predictions(m1, v1, m2, v2)
     with np.errstate(invalid="ignore", over="ignore"):  # inf terms, replaced below
         c = float(rho) * np.sqrt(v1) * np.sqrt(v2)
         w = np.clip((v2 - c) / (v1 + v2 - 2.0 * c), 0.0, 1.0)
