@@ -186,6 +186,12 @@ def render_png(model: ViewerModel, path, size=(1600, 1000), stage: Optional[str]
                          v.up.astype(np.float32), max(1e-3 * dist, 1e-4), dist + 4.0 * ext)
         set_lighting(scene, rendering, sun_direction(v))
     img = ren.render_to_image()
+    # remove the renderables before the renderer and its materials go: left to the
+    # garbage collector's order, Filament sometimes destroyed a material still in use
+    # and aborted the process ("destroying MaterialInstance ... still in use by
+    # Renderable", once in a full test run)
+    scene.clear_geometry()
+    del scene, ren
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.stem + ".part" + path.suffix)
