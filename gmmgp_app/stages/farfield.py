@@ -158,6 +158,7 @@ def variance_coef(blend: str = "growth", projected: bool = False):
         return VARIANCE_COEF_CORRELATED
     return VARIANCE_COEF_PROJECTED if projected else VARIANCE_COEF
 
+
 #: (u0, ..., u4) of eq. field_var for the GP field (``"gp"``) and the far field
 #: (``"far"``): Gaussian maximum likelihood of each field's own error (eq.
 #: field_var_fit) on the tuned scenes' queries (synthetic street and sphere, 10 %
