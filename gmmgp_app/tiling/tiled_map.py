@@ -297,9 +297,11 @@ class TiledMap:
         return w > 0
 
     def extract_surface(self, voxel_size: Optional[float] = None, max_std=None,
-                        progress=None, reach: Optional[float] = None):
+                        progress=None, reach: Optional[float] = None, seeds=None):
         """Marching cubes on the stitched field (seamless: one field, one lattice);
-        ``reach`` defaults to :meth:`surface_reach`. The lattice is evaluated with
+        ``seeds`` (where the surface is sought) default to :meth:`stitched_seeds` (a
+        viewer's tile piece passes its tile's own), ``reach`` to :meth:`surface_reach`
+        of them. The lattice is evaluated with
         :meth:`lattice_mean` (each tile's ``surface.lattice_field``, stitched), the
         vertices' mean and variance with :meth:`predict`, as
         :meth:`SurfaceMap.extract_surface` does for one map; with the tiled config's
@@ -307,7 +309,8 @@ class TiledMap:
         :meth:`predict`'s zero level (its stitched gradient)."""
         from ..pipeline import mesh_field
 
-        seeds = self.stitched_seeds()
+        if seeds is None:
+            seeds = self.stitched_seeds()
         if voxel_size is None:
             voxel_size = self.surface_voxel()
         return mesh_field(self.predict, seeds, self.config.surface, voxel_size, max_std,

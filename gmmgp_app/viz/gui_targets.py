@@ -176,8 +176,6 @@ class TiledView:
         Each tile's surface piece is meshed from the stitched field at the seeds of the
         tile's own squares and keeps the faces whose centroid lies in them.
         """
-        from ..pipeline import mesh_field
-
         if self._reach is None and mesh:
             # the stitched surface's reach (TiledMap.extract_surface), the same for
             # every piece so that the pieces are that surface face for face
@@ -189,10 +187,7 @@ class TiledView:
             seeds = seeds[self._in_squares(seeds[:, :2], key)]
             m = None
             if mesh and len(seeds):
-                full = mesh_field(self.tmap.predict, seeds, self.tmap.config.surface,
-                                  voxel_size, reach=self._reach,
-                                  predict_mean=self.tmap.lattice_mean,
-                                  project=lambda x: self.tmap.predict(x, return_grad=True))
+                full = self.tmap.extract_surface(voxel_size, reach=self._reach, seeds=seeds)
                 m = _crop_faces(full, lambda c, k=key: self._in_squares(c[:, :2], k))
             gp = np.asarray(t.gp_points, float)
             self.pieces[key] = TilePiece(key, seeds, gp[self._in_squares(gp[:, :2], key)]
