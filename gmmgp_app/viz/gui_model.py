@@ -227,7 +227,6 @@ class ViewerModel:
         m = cls(StageResults(config=cfg, voxel_size=voxel_size, scan=scan),
                 source=str(path))
         m.kind = "scan"
-        m.up = scan.up
         return m
 
     @classmethod
@@ -243,7 +242,6 @@ class ViewerModel:
                                summary=check.summary)
             m = cls(res, source=str(path))
             m.kind = "check"
-            m.up = scan.up                 # the map's up axis, from check.json
             return m
         run_dir = path.parent if path.name == "map" else path
         summary = T.read_summary(run_dir)
@@ -255,7 +253,7 @@ class ViewerModel:
                                smap=tmap, tiles=T.TiledView(tmap), summary=summary)
             m = cls(res, source=str(tdir))
             m.kind = "tiled"
-            m.up = tmap.up
+            m.up = tmap.up                 # no scan in a tiled view's results
             return m
         mapdir = path / "map" if (path / "map" / "map.json").is_file() else path
         smap = load_map(mapdir)
@@ -269,7 +267,6 @@ class ViewerModel:
                            summary=summary or dict(smap.summary))
         m = cls(res, source=str(mapdir))
         m.kind = "run" if mesh is not None or summary else "map"
-        m.up = smap.up
         m.mesh_file = str(run_dir / f"mesh_{smap.method}.ply") if mesh is not None else None
         return m
 
