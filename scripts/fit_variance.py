@@ -223,15 +223,16 @@ def coverage_bins(d, coef=F.VARIANCE_COEF, base_methods=None):
     return dict(c1=c1, c2=c2, ll=lls, n1=n1, n2=n2, nll=sum(ok) if ok else None)
 
 
-def score_coefs(names, coefs: dict, cache, seed=0, baselines=None) -> str:
+def score_coefs(names, coefs: dict, cache, seed=0, baselines=None, overrides=()) -> str:
     """Bins in target per scene for each candidate ``coefs`` (label -> t0..t4), the
-    map's mean unchanged (cached ingredients): a markdown table, then the coverages."""
+    map's mean unchanged (cached ingredients of maps built with ``overrides``): a
+    markdown table, then the coverages."""
     import json
 
     base = {} if baselines is None else {
         r["scene"]: r["methods"] for r in json.loads(Path(baselines).read_text())["results"]}
     names = [n for n in names if n != "bunny" or B.BUNNY.is_dir()]
-    cases = {n: scene_case(n, seed, cache) for n in names}
+    cases = {n: scene_case(n, seed, cache, overrides) for n in names}
     tag = lambda n: ("tuned" if B.SCENES[n]["tuned"] else "held out") if n in B.SCENES \
         else "training"  # noqa: E731
     lines = ["Bins in target per scene (1 sigma / 2 sigma / LL above hgmm, gpis and loggpis); "
@@ -612,9 +613,9 @@ def main(argv=None) -> int:
             coefs["--coef"] = coef
         if fitted_coef is not None:
             coefs["fitted (--fit" + (" --train)" if a.train else ")")] = tuple(fitted_coef)
-        text.append(score_coefs(names, coefs, cache, a.seed, a.score))
+        text.append(score_coefs(names, coefs, cache, a.seed, a.score, a.set))
         if a.train:
-            text.append(score_coefs(list(TRAIN_SCENES), coefs, cache, a.seed))
+            text.append(score_coefs(list(TRAIN_SCENES), coefs, cache, a.seed, None, a.set))
     out = "\n".join(text) + "\n"
     print(out)
     if a.out:
