@@ -136,7 +136,10 @@ __all__ = ["FarField", "FarFieldError", "blend_fields", "blend_correlated", "fie
 #: (t0, ..., t4) of eq. calibrated_var: the 0.68-quantile regression (eq.
 #: variance_quantile_fit) on the tuned scenes' observed queries (synthetic street and
 #: sphere, 10 % handed, seed 0, with the robust far field of the raw hit points and
-#: ``far.gp_growth`` = 4; ``python scripts/fit_variance.py --fit``).
+#: ``far.gp_growth`` = 4; ``python scripts/fit_variance.py --fit``). A map saves the
+#: coefficients it predicts with (map.json ``variance_coef``), so refitting these leaves
+#: saved maps alone; refits are scored with ``fit_variance.py --score`` on the bench and
+#: on the random training scenes (``--train``; docs/field.md, "Session 7").
 VARIANCE_COEF = (-0.4745, -0.2282, 1.0088, 0.1706, 0.1404)
 
 #: VARIANCE_COEF for a far field of projected hit points (``far.project_points = true``,
