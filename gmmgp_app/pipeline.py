@@ -135,11 +135,21 @@ class SurfaceMap:
         The scan's up axis (``Scan.up``: y for a Stanford range-scan set, else z),
         saved with the map so that a viewer stands it upright; a map saved without
         one loads with z.
+    variance_coef : tuple of 5 floats or None
+        Eq. calibrated_var's coefficients the map predicts with. None (a map just
+        built): the library's fit for the map's ``far.blend`` and
+        ``far.project_points`` (``stages.farfield.variance_coef``), resolved at each
+        prediction. Saved with the map (map.json), so a later refit of the library's
+        coefficients does not change a saved map's variance; a map saved before they
+        were saved loads with the coefficients of that time
+        (``stages.farfield.variance_coef_unsaved``).
     """
 
     def __init__(self, method, config, offset, prior, hgmm=None, gp=None,
                  gp_points=None, gp_normals=None, seed_points=None, summary=None, far=None,
-                 up=None):
+                 up=None, variance_coef=None):
+        self.variance_coef = None if variance_coef is None else \
+            tuple(float(x) for x in variance_coef)
         self.method = method
         self.up = as_up_axis(up)
         self.far = far
@@ -230,9 +240,16 @@ class SurfaceMap:
                             else self.config.gp.length_scale,
                             self.config.far.unseen_weight, self.config.far.min_thickness,
                             self.config.far.edge_gap, self.config.far.unseen_predictive,
-                            self.config.far.blend,
-                            _farfield.variance_coef(self.config.far.blend,
-                                                    self.config.far.project_points))
+                            self.config.far.blend, self.resolved_variance_coef())
+
+    def resolved_variance_coef(self) -> tuple:
+        """Eq. calibrated_var's coefficients the map predicts with: its own
+        (:attr:`variance_coef`, e.g. loaded with it) or the library's fit for its
+        ``far.blend`` and ``far.project_points``."""
+        if self.variance_coef is not None:
+            return self.variance_coef
+        return tuple(_farfield.variance_coef(self.config.far.blend,
+                                             self.config.far.project_points))
 
     @property
     def signed(self) -> bool:
@@ -329,6 +346,9 @@ class SurfaceMap:
                 "prior": type(self.prior).__name__,
                 "prior_params": getattr(self.prior, "params", lambda: {})(),
                 "far_params": None if self.far is None else self.far.params(),
+                # eq. calibrated_var's coefficients: a later refit leaves this map alone
+                "variance_coef": None if self.far is None else
+                [float(x) for x in self.resolved_variance_coef()],
                 "config_toml": self.config.to_toml(),
                 "up": [float(v) for v in self.up],
                 "summary": jsonable(self.summary),
@@ -389,10 +409,15 @@ def load_map(directory) -> SurfaceMap:
         fp = dict(meta["far_params"])
         far = _farfield.FarField(arrays["far/points"], arrays["far/normals"], fp.pop("rho0"),
                                  fp.pop("noise"), **fp)
+    coef = meta.get("variance_coef")
+    if coef is None and far is not None:
+        # saved before the coefficients were saved with the map: the fit of that time
+        coef = _farfield.variance_coef_unsaved(cfg.far.blend, cfg.far.project_points)
     smap = SurfaceMap(meta["method"], cfg, arrays["offset"], prior, hgmm=hgmm, gp=gp,
                       gp_points=arrays["gp_points"], gp_normals=arrays["gp_normals"],
                       seed_points=arrays["seed_points"], summary=meta.get("summary", {}),
-                      far=far, up=meta.get("up"))   # saved before the up axis: z
+                      far=far, up=meta.get("up"),   # saved before the up axis: z
+                      variance_coef=coef)
     return smap
 
 
@@ -635,7 +660,8 @@ def _refit_stage(ctx, smap, touched, gp_points, gp_normals, all_points):
     out = SurfaceMap(smap.method, smap.config, smap.offset, smap.prior, hgmm=smap.hgmm,
                      gp=field_, gp_points=gpp,
                      seed_points=surface_seeds(Scan(points=all_points), ctx.cfg),
-                     summary=smap.summary, far=smap.far, up=smap.up)
+                     summary=smap.summary, far=smap.far, up=smap.up,
+                     variance_coef=smap.variance_coef)
     return {"smap": out, "n_refit": n_refit}
 
 

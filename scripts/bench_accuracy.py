@@ -157,11 +157,13 @@ def plane_reference(points, origins, queries, k=16):
     return np.einsum("ij,ij->i", queries - points[i], n[i]), dist
 
 
-def scene_queries(name, spec, seed, n_near, n_far):
+def scene_queries(name, spec, seed, n_near, n_far, made=None):
     """One scene's protocol (module docstring): its simulated scan, the random 10 %
     handed to the map, and the scored queries with their exact SDF and distance to
-    the handed points. Returns (scan, scene, handed, q, y, dist)."""
-    scan, scene = make_scan(name, spec["density"], seed)
+    the handed points. ``made``: (scan, scene) made elsewhere (e.g. a training scene of
+    scripts/fit_variance.py) instead of :func:`make_scan`. Returns (scan, scene, handed,
+    q, y, dist)."""
+    scan, scene = made if made is not None else make_scan(name, spec["density"], seed)
     rng = np.random.default_rng(seed + 1)
     handed = scan.select(np.sort(rng.choice(len(scan), len(scan) // 10, replace=False)))
     sc = spec["scale"]

@@ -19,6 +19,8 @@ changing the field's mean). Then:
   the design's own mixture, scored by its log density, sigma its central 68.27 %
   half-width) for several lambda, per scene and bin; ``--categories`` with
   ``--predictive mixture`` splits the mixture's figures by category;
+* ``--score BASELINES_JSON``: bins in target per scene for VARIANCE_COEF, ``--coef``
+  and a ``--fit`` (with ``--train``: the training scenes scored too);
 * ``--categories``: per bin and per query category the count, coverage within 1 and
   2 sigma, mean log-likelihood, median and 99th percentile of |z| and which variance
   term dominates. Categories (exclusive): ``near`` |m| <= h (at the located surface),
@@ -32,6 +34,13 @@ Examples::
     python scripts/fit_variance.py --fit
     python scripts/fit_variance.py --categories --scenes street,courtyard,pipes
     python scripts/fit_variance.py --sweep docs/field_bench/bench_accuracy.json
+    python scripts/fit_variance.py --fit --train --score docs/field_bench/bench_accuracy.json
+
+``--train`` uses random scenes apart from the benchmark's (:data:`TRAIN_SCENES`: four
+mobile-mapping ``yard`` layouts and four terrestrial ``objects`` scenes of
+gmmgp_app.synth.training_scenes), so a fit on them leaves all six bench scenes held out;
+``--score`` counts each scene's bins in target for candidate coefficients from the
+cached ingredients (the map's mean unchanged), as scripts/bench_bins.py counts them.
 """
 
 from __future__ import annotations
@@ -54,16 +63,48 @@ from gmmgp_app.stages.unseen import UnseenMixture  # noqa: E402
 CATEGORIES = ("near", "front", "front_ext", "beh_solid", "beh_thin")
 
 
+#: Training scenes (gmmgp_app.synth.training_scenes, random layouts apart from the
+#: benchmark's): ``train_<kind>_<seed>``; a fit on them leaves all six bench scenes held
+#: out (docs/field.md, "Session 7").
+TRAIN_SCENES = tuple(f"train_{k}_{s}" for k in ("yard", "objects") for s in (101, 102, 103, 104))
+
+
+def training_scan(name):
+    """(scan, scene, spec) of a training scene ``train_<kind>_<seed>``: yards at the
+    bench streets' density 0.3 and bins in metres; object scenes at density 1 with bins
+    x 0.3 x their random scale (the pipes' 0.2 at a 0.67 scale)."""
+    from gmmgp_app.synth.training_scenes import scan_training_scene
+
+    _, kind, s = name.split("_")
+    density = 0.3 if kind == "yard" else 1.0
+    scan, scene, k = scan_training_scene(kind, int(s), density=density)
+    spec = dict(density=density, scale=1.0 if kind == "yard" else 0.3 * k, noise=None,
+                tuned=False)
+    return scan, scene, spec
+
+
+def scene_spec(name):
+    """The bench spec of a bench scene, or of a training scene (its scan made)."""
+    return B.SCENES[name] if name in B.SCENES else training_scan(name)[2]
+
+
 def scene_case(name, seed, cache: Path, overrides=()):
-    """The per-query ingredients of one bench scene's variance (cached npz; the map
-    built with the defaults and ``overrides``, e.g. ``["far.blend=correlated"]``)."""
+    """The per-query ingredients of one bench or training scene's variance (cached npz;
+    the map built with the defaults and ``overrides``, e.g. ``["far.blend=correlated"]``).
+    A training scene ``train_<kind>_<seed>`` uses its own seed for the 10 % handed and
+    the queries (``seed`` is ignored)."""
     tag = "".join(f"_{o.replace('=', '-')}" for o in overrides)
     path = cache / f"{name}_seed{seed}{tag}.npz"
     if path.exists() and "v_far" in np.load(path).files:
         d = dict(np.load(path))
         return {k: (v.item() if v.ndim == 0 else v) for k, v in d.items()}
-    spec = B.SCENES[name]
-    _, _, handed, q, y, dist = B.scene_queries(name, spec, seed, 20000, 6000)
+    if name in B.SCENES:
+        spec = B.SCENES[name]
+        _, _, handed, q, y, dist = B.scene_queries(name, spec, seed, 20000, 6000)
+    else:
+        scan, scene, spec = training_scan(name)
+        _, _, handed, q, y, dist = B.scene_queries(name, spec, int(name.split("_")[2]),
+                                                   20000, 6000, made=(scan, scene))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         smap = gm.build_map(handed, gm.MappingConfig().with_overrides(list(overrides)))
@@ -73,6 +114,7 @@ def scene_case(name, seed, cache: Path, overrides=()):
     c = smap.far.components(q, True)
     f = smap.config.far
     d = dict(y=y, bin=np.digitize(dist, [b * spec["scale"] for b in B.BINS]) - 1,
+             scale=spec["scale"],
              mean=mean, var=var, m_gp=m_gp, v_gp=v_gp, m_far=c["mean"], v_far=c["var"],
              r=c["r"], gp_growth=f.gp_growth,
              spread2=c["spread2"], h=smap.far.rho0, noise=smap.far.noise,
@@ -159,6 +201,60 @@ def category_table(name, d, coef=F.VARIANCE_COEF, predictive="gaussian") -> str:
                 f"{np.quantile(z[k], 0.99):.1f} | {1000 * np.sqrt(np.mean(e[k] ** 2)):.1f} / "
                 f"{1000 * np.sqrt(np.median(v[k])):.1f} | {doms} |")
     return "\n".join(lines)
+
+
+def coverage_bins(d, coef=F.VARIANCE_COEF, base_methods=None):
+    """Per bin of one cached scene, with the map's predictive (eq. unseen_mixture) and
+    eq. calibrated_var's coefficients ``coef``: 1-sigma coverage, the central 95.45 %
+    interval's coverage, mean LL and (with ``base_methods``, a bench_accuracy.py
+    scene's "methods") whether it is above hgmm, gpis and loggpis; then the bins in
+    target counted as scripts/bench_bins.py counts them."""
+    _, _, z, ll, in2 = scored(d, coef, "mixture", two_sigma=True)
+    c1, c2, lls, ok = [], [], [], []
+    for i in range(len(B.BINS) - 1):
+        s = d["bin"] == i
+        c1.append(float(np.mean(z[s] <= 1)) if s.any() else float("nan"))
+        c2.append(float(np.mean(in2[s])) if s.any() else float("nan"))
+        lls.append(float(ll[s].mean()) if s.any() else float("nan"))
+        if base_methods is not None:
+            ok.append(lls[-1] > best_baseline_ll(base_methods, i))
+    n1 = sum(abs(round(c, 2) - 0.68) <= 0.05 + 1e-9 for c in c1)
+    n2 = sum(abs(round(c, 2) - 0.95) <= 0.03 + 1e-9 for c in c2)
+    return dict(c1=c1, c2=c2, ll=lls, n1=n1, n2=n2, nll=sum(ok) if ok else None)
+
+
+def score_coefs(names, coefs: dict, cache, seed=0, baselines=None, overrides=()) -> str:
+    """Bins in target per scene for each candidate ``coefs`` (label -> t0..t4), the
+    map's mean unchanged (cached ingredients of maps built with ``overrides``): a
+    markdown table, then the coverages."""
+    import json
+
+    base = {} if baselines is None else {
+        r["scene"]: r["methods"] for r in json.loads(Path(baselines).read_text())["results"]}
+    names = [n for n in names if n != "bunny" or B.BUNNY.is_dir()]
+    cases = {n: scene_case(n, seed, cache, overrides) for n in names}
+    tag = lambda n: ("tuned" if B.SCENES[n]["tuned"] else "held out") if n in B.SCENES \
+        else "training"  # noqa: E731
+    lines = ["Bins in target per scene (1 sigma / 2 sigma / LL above hgmm, gpis and loggpis); "
+             "then the coverages per bin (1 sigma; 2 sigma).\n",
+             "| coefficients | " + " | ".join(f"{n} ({tag(n)})" for n in names)
+             + " | all | held-out four |", "|---|" + "---|" * (len(names) + 2)]
+    detail = []
+    for label, coef in coefs.items():
+        cells, tot, held = [], np.zeros(3, int), np.zeros(3, int)
+        for n in names:
+            r = coverage_bins(cases[n], coef, base.get(n))
+            v = np.array([r["n1"], r["n2"], r["nll"] if r["nll"] is not None else 0])
+            tot += v
+            if n in B.SCENES and not B.SCENES[n]["tuned"]:
+                held += v
+            cells.append(f"{r['n1']} / {r['n2']} / {'-' if r['nll'] is None else r['nll']}")
+            detail.append(f"{label} | {n}: 1s " + " ".join(f"{c:.2f}" for c in r["c1"])
+                          + "; 2s " + " ".join(f"{c:.2f}" for c in r["c2"])
+                          + "; LL " + " ".join(f"{c:+.2f}" for c in r["ll"]))
+        lines.append(f"| {label} ({', '.join(f'{x:.4f}' for x in coef)}) | " + " | ".join(cells)
+                     + f" | {tot[0]} / {tot[1]} / {tot[2]} | {held[0]} / {held[1]} / {held[2]} |")
+    return "\n".join(lines) + "\n\n" + "\n".join(detail)
 
 
 def fit(cases, tau=0.68):
@@ -434,6 +530,14 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scenes", default=",".join(B.SCENES))
     p.add_argument("--fit", action="store_true", help="fit VARIANCE_COEF on the tuned scenes")
+    p.add_argument("--train", action="store_true",
+                   help="with --fit: fit on the random training scenes (TRAIN_SCENES, "
+                   "gmmgp_app.synth.training_scenes) instead, leaving all six bench scenes "
+                   "held out; with --score: score the training scenes too")
+    p.add_argument("--score", default=None, metavar="BASELINES_JSON",
+                   help="bins in target per scene (1 sigma, 95.45 %% interval, LL above the "
+                   "hgmm/gpis/loggpis rows of this bench_accuracy.py JSON) for VARIANCE_COEF, "
+                   "--coef and the coefficients fitted by --fit; the mean unchanged")
     p.add_argument("--categories", action="store_true", help="per-bin category tables")
     p.add_argument("--sweep", default=None, metavar="BASELINES_JSON",
                    help="score candidate fits on every scene; LL margins against the "
@@ -465,7 +569,8 @@ def main(argv=None) -> int:
         print(f"error: unknown scene(s) {', '.join(bad)}; expected some of "
               f"{', '.join(B.SCENES)}", file=sys.stderr)
         return 2
-    if not (a.fit or a.categories or a.sweep or a.mixture or a.blend or a.fit_blend):
+    if not (a.fit or a.categories or a.sweep or a.mixture or a.blend or a.fit_blend
+            or a.score):
         print("error: nothing to do; give --fit, --categories, --sweep, --mixture and/or "
               "--blend",
               file=sys.stderr)
@@ -473,9 +578,10 @@ def main(argv=None) -> int:
     cache = Path(a.cache)
     text = []
     coef = F.VARIANCE_COEF if a.coef is None else tuple(float(x) for x in a.coef.split(","))
+    fitted_coef = None
     if a.fit:
-        tuned = [n for n in B.SCENES if B.SCENES[n]["tuned"]]
-        t = fit([scene_case(n, a.seed, cache, a.set) for n in tuned], a.tau)
+        tuned = list(TRAIN_SCENES) if a.train else [n for n in B.SCENES if B.SCENES[n]["tuned"]]
+        t = fitted_coef = fit([scene_case(n, a.seed, cache, a.set) for n in tuned], a.tau)
         text.append(f"VARIANCE_COEF = ({', '.join(f'{x:.4f}' for x in t)})  "
                     f"# tau {a.tau}, fitted on {', '.join(tuned)}")
     if a.categories:
@@ -501,6 +607,15 @@ def main(argv=None) -> int:
     if a.mixture:
         have = [n for n in names if n != "bunny" or B.BUNNY.is_dir()]
         text.append(mixture_sweep(a.seed, cache, a.mixture, have))
+    if a.score:
+        coefs = {"VARIANCE_COEF": F.VARIANCE_COEF}
+        if a.coef is not None:
+            coefs["--coef"] = coef
+        if fitted_coef is not None:
+            coefs["fitted (--fit" + (" --train)" if a.train else ")")] = tuple(fitted_coef)
+        text.append(score_coefs(names, coefs, cache, a.seed, a.score, a.set))
+        if a.train:
+            text.append(score_coefs(list(TRAIN_SCENES), coefs, cache, a.seed, None, a.set))
     out = "\n".join(text) + "\n"
     print(out)
     if a.out:

@@ -163,3 +163,49 @@ def test_robust_imls_changes_nothing_within_the_noise_near_the_data():
     b = FarField(p, nrm, 0.03, 0.002, robust_scale=1.0).predict(q)[0]
     # residuals ~ noise (2 mm) against a scale of rho = 30 mm: weights change by < 1 %
     assert np.max(np.abs(a - b)) < 2e-4
+
+
+def test_saved_maps_keep_their_variance_coefficients(tmp_path, monkeypatch):
+    """A map saves eq. calibrated_var's coefficients (map.json) and predicts with them
+    after a refit of the library's (here: VARIANCE_COEF's intercept raised by 1, i.e.
+    the observed-surface variance x e); a map built in memory follows the refit; a map
+    saved before the coefficients were saved loads with the session-6 fit, whatever
+    the library's present one."""
+    import json
+    import warnings
+
+    import gmmgp_app as gm
+    from gmmgp_app.stages import farfield as F
+    from gmmgp_app.types import Scan
+
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-1.5, 1.5, (3000, 2))
+    scan = Scan(np.c_[xy, rng.normal(0.0, 0.003, 3000)],
+                origins=np.tile([0.0, 0.0, 3.0], (3000, 1)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        smap = gm.build_map(scan, gm.MappingConfig())
+    q = np.c_[rng.uniform(-1, 1, (400, 2)), rng.uniform(0.01, 0.3, 400)]
+    m, v = smap.predict(q)
+    plain = ~smap.distribution(q).mixed  # no unseen width: v is eq. calibrated_var
+    assert plain.mean() > 0.5
+    smap.save(tmp_path / "a")
+    meta = json.loads((tmp_path / "a" / "map.json").read_text())
+    assert meta["variance_coef"] == list(VARIANCE_COEF)
+    del meta["variance_coef"]
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "arrays.npz").write_bytes((tmp_path / "a" / "arrays.npz").read_bytes())
+    (tmp_path / "old" / "map.json").write_text(json.dumps(meta))
+
+    refit = (VARIANCE_COEF[0] + 1.0,) + tuple(VARIANCE_COEF[1:])
+    monkeypatch.setattr(F, "VARIANCE_COEF", refit)
+    nm, nv = smap.predict(q)  # built in memory: the library's (refitted) coefficients
+    np.testing.assert_array_equal(nm, m)
+    # v = h^2 exp(X t) + kappa d^2 -> nv = e h^2 exp(X t) + kappa d^2: v < nv <= e v
+    assert np.all(nv[plain] > v[plain]) and np.all(nv[plain] <= np.e * v[plain] * (1 + 1e-12))
+    for name in ("a", "old"):
+        loaded = gm.load_map(tmp_path / name)
+        lm, lv = loaded.predict(q)
+        np.testing.assert_array_equal(lm, m)
+        np.testing.assert_array_equal(lv, v)
+    assert gm.load_map(tmp_path / "old").variance_coef == F.variance_coef_unsaved("growth")

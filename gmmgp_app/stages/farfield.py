@@ -128,14 +128,18 @@ from .knn import GridKNN
 __all__ = ["FarField", "FarFieldError", "blend_fields", "blend_correlated", "field_variance",
            "fit_field_variance", "fit_error_correlation", "FIELD_VAR_COEF",
            "BLEND_CORRELATION", "VARIANCE_COEF_CORRELATED",
-           "VARIANCE_COEF_PROJECTED", "variance_coef", "BlendedField", "VARIANCE_COEF",
+           "VARIANCE_COEF_PROJECTED", "variance_coef", "variance_coef_unsaved",
+           "BlendedField", "VARIANCE_COEF",
            "calibrated_variance", "variance_features", "fit_variance_quantile",
            "behind_width", "extent_width", "unseen_variance", "project_to_local_planes"]
 
 #: (t0, ..., t4) of eq. calibrated_var: the 0.68-quantile regression (eq.
 #: variance_quantile_fit) on the tuned scenes' observed queries (synthetic street and
 #: sphere, 10 % handed, seed 0, with the robust far field of the raw hit points and
-#: ``far.gp_growth`` = 4; ``python scripts/fit_variance.py --fit``).
+#: ``far.gp_growth`` = 4; ``python scripts/fit_variance.py --fit``). A map saves the
+#: coefficients it predicts with (map.json ``variance_coef``), so refitting these leaves
+#: saved maps alone; refits are scored with ``fit_variance.py --score`` on the bench and
+#: on the random training scenes (``--train``; docs/field.md, "Session 7").
 VARIANCE_COEF = (-0.4745, -0.2282, 1.0088, 0.1706, 0.1404)
 
 #: VARIANCE_COEF for a far field of projected hit points (``far.project_points = true``,
@@ -157,6 +161,23 @@ def variance_coef(blend: str = "growth", projected: bool = False):
     if blend == "correlated":
         return VARIANCE_COEF_CORRELATED
     return VARIANCE_COEF_PROJECTED if projected else VARIANCE_COEF
+
+
+#: Eq. calibrated_var's coefficients of the maps saved before the coefficients were
+#: saved with a map (map.json "variance_coef", session 7), keyed as
+#: :func:`variance_coef` keys them: frozen copies of the session-6 fits. Do not refit
+#: these; refit VARIANCE_COEF & co. (saved maps keep what they were saved with).
+_UNSAVED_COEF = {("growth", False): (-0.4745, -0.2282, 1.0088, 0.1706, 0.1404),
+                 ("growth", True): (-0.5797, -0.1890, 1.0619, 0.1583, 0.0675),
+                 ("correlated", False): (0.8599, -0.9298, 0.9000, 0.2607, 0.5194),
+                 ("correlated", True): (0.8599, -0.9298, 0.9000, 0.2607, 0.5194)}
+
+
+def variance_coef_unsaved(blend: str = "growth", projected: bool = False):
+    """The coefficients a map saved without its own (map.json before session 7)
+    predicts with: :func:`variance_coef` as it stood then, whatever the library's
+    present fit."""
+    return _UNSAVED_COEF[(blend, bool(projected))]
 
 
 #: (u0, ..., u4) of eq. field_var for the GP field (``"gp"``) and the far field
