@@ -25,7 +25,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import TYPE_CHECKING, Any, Callable, Optional
 
 import numpy as np
 
@@ -43,6 +43,9 @@ from .stages import prepare as _prepare
 from .stages import surface as _surface
 from .stages import unseen as _unseen
 from .types import GaussianMixture, HGMMLevel, HierarchicalGMM, Scan, SurfaceMesh, as_up_axis
+
+if TYPE_CHECKING:
+    from concurrent.futures import Future
 
 __all__ = ["build_map", "SurfaceMap", "load_map", "update_map", "run_stages", "Stage",
            "STAGES", "RECIPES", "RunContext", "NullObserver", "FanoutObserver", "METHODS",
@@ -320,7 +323,7 @@ class SurfaceMap:
         """
         return _write_map(Path(directory), *self._saved_contents())
 
-    def save_in_background(self, directory) -> "concurrent.futures.Future":
+    def save_in_background(self, directory) -> "Future":
         """:meth:`save` on a thread of its own: the map as it is now (arrays and
         summary taken before returning), written while the caller goes on (``gmmgp
         run`` meshes meanwhile: the write, ~0.4 GB on the 1.3M-point street, needs
