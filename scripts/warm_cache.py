@@ -78,6 +78,11 @@ def warm(log=print) -> dict:
         with tempfile.TemporaryDirectory() as tmp:
             load_map(smap.save(Path(tmp) / "map")).predict(q)
         build_map(scan, cfg, method="hgmm").predict(q)
+        # scans beyond the training budget: the voxel subsample and its automatic voxel
+        from gmmgp_app.stages._distinct import voxel_count, voxel_first
+
+        voxel_first(scan.points, 0.1, np.arange(len(scan.points)))
+        voxel_count(scan.points, 0.1)
     out = {"seconds": time.perf_counter() - t0, "compile_seconds": clock.seconds,
            "compiles": clock.count}
     log(f"numba cache warm: {out['seconds']:.1f} s ({out['compiles']} compilations, "

@@ -127,3 +127,16 @@ def test_prior_mesh_is_opt_in(tmp_path):
     from gmmgp_app.stages.surface import read_mesh_ply
 
     assert len(read_mesh_ply(out / "mesh_hgmm.ply").faces) > 100
+
+
+def test_run_path_imports_no_viewer_cluster_or_recorder():
+    """What ``gmmgp run`` imports to map and mesh a scan (the CLI, the run command and the
+    pipeline with its stages) leaves out the libraries it needs only for other commands or
+    options: Open3D (viewer; normals of scans without origins), Dask (--workers), rerun
+    (--rrd). Their imports cost start-up time (docs/speed.md, session 7)."""
+    code = ("import sys, gmmgp_app.cli, gmmgp_app.commands.run, gmmgp_app.pipeline; "
+            "print(sorted(m for m in ('open3d', 'dask', 'distributed', 'rerun') "
+            "if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=ROOT, check=True)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr

@@ -842,7 +842,7 @@ def test_a_refused_surface_grid_never_starts_a_cluster(tmp_path, capsys, monkeyp
 def test_run_checks_the_grid_then_starts_the_cluster_with_one_kd_tree(
         tmp_path, capsys, monkeypatch, count_scan_trees):
     """On a grid that fits, the check comes before the cluster, and the grid check and
-    the map share one k-d tree of the scan and one scale measurement."""
+    the map share one k-d tree of the scan, one scale measurement and the surface seeds."""
     import contextlib
 
     import gmmgp_app.distributed as D
@@ -850,7 +850,7 @@ def test_run_checks_the_grid_then_starts_the_cluster_with_one_kd_tree(
     from gmmgp_app.stages import autoscale, surface
 
     events = []
-    real_open, real_check = D.open_executor, surface.check_surface_grid
+    real_open, real_check = D.open_executor, surface.check_grid_size
     real_resolve = autoscale.resolve_config
 
     @contextlib.contextmanager
@@ -870,7 +870,7 @@ def test_run_checks_the_grid_then_starts_the_cluster_with_one_kd_tree(
     scan = gm.read_scan(_big_plane(tmp_path))
     monkeypatch.setattr(run_cmd, "read_scan_args", lambda paths, args: scan)
     monkeypatch.setattr(D, "open_executor", serial_cluster)
-    monkeypatch.setattr(surface, "check_surface_grid", checking)
+    monkeypatch.setattr(surface, "check_grid_size", checking)
     monkeypatch.setattr(autoscale, "resolve_config", measuring)
     built = count_scan_trees(scan.points)
     rc, _, err = _cli(capsys, "run", "plane.npy", "--out", tmp_path / "out", "-q",
@@ -880,12 +880,20 @@ def test_run_checks_the_grid_then_starts_the_cluster_with_one_kd_tree(
     events.clear()
     built.clear()
     built = count_scan_trees(scan.points)
+    sought = []                       # the surface seeds: sought once, for the check
+    real_seeds = surface.surface_seeds
+    monkeypatch.setattr(surface, "surface_seeds",
+                        lambda *a, **k: sought.append(1) or real_seeds(*a, **k))
     rc, _, err = _cli(capsys, "run", "plane.npy", "--out", tmp_path / "out2", "-q",
                       "--method", "hgmm", "--workers", "2")
     assert rc == 0, err
     assert events[:3] == ["measure", "grid", ("cluster", 2)]
     assert "measure" not in events[3:]
     assert built.count(True) == 1, built
+    assert len(sought) == 1
+    saved = gm.load_map(tmp_path / "out2" / "map")
+    np.testing.assert_array_equal(saved.seed_points,
+                                  real_seeds(scan.points, saved.config.surface))
 
 
 # --------------------------------------------------------------------------- corpus G: interruptions

@@ -300,3 +300,24 @@ def test_build_map_builds_one_kd_tree_of_the_scan_with_the_same_fields(
     b = gm.prepare(scan, gm.MappingConfig())
     for k in ("rows", "kinds", "points", "normals", "groups"):
         np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
+
+
+def test_save_in_background_writes_what_save_writes(sphere, tmp_path):
+    """The map written on a thread equals save()'s (every array, map.json); the summary
+    is the one at the call, not a later change; a failing write raises on .result()."""
+    scan, _ = sphere
+    smap = gm.build_map(scan, gm.MappingConfig().replace("hgmm.max_levels", 3))
+    smap.save(tmp_path / "a")
+    saving = smap.save_in_background(tmp_path / "b")
+    smap.summary["seconds"]["later"] = 1.0        # after the call: not in the saved map
+    assert saving.result() == tmp_path / "b"
+    with np.load(tmp_path / "a" / "arrays.npz") as za, \
+            np.load(tmp_path / "b" / "arrays.npz") as zb:
+        assert za.files == zb.files
+        for k in za.files:
+            np.testing.assert_array_equal(za[k], zb[k])
+    assert (tmp_path / "a" / "map.json").read_text() == (tmp_path / "b" / "map.json").read_text()
+    (tmp_path / "file").write_text("")              # a file where the folder's parent goes
+    with pytest.raises(OSError):
+        smap.save_in_background(tmp_path / "file" / "map").result()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]

@@ -141,11 +141,18 @@ def run(args) -> int:
         out.mkdir(parents=True, exist_ok=True)
         smap.summary["scan"] = {"paths": [str(Path(s).resolve()) for s in args.scan],
                                 "reader": reader_kwargs(args)}
-        smap.save(out / "map")
         written = [out / "map"]
         if args.stage == "all" and not args.no_mesh:
-            written += _write_meshes(smap, out, observer, console,
-                                     prior_mesh=args.prior_mesh)
+            # the map (as built: its summary has no surface yet) is written on another
+            # thread while the surface is meshed; waited for, and its error raised, here
+            saving = smap.save_in_background(out / "map")
+            try:
+                written += _write_meshes(smap, out, observer, console,
+                                         prior_mesh=args.prior_mesh)
+            finally:
+                saving.result()
+        else:
+            smap.save(out / "map")
         if recorder is not None:
             recorder.close()  # writes the recording's footer now, not at interpreter exit
         # the values the map was built with; those chosen from the scan say why

@@ -60,6 +60,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gmmgp_app.config import MappingConfig, is_auto
+from gmmgp_app.stages._distinct import voxel_count
 
 __all__ = ["ScanScale", "AutoScaleError", "measure_scan", "auto_values", "resolve_config",
            "TRAIN_BUDGET", "clip_to_field"]
@@ -156,7 +157,7 @@ def measure_scan(points, origins=None, *, tree: Optional[cKDTree] = None,
         idx = np.sort(order[np.linspace(0, n - 1, _SAMPLE).astype(np.int64)])
     else:
         idx = np.arange(n)
-    tree = cKDTree(pts) if tree is None else tree
+    tree = cKDTree(pts, balanced_tree=False) if tree is None else tree
     d, nb = tree.query(pts[idx], k=_K + 1)
     # the nearest *distinct* neighbour: duplicated points are common in merged scans
     nn = np.where(d[:, 1:] > 0, d[:, 1:], np.inf).min(axis=1)
@@ -295,9 +296,10 @@ def _voxel_for_budget(points, start: float, budget: int, rounds: int = 4) -> flo
     lo = points.min(axis=0)
     c = start
     for _ in range(rounds):
-        k = np.floor((points - lo) / c).astype(np.int64)
-        span = k.max(axis=0) + 1
-        kept = len(np.unique((k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]))
+        kept = voxel_count(points, c)      # occupied voxels: one hashed pass
+        if kept is None:
+            k = np.floor((points - lo) / c).astype(np.int64)
+            kept = len(np.unique(k, axis=0))
         if abs(kept / budget - 1.0) < 0.1:
             break
         c *= math.sqrt(kept / budget)

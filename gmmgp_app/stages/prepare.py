@@ -27,6 +27,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gmmgp_app.config import MappingConfig, PrepareConfig, is_auto
+from gmmgp_app.stages._distinct import voxel_first
 from gmmgp_app.types import Scan, TrainingSet
 
 __all__ = [
@@ -79,8 +80,14 @@ def subsample(points: np.ndarray, cfg: PrepareConfig,
     n = len(points)
     if cfg.subsample_voxel is not None:
         perm = rng.permutation(n)
-        keys = np.floor((points[perm] - points.min(axis=0)) / cfg.subsample_voxel).astype(np.int64)
-        return np.sort(perm[_first_of_rows(keys)])
+        # the first point (in ``perm``'s order) of each voxel, the voxels in any order
+        # (sorted below): one hashed pass (stages/_distinct.py), not a sort of the keys
+        first = voxel_first(points, cfg.subsample_voxel, perm)
+        if first is None:   # a grid too large to pack: the rows' lexicographic unique
+            keys = np.floor((points[perm] - points.min(axis=0))
+                            / cfg.subsample_voxel).astype(np.int64)
+            first = _first_of_rows(keys)
+        return np.sort(perm[first])
     m = max(1, int(round(cfg.subsample_rate * n)))
     if m >= n:
         return np.arange(n, dtype=np.int64)
@@ -132,7 +139,7 @@ def estimate_normals(points: np.ndarray, radius: float, max_nn: int,
         or the neighbourhood is collinear: there the normal is meaningless.
     """
     query = np.arange(len(points)) if query is None else np.asarray(query)
-    tree = cKDTree(points) if tree is None else tree
+    tree = cKDTree(points, balanced_tree=False) if tree is None else tree
     m = int(min(max_nn, len(points)))
     # Neighbours at the same distance as the max_nn-th (common on scans quantised to
     # mm) are all kept, and so are points at exactly ``radius``: otherwise round-off
@@ -286,7 +293,7 @@ def prepare(scan: Scan, cfg: MappingConfig, *,
             and np.isfinite(pts).all() and len(pts) >= MIN_POINTS:
         from gmmgp_app.stages.autoscale import resolve_config
 
-        tree = cKDTree(pts) if tree is None else tree
+        tree = cKDTree(pts, balanced_tree=False) if tree is None else tree
         cfg, _ = resolve_config(cfg, pts, scan.origins, tree=tree)
     p = cfg.prepare
     finite = np.isfinite(pts).all(axis=1)
@@ -302,7 +309,7 @@ def prepare(scan: Scan, cfg: MappingConfig, *,
         )
     rng = np.random.default_rng(p.seed) if rng is None else rng
     keep = subsample(pts, p, rng)
-    tree = cKDTree(pts) if tree is None else tree
+    tree = cKDTree(pts, balanced_tree=False) if tree is None else tree
     normals, valid = estimate_normals(pts, p.normal_radius, p.normal_max_nn, query=keep,
                                       tree=tree)
     if not valid.all():

@@ -1,0 +1,110 @@
+"""Occupied voxels of a point set in one pass: a hash set instead of a sort.
+
+``np.unique`` sorts its input (O(N log N), ~0.2 s on the 1.3M keys of the street's
+voxel grids, plus the (N, 3) temporaries of the keys); the auto scale
+(``autoscale._voxel_for_budget``, several rounds) and the voxel subsample
+(``prepare.subsample``) need only the number of occupied voxels, or the first point of
+each, in no particular order. One compiled pass computes each point's voxel
+``floor((p - lo) / size)`` (the same float64 operations as numpy's), packs it into one
+int64 and looks it up in an open-addressing table (linear probing, Fibonacci hashing,
+at least twice as many slots as points): O(N).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import numba as nb
+import numpy as np
+
+__all__ = ["voxel_first", "voxel_count"]
+
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+
+
+@nb.njit(cache=True, nogil=True)
+def _voxel_first(points, order, lo, size, dims, want_index):
+    n = order.shape[0]
+    slots = 16
+    bits = 4
+    while slots < 2 * n:
+        slots *= 2
+        bits += 1
+    mask = slots - 1
+    shift = np.uint64(64 - bits)
+    table = np.full(slots, -1, np.int64)
+    first = np.empty(n if want_index else 0, np.int64)
+    count = 0
+    for i in range(n):
+        r = order[i]
+        q0 = np.int64(np.floor((points[r, 0] - lo[0]) / size))
+        q1 = np.int64(np.floor((points[r, 1] - lo[1]) / size))
+        q2 = np.int64(np.floor((points[r, 2] - lo[2]) / size))
+        k = (q0 * dims[1] + q1) * dims[2] + q2
+        j = np.int64((np.uint64(k) * _GOLDEN) >> shift) & mask
+        while True:
+            t = table[j]
+            if t == k:
+                break
+            if t == -1:
+                table[j] = k
+                if want_index:
+                    first[count] = i
+                count += 1
+                break
+            j = (j + 1) & mask
+    return count, first[:count]
+
+
+@nb.njit(cache=True, nogil=True)
+def _bounds(points):
+    """Per-column minimum and maximum of (N, 3) points, N >= 1, in one pass (numpy's
+    ``min(axis=0)`` on an (N, 3) array walks it with a stride: ~10x slower)."""
+    lo = points[0].copy()
+    hi = points[0].copy()
+    for i in range(1, points.shape[0]):
+        for d in range(3):
+            v = points[i, d]
+            if v < lo[d]:
+                lo[d] = v
+            elif v > hi[d]:
+                hi[d] = v
+    return lo, hi
+
+
+def _grid(points: np.ndarray, size: float):
+    """``(points, lo, dims)`` of the voxel grid, or None when it has 2^62 cells or more
+    (the packed key would overflow). ``lo`` is the points' minimum, so every voxel index
+    is >= 0; the largest is ``floor((max - lo) / size)`` (rounding is monotone)."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    if len(points) == 0:
+        return points, np.zeros(3), np.ones(3, np.int64)
+    lo, hi = _bounds(points)
+    dims = np.floor((hi - lo) / size).astype(np.int64) + 1
+    if math.prod(float(d) for d in dims) >= 2.0 ** 62:
+        return None
+    return points, lo, dims
+
+
+def voxel_first(points: np.ndarray, size: float,
+                order: Optional[np.ndarray] = None) -> Optional[np.ndarray]:
+    """Positions in ``order`` (default ``arange(N)``) of the first point of each voxel of
+    edge ``size`` met in that order, increasing: the set of
+    ``np.unique(floor((points[order] - points.min(0)) / size), axis=0,
+    return_index=True)[1]``. None when the grid would have 2^62 cells or more."""
+    g = _grid(points, size)
+    if g is None:
+        return None
+    order = np.arange(len(points)) if order is None else np.asarray(order, dtype=np.int64)
+    return _voxel_first(g[0], order, g[1], float(size), g[2], True)[1]
+
+
+def voxel_count(points: np.ndarray, size: float) -> Optional[int]:
+    """Number of voxels of edge ``size`` (grid anchored at ``points.min(0)``) holding a
+    point; None when the grid would have 2^62 cells or more."""
+    g = _grid(points, size)
+    if g is None:
+        return None
+    order = np.arange(len(points), dtype=np.int64)
+    return int(_voxel_first(g[0], order, g[1], float(size), g[2], False)[0])
