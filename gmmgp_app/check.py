@@ -665,7 +665,7 @@ PRUNE_STD = 2.0
 def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, share_cell,
                   max_iter, cell_factors=False, frame=None, tol_t=5e-5, tol_r=5e-6,
                   max_step_t=0.5, max_step_r=0.05, refactor_tol=None,
-                  accelerate=True, prune=False, inner=0, far=False, first=None):
+                  accelerate=True, prune=False, inner=0, correct=False):
     """Robust Gauss-Newton from ``T0``, never stepping along the ``frozen`` directions.
 
     ``frozen`` holds unit vectors of the scaled space (rotation times the lever of
@@ -680,13 +680,12 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
     a std under ``PRUNE_STD * known_std`` are predicted (and returned in ``last``, whose
     ``index`` says which rows of ``x`` they are). ``inner``: up to this many IRLS
     solves on the residuals linearised at each prediction (:func:`_linear_irls`)
-    make its step; 0: one Gauss-Newton step per prediction. ``far``: the residuals are
-    the map's blended mean (:func:`_predict_surface`, :func:`_surface_stage`) instead of
-    the GP field's, and ``last`` holds the blended field's mean, variance and gradient;
-    ``first``: :func:`_predict_surface` at ``T0 x`` when the caller has it (the first
-    iteration uses it).
+    make its step; 0: one Gauss-Newton step per prediction. ``correct``: the residuals
+    are the GP field's mean plus the per-point correction of :func:`_surface_correction`,
+    measured at the first iteration and kept (``last`` holds it as ``corr``).
     """
     T = T0.copy()
+    corr = None
     last = None
     history, converged, it = [], False, 0
     pivot, D = (None, None) if frame is None else frame
@@ -699,12 +698,7 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
     index = np.arange(len(x))
     for it in range(1, max_iter + 1):
         y = _apply(T, x)
-        if it == 1 and first is not None:
-            m, var, g, blend = first
-        elif far:
-            m, var, g, blend = _predict_surface(smap, y)
-        else:
-            (m, var, g), blend = _predict(smap, y), None
+        m, var, g = _predict(smap, y)
         if it == 1 and prune:
             # points far from any surface the map knows cannot take part in the steps
             # to come (they move by millimetres, the std changes over the GP's length
@@ -712,8 +706,12 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
             keep = np.sqrt(var) < PRUNE_STD * known_std
             if not keep.all():
                 x, y, m, var, g = x[keep], y[keep], m[keep], var[keep], g[keep]
-                blend = None if blend is None else tuple(a[keep] for a in blend)
                 n_share, cell, index = n_share[keep], cell[keep], index[keep]
+        if correct and it == 1:
+            corr = _surface_correction(smap, y, m, var, g)
+        m_field = m
+        if corr is not None:
+            m = m + corr
         if cell_factors and moved > refactor_tol:
             factor, moved = _factors_here(y, m, var, g, noise2, known_std, cell), 0.0
         w, scale = _weights(m, var, noise2, np.sqrt(var) < known_std, c_robust, loss, n_share,
@@ -734,10 +732,8 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
                             "step_m": 0.0, "step_deg": 0.0, "step": [0.0] * 6,
                             "extrapolation": 1.0,
                             "converged": "Gauss-Newton step below the tolerance, not applied"})
-            converged, last = True, dict(y=y, m=m, var=var, g=g, factor=factor, n_share=n_share,
-                                         index=index, far=far)
-            if blend is not None:  # what the check reports: the blended field itself
-                last.update(m=blend[0], var=blend[1], g=blend[2])
+            converged, last = True, dict(y=y, m=m_field, var=var, g=g, factor=factor,
+                                         n_share=n_share, index=index, corr=corr)
             break
         n_inner = 1
         if inner > 1:
@@ -811,6 +807,8 @@ def _linear_irls(J, m, var, step, D, P, *, noise2, known_std, c_robust, loss, n_
 
 
 _COARSE_POINTS = 5000
+#: The registration's last stage fits the blended field's mean (:func:`_surface_correction`).
+SURFACE_CORRECTION = True
 #: Tolerance of the dense stage's last Gauss-Newton step (m, rad).
 DENSE_TOL = (1e-4, 1e-5)
 #: IRLS solves on the residuals linearised at each map prediction, at most, in every
@@ -821,7 +819,7 @@ INNER_IRLS = 20
 
 
 def _coarse_to_fine(smap, x, x_dense, T0, frozen, frame, max_iter, kw,
-                    coarse_points=_COARSE_POINTS, tol=None):
+                    coarse_points=_COARSE_POINTS, tol=None, correct=False):
     """Gauss-Newton on every ``len(x) // coarse_points``-th point until the steps are
     under 1 mm and 0.006 deg, then on all of ``x`` until they are under 0.2 mm and
     20 urad, then on the dense points ``x_dense`` (None: ``x`` is the last stage, to
@@ -847,73 +845,16 @@ def _coarse_to_fine(smap, x, x_dense, T0, frozen, frame, max_iter, kw,
         tol = (5e-5, 5e-6) if x_dense is None else (2e-4, 2e-5)
     T, it2, converged, h2, last = _gauss_newton(smap, x, T, frozen, max_iter=max_iter,
                                                 frame=frame, tol_t=tol[0], tol_r=tol[1],
-                                                inner=INNER_IRLS, **kw)
+                                                inner=INNER_IRLS,
+                                                correct=correct and x_dense is None, **kw)
     if x_dense is None:
         return T, it + it2, converged, history + h2, last
     history += [dict(h, stage="fine") for h in h2]
     T, it3, converged, h3, last = _gauss_newton(smap, x_dense, T, frozen, max_iter=max_iter,
                                                 frame=frame, tol_t=DENSE_TOL[0],
                                                 tol_r=DENSE_TOL[1], prune=True,
-                                                inner=INNER_IRLS, **kw)
+                                                inner=INNER_IRLS, correct=correct, **kw)
     return T, it + it2 + it3, converged, history + [dict(h, stage="dense") for h in h3], last
-
-
-#: The registration ends with a stage on the map's blended field (:func:`_surface_stage`).
-SURFACE_STAGE = True
-#: Scaled directions whose information (the GP stage's normal matrix at its solution) is
-#: under this fraction of the largest keep the GP stage's value in the surface stage.
-WEAK_RATIO = 0.02
-
-
-def _surface_stage(smap, xs, T, info, last, frozen, max_iter, kw, weak_ratio=None):
-    """The registration's last stage: Gauss-Newton/IRLS on the map's blended field
-    (``predict(far=True)``, what the check reports) from the GP field's solution ``T``,
-    stepping only along the directions the GP stage constrains well.
-
-    Why: the GP field, which the stages before fit, is the HGMM's GMR prior corrected
-    by local GPs within about a length scale of their training points; where the prior
-    misfits a surface (the bench street's far facade, about 1 cm behind the plane) the
-    GP field keeps much of that offset between its sparse points and the rotation takes
-    it (docs/check.md, Session 6). The blended field mixes in the far field (a robust
-    IMLS of the map's points), unbiased across those surfaces (-0.7 / +0.1 mm).
-
-    Why not all six directions: along a surface the far field's mean has texture at the
-    point spacing (its k-nearest-neighbour kernel, rho_0 about 5 cm) and it rounds small
-    faces (window reveals, a pole), so the cost along a weakly constrained direction
-    (along a street) is rugged: on the bench pair the robust cost along the street has
-    a local minimum 46 mm from the truth, within 0.2 % of the truth's value, and the
-    Gauss-Newton step there is under 0.4 mm with the blend's gradient and with a
-    finite-difference one alike (docs/check.md, Session 7). So the directions whose
-    scaled information in the GP stage's normal matrix ``info["H"]`` is under
-    ``weak_ratio`` of the largest (and the ``frozen`` degenerate ones) keep the GP
-    stage's value, and the blended field sets the others.
-
-    ``last``: the GP stage's prediction at ``T`` (its points ``xs[last["index"]]``), or
-    None. Returns ``(T, iterations, converged, history, last, weak)`` with ``last`` the
-    blended field's prediction at the returned ``T`` (index into ``xs``; ``far`` True)
-    and ``weak`` the unit vectors (scaled space) held fixed; ``T`` unchanged, ``last``
-    None when the map has no far field (its blended field is the GP field).
-    """
-    weak_ratio = WEAK_RATIO if weak_ratio is None else weak_ratio
-    D, pivot = info["D"], info["pivot"]
-    F = np.zeros((6, 0)) if not frozen else np.stack(frozen, axis=1)
-    P = np.eye(6) - F @ F.T
-    lam, V = np.linalg.eigh(P @ (info["H"] * D[:, None] * D[None, :]) @ P)
-    weak = [V[:, k].copy() for k in range(6) if lam[k] < weak_ratio * lam[-1]]
-    if last is not None and np.array_equal(last["y"], _apply(T, xs[last["index"]])):
-        idx = last["index"]
-        first = _predict_surface(smap, last["y"], (last["m"], last["var"], last["g"]))
-        if np.array_equal(first[3][0], last["m"]) and np.array_equal(first[3][1], last["var"]):
-            return T, 0, True, [], None, weak  # no far field: nothing to add
-        prune = False
-    else:
-        idx, first, prune = np.arange(len(xs)), None, True
-    T2, it, converged, history, last2 = _gauss_newton(
-        smap, xs[idx], T, weak, max_iter=max_iter, frame=(pivot, D), tol_t=DENSE_TOL[0],
-        tol_r=DENSE_TOL[1], prune=prune, inner=INNER_IRLS, far=True, first=first, **kw)
-    if last2 is not None:
-        last2["index"] = idx[last2["index"]]
-    return T2, it, converged, history, last2, weak
 
 
 def _information(smap, x, T, *, noise2, known_std, c_robust, loss, share_cell,
@@ -923,8 +864,13 @@ def _information(smap, x, T, *, noise2, known_std, c_robust, loss, share_cell,
     if last is None:
         y = _apply(T, x)
         m, var, g = _predict(smap, y)
+        corr = None
     else:
         y, m, var, g = last["y"], last["m"], last["var"], last["g"]
+        corr = last.get("corr")
+    m_field = m  # the field's own mean (the degeneracy probes compare it with its moves)
+    if corr is not None:
+        m = m + corr
     factor = None if last is None else last.get("factor")
     n_share = None if last is None else last.get("n_share")
     if n_share is None or (cell_factors and factor is None):
@@ -943,8 +889,8 @@ def _information(smap, x, T, *, noise2, known_std, c_robust, loss, share_cell,
     # the weights favour the places the map knows best
     w_geo, _ = _weights(m, var, noise2, np.sqrt(var) < known_std, c_robust, loss, 1.0, factor)
     _, H_geo, _ = _normal_matrix(y, g, w_geo, m, pivot)
-    return dict(y=y, m=m, w=w, scale=scale, pivot=pivot, lever=lever, J=J, H=H, D=D,
-                w_geo=w_geo, H_geo=H_geo)
+    return dict(y=y, m=m, m_field=m_field, w=w, scale=scale, pivot=pivot, lever=lever, J=J,
+                H=H, D=D, w_geo=w_geo, H_geo=H_geo)
 
 
 def _finite_information(smap, x, T, info, v, delta, stride: int = 4):
@@ -963,7 +909,7 @@ def _finite_information(smap, x, T, info, v, delta, stride: int = 4):
     threshold 3e-4). The weights are the per-point ones (``w_geo``, see
     :func:`_information`).
     """
-    w, m0 = info["w_geo"], info["m"]
+    w, m0 = info["w_geo"], info["m_field"]
     pos = w > 0
     use = pos & (np.arange(len(w)) % max(int(stride), 1) == 0)
     if use.sum() < 100:
@@ -979,7 +925,7 @@ def _finite_information(smap, x, T, info, v, delta, stride: int = 4):
 
 def _register(smap, x, x_dense, T0, *, noise, known_std, c_robust, loss, max_iter,
               degeneracy_ratio, cluster_size, share_cell, candidate_ratio=0.02, probe=0.2,
-              min_clusters=24, probe_points=7000, cell_factors=True, surface_stage=None):
+              min_clusters=24, probe_points=7000, cell_factors=True, surface=None):
     """Gauss-Newton/IRLS on d(T x) with the map's gradient (see module docstring).
 
     1. Gauss-Newton from ``T0``. 2. At the solution, eigen-directions of the scaled
@@ -993,12 +939,12 @@ def _register(smap, x, x_dense, T0, *, noise, known_std, c_robust, loss, max_ite
     covariance.
     """
     noise2 = noise * noise
-    surface_stage = SURFACE_STAGE if surface_stage is None else surface_stage
+    surface = SURFACE_CORRECTION if surface is None else surface
     xs = x if x_dense is None else x_dense
     kw = dict(noise2=noise2, known_std=known_std, c_robust=c_robust, loss=loss,
               share_cell=share_cell, cell_factors=cell_factors)
     T, it, converged, history, last = _coarse_to_fine(smap, x, x_dense, T0, [], None,
-                                                      max_iter, kw)
+                                                      max_iter, kw, correct=surface)
     info = _information(smap, xs, T, last=last, **kw)
     stride = max(4, int((info["w"] > 0).sum()) // probe_points)
     Hs = info["H_geo"] * info["D"][:, None] * info["D"][None, :]
@@ -1016,28 +962,11 @@ def _register(smap, x, x_dense, T0, *, noise, known_std, c_robust, loss, max_ite
         # the frozen vectors refer to the solution's pivot and lever: keep them
         T, it2, converged, history2, last = _coarse_to_fine(
             smap, x, x_dense, T0, [d.vector for d in degenerate],
-            (info["pivot"], info["D"]), max_iter, kw)
+            (info["pivot"], info["D"]), max_iter, kw, correct=surface)
         history = history + [{"restart": "frozen " + ", ".join(d.name for d in degenerate)}] \
             + history2
         it += it2
         info = _information(smap, xs, T, last=last, **kw)
-    last_out = last
-    if surface_stage:
-        T_gp = T
-        T, it4, converged4, h4, last4, weak = _surface_stage(
-            smap, xs, T, info, last, [d.vector for d in degenerate], max_iter, kw)
-        it += it4
-        history += [dict(h, stage="surface") for h in h4]
-        if it4:
-            converged = converged and converged4
-            dT = T @ np.linalg.inv(T_gp)
-            history.append({"surface_stage": {
-                "held": [_name_direction(v, info["lever"]) for v in weak],
-                "shift_m": float(np.linalg.norm(dT[:3, :3] @ info["pivot"] + dT[:3, 3]
-                                                - info["pivot"])),
-                "rotation_deg": float(np.degrees(np.arccos(np.clip(
-                    0.5 * (np.trace(dT[:3, :3]) - 1.0), -1.0, 1.0))))}})
-            last_out = last4
     F = np.zeros((6, 0)) if not degenerate else np.stack([d.vector for d in degenerate], 1)
     P = np.eye(6) - F @ F.T
     size = _cluster_size(info, cluster_size, min_clusters)
@@ -1054,7 +983,7 @@ def _register(smap, x, x_dense, T0, *, noise, known_std, c_robust, loss, max_ite
                     "jackknife_std": np.sqrt(np.clip(np.diag(cov), 0, None)).tolist()})
     return _Fit(T, info["H"], cov, info["pivot"], info["lever"], tuple(degenerate), it,
                 converged, int(use.sum()), info["scale"], history,
-                last_out if x_dense is not None else None)
+                last if x_dense is not None else None)
 
 
 def _cluster_size(info, cluster_size, min_clusters):
@@ -1296,10 +1225,7 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
     y = x @ T_loc[:3, :3].T + T_loc[:3, 3]
     # the registration's last prediction (GP field, dense points) is at these points
     near = None if fit is None or dense is not x else _near_field_at(smap, fit.last, y)
-    if near is not None and fit.last.get("far"):
-        m, var, g = near  # the surface stage's blended field at these points
-    else:
-        m, var, g = _predict(smap, far=True, y=y, near=near)  # faster than without grad
+    m, var, g = _predict(smap, far=True, y=y, near=near)  # faster than without grad
     s = np.sqrt(var)
     s_ref = _surface_std(smap, y, m, s, g, known_std)
     kn = s_ref < known_std
@@ -1407,7 +1333,7 @@ def _near_field_at(smap, last, y):
     rest = np.ones(len(y), bool)
     rest[idx] = False
     if rest.any():
-        m[rest], var[rest], g[rest] = _predict(smap, y[rest], far=bool(last.get("far")))
+        m[rest], var[rest], g[rest] = _predict(smap, y[rest])
     return m, var, g
 
 
@@ -1428,25 +1354,38 @@ def _predict(smap, y, far: bool = False, near=None):
         return smap.predict(y, return_grad=True)
 
 
-def _predict_surface(smap, y, gp=None):
-    """What the surface stage (:func:`_surface_stage`) fits at ``y``: the blended
-    field's mean (``predict(far=True)``, unbiased across the surfaces), with the GP
-    field's variance and gradient (``gp``: ``_predict(smap, y)`` when the caller has
-    it). Returns ``(m, var, g, blended)`` with ``blended`` the blended field's
-    ``(mean, var, grad)`` (the check reuses it).
+def _surface_correction(smap, y, m, var, g):
+    """Per point, the blended field's mean minus the GP field's at ``y`` (``m, var, g``:
+    the GP field there, ``predict(far=False)``), or None when they are the same (a map
+    without a far field). The registration's last stage adds it to the GP field's mean,
+    measured once at its first iteration and kept, and keeps the GP field's gradient
+    and variance: its residuals are the blended field's mean, what the check reports.
 
-    Why the GP field's gradient and variance: the blend's gradient is the mix of the
-    GP's and the far field's weighted normal (not the derivative of the blended mean;
-    the derivative has the far field's texture along the surface, docs/check.md
-    Session 7); the blend's variance adds the two fields' disagreement, largest exactly
-    where the GP field is off, and reweights the faces: the IRLS solution linearised at
-    the truth on the bench pair (noise seeds 1-3) is 2.75-3.17 mdeg with the blend's
-    own gradient and variance, 2.23-2.40 mdeg with the GP field's (GP field alone:
-    3.00-3.44)."""
-    if gp is None:
-        gp = _predict(smap, y)
-    blended = _predict(smap, y, far=True, near=gp)
-    return blended[0], gp[1], gp[2], blended
+    Why: the GP field is the HGMM's GMR prior corrected by local GPs within about a
+    length scale of their sparse training points; where the prior misfits a surface (the
+    bench street's far facade, about 1 cm behind its plane) the GP field keeps much of
+    that offset between its points (+5.6 mm), and the rotation takes it. The blended
+    field mixes in the far field (a robust IMLS of the map's points), unbiased there
+    (-0.6 mm). Why not the blended field as it is (docs/check.md, Session 7): along a
+    surface its mean has the far field's texture at the point spacing and rounds small
+    faces, so the robust cost along the street has local minima (one 46 mm from the
+    truth, 0.2 % above the truth's value, where the Gauss-Newton step is under 0.4 mm
+    with the blend's gradient and with a finite-difference gradient alike); its
+    gradient (the mix of the GP's and the far field's weighted normal) and its variance
+    (which adds the two fields' disagreement, largest exactly where the GP field is off)
+    also weigh the faces worse: the IRLS solution linearised at the truth (bench pair,
+    noise seeds 1-3) is 2.75-3.17 mdeg with the blend's own gradient and variance,
+    2.23-2.40 mdeg with its mean and the GP field's (the GP field alone: 3.00-3.44).
+
+    Why once: the last stage starts within about a millimetre of its solution; the
+    correction varies along the surface over the far field's kernel (rho_0 about 5 cm)
+    and across it by the two fields' gradient difference (a few per cent), so over the
+    stage's moves it changes by tens of microns; measuring it once costs one far-field
+    evaluation of the stage's points (predicting the blend at every iteration cost 2-3
+    more predictions of the GP field and the far field)."""
+    blended = _predict(smap, y, far=True, near=(m, var, g))[0]
+    corr = blended - m
+    return corr if np.any(corr != 0) else None
 
 
 def _nothing_known(src, known_std, best) -> CheckError:
