@@ -109,14 +109,22 @@ nothing along a degenerate direction (there the uncertainty is unbounded, see
 ``degenerate``). Neither sees an error common to all clusters (a bias of the map's
 surfaces that one-sided faces turn into a shift).
 
-The registration leaves the map's far field out (``predict(..., far=False)``,
-:func:`_predict`; the known/changed decision keeps it): registration fits points to
-the surfaces the map located, where the GP field is what
-the map knows; the far field blended in near the data is an IMLS of the training
-points whose mean has texture along the surface at the point spacing and whose
-returned gradient is the blend of the two gradients, not the derivative of the blended
-mean (median error 0.03 on a corridor map). With it the corridor's free direction
-looked constrained (no degeneracy reported, the fit drifted 1.2 cm along it).
+The registration's stages fit the GP field (``predict(..., far=False)``,
+:func:`_predict`; the known/changed decision uses the blended field): the far field
+blended in near the data is an IMLS of the training points whose mean has texture
+along the surface at the point spacing and whose returned gradient is the blend of the
+two gradients, not the derivative of the blended mean (median error 0.03 on a corridor
+map). With it the corridor's free direction looked constrained (no degeneracy
+reported, the fit drifted 1.2 cm along it), and on the synthetic street the robust
+cost along the street has a local minimum 46 mm from the truth. But the GP field is
+biased where the HGMM's prior misfits a surface between the GP's sparse points (the
+bench street's far facade, +5.6 mm), and the blended mean is not (-0.6 mm): so the
+last stage's residuals are the GP field's mean plus a per-point correction, the
+blended mean minus the GP field's, measured once at the stage's first iteration
+(:func:`_surface_correction`), with the GP field's gradient and variance (bench pair,
+HGMM seeds 0-2 x noise seeds 1-3: rotation error 1.99-3.66 -> 1.02-2.25 mdeg except
+one pair, 2.05 -> 2.17; docs/check.md, Session 7). A map without a far field: no
+correction.
 
 The map is used only through its public ``predict(xyz, return_grad=True)`` (also
 where no gradient is needed: since the compiled value predictor both paths cost
