@@ -872,13 +872,15 @@ def _information(smap, x, T, *, noise2, known_std, c_robust, loss, share_cell,
     if last is None:
         y = _apply(T, x)
         m, var, g = _predict(smap, y)
-        corr = None
     else:
+        # the GP field's own residuals, without the last stage's surface correction
+        # (_surface_correction): the degeneracy probes compare the field's moves with
+        # its mean, and the covariance is the GP field's. With the corrected residuals
+        # the jackknife shrank where the blended mean is the scan's own data (KITTI
+        # 000000 against its own map: translation std 6-12 um instead of 12-33, the
+        # truth at Mahalanobis^2 351; docs/check.md, Session 7)
         y, m, var, g = last["y"], last["m"], last["var"], last["g"]
-        corr = last.get("corr")
-    m_field = m  # the field's own mean (the degeneracy probes compare it with its moves)
-    if corr is not None:
-        m = m + corr
+    m_field = m
     factor = None if last is None else last.get("factor")
     n_share = None if last is None else last.get("n_share")
     if n_share is None or (cell_factors and factor is None):
