@@ -1366,8 +1366,9 @@ def _predict(smap, y, far: bool = False, near=None):
 
 def _surface_correction(smap, y, m, var, g):
     """Per point, the blended field's mean minus the GP field's at ``y`` (``m, var, g``:
-    the GP field there, ``predict(far=False)``), or None when they are the same (a map
-    without a far field). The registration's last stage adds it to the GP field's mean,
+    the GP field there, ``predict(far=False)``) where the blended field's variance is
+    the smaller, 0 elsewhere; None when that is 0 everywhere (a map without a far
+    field). The registration's last stage adds it to the GP field's mean,
     measured once at its first iteration and kept, and keeps the GP field's gradient
     and variance: its residuals are the blended field's mean, what the check reports.
 
@@ -1393,8 +1394,9 @@ def _surface_correction(smap, y, m, var, g):
     stage's moves it changes by tens of microns; measuring it once costs one far-field
     evaluation of the stage's points (predicting the blend at every iteration cost 2-3
     more predictions of the GP field and the far field)."""
-    blended = _predict(smap, y, far=True, near=(m, var, g))[0]
-    corr = blended - m
+    blended, var_b = _predict(smap, y, far=True, near=(m, var, g))[:2]
+    # only where the map says its blended field knows better than its GP field
+    corr = np.where(var_b < var, blended - m, 0.0)
     return corr if np.any(corr != 0) else None
 
 
