@@ -120,11 +120,12 @@ cost along the street has a local minimum 46 mm from the truth. But the GP field
 biased where the HGMM's prior misfits a surface between the GP's sparse points (the
 bench street's far facade, +5.6 mm), and the blended mean is not (-0.6 mm): so the
 last stage's residuals are the GP field's mean plus a per-point correction, the
-blended mean minus the GP field's, measured once at the stage's first iteration
-(:func:`_surface_correction`), with the GP field's gradient and variance (bench pair,
-HGMM seeds 0-2 x noise seeds 1-3: rotation error 1.99-3.66 -> 1.02-2.25 mdeg except
-one pair, 2.05 -> 2.17; docs/check.md, Session 7). A map without a far field: no
-correction.
+blended mean minus the GP field's where the blended variance is the smaller, measured
+once at the stage's first iteration (:func:`_surface_correction`), with the GP field's
+gradient and variance (bench pair, HGMM seeds 0-2 x noise seeds 1-3: rotation error
+1.99-3.66 -> 1.32-2.27 mdeg, except one pair, 2.05 -> 2.14; KITTI within 0.0024 deg of
+the old results against the pose file; docs/check.md, Session 7). A map without a far
+field: no correction.
 
 The map is used only through its public ``predict(xyz, return_grad=True)`` (also
 where no gradient is needed: since the compiled value predictor both paths cost
@@ -1387,6 +1388,12 @@ def _surface_correction(smap, y, m, var, g):
     also weigh the faces worse: the IRLS solution linearised at the truth (bench pair,
     noise seeds 1-3) is 2.75-3.17 mdeg with the blend's own gradient and variance,
     2.23-2.40 mdeg with its mean and the GP field's (the GP field alone: 3.00-3.44).
+
+    Why only where the blended variance is the smaller: on KITTI's single-scan map the
+    correction is large (median 9-10 mm at the scan's points, 2.6 mm on the bench pair)
+    and the blended field claims a larger variance than the GP field at 14-15 % of the
+    points (1.4 % on the bench pair); corrected there too, KITTI 000001 / 000003 moved
+    0.009 / 0.015 deg further from the pose file and both ICPs.
 
     Why once: the last stage starts within about a millimetre of its solution; the
     correction varies along the surface over the far field's kernel (rho_0 about 5 cm)
