@@ -1393,7 +1393,7 @@ def _surface_correction(smap, y, m, var, g):
     correction is large (median 9-10 mm at the scan's points, 2.6 mm on the bench pair)
     and the blended field claims a larger variance than the GP field at 14-15 % of the
     points (1.4 % on the bench pair); corrected there too, KITTI 000001 / 000003 moved
-    0.009 / 0.015 deg further from the pose file and both ICPs.
+    0.009 / 0.015 deg further from the pose file (000003 also from both ICPs).
 
     Why once: the last stage starts within about a millimetre of its solution; the
     correction varies along the surface over the far field's kernel (rho_0 about 5 cm)
