@@ -219,7 +219,8 @@ def test_check_after_alignment_reuses_the_registrations_last_prediction(corridor
     """After the registration the check blends the far field with the GP field the
     dense stage predicted last at the same points (``predict(near=...)``) instead of
     predicting the GP field again: the map's outputs are those of a check at the found
-    transform from scratch, and the final blended prediction was given the near field."""
+    transform from scratch, and the final blended prediction was given the near field
+    (as was each dense stage's surface correction, once per stage)."""
     assert corridor_map.far is not None  # the default map: the blend is exercised
     calls = []
 
@@ -235,9 +236,16 @@ def test_check_after_alignment_reuses_the_registrations_last_prediction(corridor
     moved = _move(scan.points, T)
     res = check_scan(moved, Spy(), align=True)
     ref = check_scan(moved, corridor_map, init=res.transform)
-    big = [c for c in calls if c[0] == len(moved) and c[1]]
-    assert big and big[0][2], calls  # the check's blended prediction had the near field
-    assert not any(c[2] for c in calls if c is not big[0])
+    big = [i for i, c in enumerate(calls) if c[0] == len(moved) and c[1]]
+    check_call = big[-1] if big else None  # the check's blended prediction of every point
+    assert check_call is not None and calls[check_call][2], calls  # had the near field
+    # the other blended predictions given the near field: each dense stage's surface
+    # correction (_surface_correction, once per stage; the corridor's degenerate
+    # direction makes the registration run twice)
+    dense_stages = sum(1 for h in res.summary["history"]
+                       if h.get("stage") == "dense" and h.get("iteration") == 1)
+    assert dense_stages == 2, res.summary["history"]
+    assert sum(c[2] for i, c in enumerate(calls) if i != check_call) == dense_stages, calls
     for name in ("distance", "std", "std_surface", "z"):
         np.testing.assert_allclose(getattr(res, name), getattr(ref, name), rtol=1e-7,
                                    atol=1e-9, err_msg=name)
@@ -319,12 +327,12 @@ def test_default_map_second_drive_meets_the_targets():
     with the default configuration (scale-aware values, far field), second drive
     (other lane, noise seed 1, the van) moved by the known transform. The issue's test
     targets: within 2 mm and 0.01 deg, the truth inside the 3-sigma ellipsoid (measured
-    on main after the HGMM's per-node seeding and the per-cell variance factors: 0.0027
-    deg / 0.31 mm, Mahalanobis^2 3.5). The benchmark target "at least as accurate as the
-    better of Open3D's point-to-plane ICP and GICP" is measured by scripts/bench_check.py
-    on this pair, not asserted here: on this map point-to-plane is ahead in rotation
-    (0.0018 deg against 0.0027; on the map before the reseeding gmmgp led by 0.0001 deg),
-    so the comparison is a reported shortfall, not a property the code guarantees."""
+    with the last stage's surface correction, session 7: 0.0020 deg / 0.58 mm,
+    Mahalanobis^2 15.4; before it 0.0030 deg / 0.30 mm, 3.5). The benchmark target "at
+    least as accurate as the better of Open3D's point-to-plane ICP and GICP" is measured
+    by scripts/bench_check.py on this pair, not asserted here: point-to-plane is still
+    ahead in rotation (0.0018 deg against 0.0020; GICP 0.0023), so the comparison is a
+    reported shortfall, not a property the code guarantees."""
     import gmmgp_app as gm
     from gmmgp_app.synth import scan_scene
 
@@ -591,3 +599,114 @@ def test_inner_irls_gives_the_same_transform_with_fewer_predictions(monkeypatch)
     d = a.transform @ np.linalg.inv(b.transform)
     assert np.abs(d[:3, 3]).max() < 2e-4
     assert np.degrees(np.abs(d[:3, :3] - np.eye(3)).max()) < 2e-3
+
+
+# ----------------------------------------------------------------------------- surface correction
+
+
+class _TwoFieldMap:
+    """Two exact fields posing as a map with a far field: ``predict(far=False)`` (the
+    GP field) is a box whose +y face lies ``bias`` m behind the true one (as the bench
+    street's GP field leaves its far facade), ``predict(far=True)`` (the blended field)
+    the true box plus a ripple of ``ripple`` m along the surfaces at a 5 cm period
+    (the far field's texture), with the true box's gradient and the smaller std
+    ``std_far`` (the blended field says it knows better). Counts its calls."""
+
+    def __init__(self, bias=0.008, ripple=0.001, std=0.005, std_far=0.004):
+        self.bias, self.ripple, self.std, self.std_far = bias, ripple, std, std_far
+        self.offset = np.zeros(3)
+        self.seed_points = np.zeros((0, 3))
+        self.calls = []
+
+    def near_sdf(self, x):
+        return _box_sdf(x) + np.where(x[:, 1] > 1.2, self.bias, 0.0) * \
+            (np.abs(x[:, 1] - 1.5) < 0.3)
+
+    def far_sdf(self, x):
+        k = 2 * np.pi / 0.05
+        return _box_sdf(x) + self.ripple * np.sin(k * x[:, 0]) * np.sin(k * x[:, 2] + 1.0)
+
+    @staticmethod
+    def _grad(f, x, h=1e-6):
+        return np.stack([(f(x + h * e) - f(x - h * e)) / (2 * h) for e in np.eye(3)], 1)
+
+    def predict(self, xyz, return_grad=False, far=True, near=None):
+        x = np.asarray(xyz, dtype=np.float64)
+        self.calls.append((len(x), far, near is not None))
+        v = np.full(len(x), (self.std_far if far else self.std) ** 2)
+        if far:
+            m, g = self.far_sdf(x), self._grad(_box_sdf, x)
+        else:
+            m, g = self.near_sdf(x), self._grad(self.near_sdf, x)
+        return (m, v, g) if return_grad else (m, v)
+
+
+def test_surface_correction_fits_the_blended_mean_exactly(monkeypatch):
+    """The registration's last stage fits the blended field's mean (measured once per
+    stage, at its first iteration, where the blended variance is below the GP field's)
+    with the GP field's gradient and variance: on a box
+    whose GP field leaves one face 8 mm behind (the bench street's far facade) and whose
+    blended field is exact up to a 1 mm texture, the transform comes out unbiased;
+    without the correction the face's offset moves it."""
+    import gmmgp_app.check as C
+
+    rng = np.random.default_rng(4)
+    pts = _box_surface(12000, rng) + rng.normal(0, 0.002, (12000, 3))
+    T = _truth(rot_deg=1.0, t=(0.03, -0.02, 0.04))
+    smap = _TwoFieldMap()
+    res = check_scan(_move(pts, T), smap, align=True, noise=0.002)
+    rot, trans, mahal2, _ = _errors(res, T)
+    # the correction: one blended prediction of the dense stage's points with the GP
+    # field given (near), and the check's blended prediction, also given it
+    near_calls = [c for c in smap.calls if c[1] and c[2]]
+    assert len(near_calls) == 2, smap.calls
+    assert res.converged and res.degenerate == ()
+    # 12k points with 2 mm noise: the same scan on the exact box alone gives 0.0045 deg /
+    # 0.04 mm; the ripple and the GP field's offset face add nothing beyond that
+    assert rot < 0.008 and trans < 2e-4, (rot, trans)
+    assert mahal2 < CHI2_6_3SIGMA, mahal2
+    # without it the registration fits the GP field and takes its face's offset
+    monkeypatch.setattr(C, "SURFACE_CORRECTION", False)
+    off = check_scan(_move(pts, T), _TwoFieldMap(), align=True, noise=0.002)
+    rot_off, trans_off, _, _ = _errors(off, T)
+    assert trans_off > 2e-3 and trans_off > 10 * trans, (trans_off, trans)
+    # nor where the blended field claims no better variance than the GP field
+    monkeypatch.setattr(C, "SURFACE_CORRECTION", True)
+    unsure = check_scan(_move(pts, T), _TwoFieldMap(std_far=0.005), align=True, noise=0.002)
+    np.testing.assert_array_equal(unsure.transform, off.transform)
+
+
+def test_registration_residual_derivative_matches_finite_differences(corridor_map):
+    """What the last stage evaluates, ``m_GP(exp(xi) y) + c`` with the correction ``c``
+    held fixed, has the derivative ``J = [g, (y - pivot) x g]`` of the GP field's
+    gradient: central differences of it over ``xi`` (the real map of the corridor, its
+    GP field and far field) agree with J; and the correction is the blended mean minus
+    the GP field's where the blended variance is the smaller, 0 elsewhere. Measured: median relative difference 4e-6 to 8e-5 per parameter,
+    90th percentile 7e-4 to 6.4e-3; the largest (up to 3) are the GP field's jumps at
+    its block boundaries (docs/check.md, Session 6), not its gradient."""
+    from gmmgp_app.check import _surface_correction
+
+    rng = np.random.default_rng(5)
+    y = _corridor(600, rng).points
+    m, var, g = corridor_map.predict(y, return_grad=True, far=False)
+    c = _surface_correction(corridor_map, y, m, var, g)
+    blend, var_b = corridor_map.predict(y, far=True)
+    better = var_b < var  # where the blended field says it knows better
+    assert c is not None and np.abs(c).max() > 1e-5 and better.mean() > 0.5
+    np.testing.assert_allclose((m + c)[better], blend[better], atol=1e-12)
+    assert np.all(c[~better] == 0)
+    pivot = y.mean(0)
+    J, _, _ = _normal_matrix(y, g, np.ones(len(y)), m + c, pivot)
+    h = 1e-5
+    err = []
+    for k in range(6):
+        e = np.zeros(6)
+        e[k] = h if k < 3 else h / 5.0
+        Tp, Tm = _transform_step(e, pivot), _transform_step(-e, pivot)
+        rp = corridor_map.predict(y @ Tp[:3, :3].T + Tp[:3, 3], far=False)[0] + c
+        rm = corridor_map.predict(y @ Tm[:3, :3].T + Tm[:3, 3], far=False)[0] + c
+        fd = (rp - rm) / (2 * e[k])
+        err.append(np.abs(fd - J[:, k]) / np.maximum(np.abs(J).max(1), 1e-12))
+    err = np.array(err)
+    assert np.all(np.median(err, 1) < 1e-3), np.median(err, 1)
+    assert np.all(np.percentile(err, 90, 1) < 1e-2), np.percentile(err, 90, 1)
