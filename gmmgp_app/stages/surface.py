@@ -226,34 +226,31 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
                    cells.max(0) + dilate + block_cells + 2)
     lattice = _LatticeValues(predict_mean if predict_mean is not None
                              else (lambda x: predict(x)[0]), h, pack, batch)
-    cell_keys = np.sort(pack(cells))
+    # the followed cells (and those refused as too far from a seed: never proposed
+    # twice), by packed key in a hash set
+    followed = _KeySet(2 * len(cells))
+    followed.add(pack(cells))
     frontier = cells
+    cells = [cells]
     bar = progress(dilate + 1, "surface field") if progress else None
     for _ in range(dilate):
-        vals = lattice.corners(frontier)
-        grown = []
-        for step, face in _FACES:
-            fv = vals[:, face]
-            crosses = (fv.min(1) < 0) & (fv.max(1) > 0)
-            grown.append(frontier[crosses] + step)
-        grown = _unique_rows(np.concatenate(grown), pack)
-        keys = pack(grown)
-        new = grown[~_contains(cell_keys, keys)]
+        lattice.evaluate_corners(frontier)
+        new = lattice.grow(frontier, followed)
         if len(new):
             near = tree.query((new + 0.5) * h, k=1, distance_upper_bound=reach)[0] < np.inf
             new = new[near]
         bar and bar.update(1)
         if len(new) == 0:
             break
-        cell_keys = np.sort(np.concatenate([cell_keys, pack(new)]))
-        cells = np.concatenate([cells, new])
+        cells.append(new)
         frontier = new
-    lattice.corners(frontier)  # the last cells' corners
+    lattice.evaluate_corners(frontier)  # the last cells' corners
     bar and bar.close()
-    node_keys, values = lattice.keys, lattice.values
+    cells = np.concatenate(cells)
+    node_keys, values = lattice.keys, lattice.values    # hash table: key -1 = empty slot
     # memory: only the node values go on
-    del tree, cell_keys, frontier, lattice
-    vals = grown = keys = new = None
+    del tree, followed, frontier, lattice
+    new = None
 
     # 2. Marching cubes per block on its (B+1)^3 nodes, looked up by key.
     blocks = _unique_rows(np.floor_divide(cells, block_cells))
@@ -407,15 +404,6 @@ def _median_spacing(points: np.ndarray, n: int = 20000) -> float:
 
 
 _CORNERS = np.stack(np.meshgrid(*([0, 1],) * 3, indexing="ij"), -1).reshape(-1, 3)
-# For each of the 6 faces of a cell: the step to the neighbour across it and the
-# indices (into _CORNERS) of the face's 4 corner nodes.
-_FACES = [(np.eye(3, dtype=np.int64)[a] * (1 if side else -1),
-           np.flatnonzero(_CORNERS[:, a] == side)) for a in range(3) for side in (0, 1)]
-
-
-def _contains(sorted_keys: np.ndarray, keys: np.ndarray) -> np.ndarray:
-    pos = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
-    return sorted_keys[pos] == keys
 
 
 def _unique_rows(cells: np.ndarray, pack=None) -> np.ndarray:
@@ -433,7 +421,8 @@ def _block_nodes(node_keys, values, pack, blocks, block_cells: int, dense=None):
     """Lattice nodes grouped by the marching-cubes blocks ``blocks`` whose (B+1)^3 node
     boxes hold them (a node on a block face belongs to both blocks, on an edge or
     corner to 4 or 8): CSR ``ptr`` (len(blocks) + 1) over the flat local indices
-    ``(i nb + j) nb + k`` (int32) and values of each block's nodes.
+    ``(i nb + j) nb + k`` (int32) and values of each block's nodes. Negative keys (the
+    empty slots of :class:`_LatticeValues`' table) are skipped.
 
     One compiled counting pass over the nodes (no per-block box lookups, no sort of
     (block, node) pairs: the grouping needs ~12 bytes per pair). Blocks are found in a
@@ -486,6 +475,8 @@ def _block_nodes_kernel(keys, values, lo, dims, B, bkeys_sorted, bindex, blo, bd
             val = np.empty(ptr[-1])
         for n in range(len(keys)):
             kq = keys[n]
+            if kq < 0:
+                continue                         # an empty slot of a hash table
             ijk[0] = kq // plane + lo[0]
             ijk[1] = (kq % plane) // dims[2] + lo[1]
             ijk[2] = kq % dims[2] + lo[2]
@@ -566,40 +557,204 @@ def _fill_block(node_local, node_value, s0, s1, vol, finite):
 
 
 class _LatticeValues:
-    """Field values at lattice nodes, evaluated once each, in large batches."""
+    """Field values at lattice nodes, evaluated once each, in large batches; held in an
+    open-addressing hash table (``keys``: packed node keys, -1 for an empty slot;
+    ``values``), so that looking up a cell's corners costs a probe, not a binary search
+    of every node evaluated so far."""
 
     def __init__(self, predict_mean, h: float, pack, batch: int):
         # predict_mean(xyz) -> (K,) mean
         self.predict, self.h, self.pack, self.batch = predict_mean, h, pack, batch
-        self.keys = np.zeros(0, dtype=np.int64)       # sorted
-        self.values = np.zeros(0)
+        self.keys = np.full(1 << 16, -1, np.int64)
+        self.values = np.zeros(1 << 16)
+        self.count = 0
 
-    def corners(self, cells: np.ndarray, chunk: int = 65536) -> np.ndarray:
-        """(n, 8) values at the corners of ``cells`` (lower corners, (n, 3)), a chunk of
-        cells at a time (the (n, 8, 3) corner arrays of a million cells are ~200 MB)."""
-        out = np.empty((len(cells), 8))
+    def evaluate_corners(self, cells: np.ndarray, chunk: int = 65536) -> None:
+        """Evaluate the corners of ``cells`` (lower corners, (n, 3)) not evaluated yet, a
+        chunk of cells at a time."""
         for s in range(0, len(cells), chunk):
-            c = cells[s:s + chunk]
-            out[s:s + chunk] = self(c[:, None, :] + _CORNERS[None]).reshape(len(c), 8)
-        return out
+            c = np.ascontiguousarray(cells[s:s + chunk], dtype=np.int64)
+            self._reserve(8 * len(c))
+            new = np.empty(8 * len(c), np.int64)
+            n = _insert_corners(c, self.pack.lo, self.pack.dims, self.keys, new)
+            self.count += n
+            new = new[:n]
+            # evaluated in key order (as the sorted unique keys were before)
+            new.sort()
+            nodes = self.pack.unpack(new)
+            vals = np.empty(n)
+            for b in range(0, n, self.batch):
+                vals[b:b + self.batch] = self.predict(nodes[b:b + self.batch] * self.h)
+            _set_values(self.keys, self.values, new, vals)
+
+    def grow(self, cells: np.ndarray, followed: "_KeySet") -> np.ndarray:
+        """The neighbours of ``cells`` across a face whose corner values change sign
+        (min < 0 < max) that are not in ``followed`` yet (added to it), (m, 3)."""
+        out = []
+        for s in range(0, len(cells), 65536):
+            c = np.ascontiguousarray(cells[s:s + 65536], dtype=np.int64)
+            followed.reserve(6 * len(c))
+            new = np.empty((6 * len(c), 3), np.int64)
+            n = _grow_cells(c, self.pack.lo, self.pack.dims, self.keys, self.values,
+                            followed.keys, new)
+            followed.count += n
+            out.append(new[:n])
+        return np.concatenate(out) if out else np.zeros((0, 3), np.int64)
+
+    def _reserve(self, more: int) -> None:
+        self.keys, self.values = _reserve_table(self.keys, self.values, self.count + more)
 
     def __call__(self, ijk: np.ndarray) -> np.ndarray:
-        """Values at integer nodes ``ijk`` (..., 3), evaluating the missing ones."""
-        flat = ijk.reshape(-1, 3)
-        keys = self.pack(flat)
-        missing = ~_contains(self.keys, keys) if len(self.keys) else np.ones(len(keys), bool)
-        if missing.any():
-            new_keys, first = np.unique(keys[missing], return_index=True)
-            nodes = flat[np.flatnonzero(missing)[first]]
-            vals = np.empty(len(nodes))
-            for s in range(0, len(nodes), self.batch):
-                vals[s:s + self.batch] = self.predict(nodes[s:s + self.batch] * self.h)
-            # merge the sorted new keys into the sorted keys (none is in both)
-            at = np.searchsorted(self.keys, new_keys)
-            self.keys = np.insert(self.keys, at, new_keys)
-            self.values = np.insert(self.values, at, vals)
-        pos = np.searchsorted(self.keys, keys)
-        return self.values[pos].reshape(ijk.shape[:-1])
+        """Values at integer nodes ``ijk`` (..., 3), all evaluated before (NaN where not)."""
+        flat = np.ascontiguousarray(ijk.reshape(-1, 3), dtype=np.int64)
+        return _get_values(self.keys, self.values, self.pack(flat)).reshape(ijk.shape[:-1])
+
+
+class _KeySet:
+    """A hash set of non-negative int64 keys (open addressing, -1 empty)."""
+
+    def __init__(self, capacity: int):
+        self.keys = np.full(_table_size(capacity), -1, np.int64)
+        self.count = 0
+
+    def reserve(self, more: int) -> None:
+        self.keys = _reserve_table(self.keys, None, self.count + more)[0]
+
+    def add(self, keys: np.ndarray) -> None:
+        keys = np.ascontiguousarray(keys, dtype=np.int64)
+        self.reserve(len(keys))
+        self.count += _add_keys(self.keys, keys)
+
+
+_MAX_LOAD = 0.7
+
+
+def _table_size(n: int) -> int:
+    """Smallest power of two holding ``n`` keys at a load of at most ``_MAX_LOAD``."""
+    return 1 << max(4, int(math.ceil(math.log2(max(n, 1) / _MAX_LOAD + 1))))
+
+
+def _reserve_table(keys, values, need: int):
+    """The table (keys, values or None) rehashed into a larger one when ``need`` keys
+    would exceed ``_MAX_LOAD`` (the same arrays otherwise)."""
+    if need <= _MAX_LOAD * len(keys):
+        return keys, values
+    size = _table_size(need)
+    nk = np.full(size, -1, np.int64)
+    nv = np.zeros(size) if values is not None else np.zeros(0)
+    _rehash(keys, values if values is not None else np.zeros(0), nk, nv)
+    return nk, (nv if values is not None else None)
+
+
+@nb.njit(cache=True, inline="always")
+def _probe(tk, key):
+    """The slot of ``key`` in the table ``tk`` (linear probing), or the empty slot where
+    it would go."""
+    mask = len(tk) - 1
+    s = ((key * 0x9E3779B97F4A7C15) & 0x7FFFFFFFFFFFFFFF) >> 17 & mask
+    while tk[s] != -1 and tk[s] != key:
+        s = (s + 1) & mask
+    return s
+
+
+@nb.njit(cache=True)
+def _rehash(keys, values, nk, nv):
+    with_values = len(nv) > 0
+    for i in range(len(keys)):
+        if keys[i] != -1:
+            s = _probe(nk, keys[i])
+            nk[s] = keys[i]
+            if with_values:
+                nv[s] = values[i]
+
+
+@nb.njit(cache=True)
+def _add_keys(tk, keys):
+    """Insert ``keys``; returns how many were new."""
+    n = 0
+    for i in range(len(keys)):
+        s = _probe(tk, keys[i])
+        if tk[s] == -1:
+            tk[s] = keys[i]
+            n += 1
+    return n
+
+
+@nb.njit(cache=True, inline="always")
+def _pack1(i, j, k, lo, dims):
+    return ((i - lo[0]) * dims[1] + (j - lo[1])) * dims[2] + (k - lo[2])
+
+
+@nb.njit(cache=True)
+def _insert_corners(cells, lo, dims, tk, new):
+    """Insert the 8 corner nodes of each cell into the node table (value unset), writing
+    each node not there before to ``new``; returns their count."""
+    n = 0
+    for c in range(len(cells)):
+        for o in range(8):
+            key = _pack1(cells[c, 0] + (o >> 2), cells[c, 1] + ((o >> 1) & 1),
+                         cells[c, 2] + (o & 1), lo, dims)
+            s = _probe(tk, key)
+            if tk[s] == -1:
+                tk[s] = key
+                new[n] = key
+                n += 1
+    return n
+
+
+@nb.njit(cache=True)
+def _set_values(tk, tv, keys, vals):
+    for i in range(len(keys)):
+        tv[_probe(tk, keys[i])] = vals[i]
+
+
+@nb.njit(cache=True)
+def _get_values(tk, tv, keys):
+    out = np.empty(len(keys))
+    for i in range(len(keys)):
+        s = _probe(tk, keys[i])
+        out[i] = tv[s] if tk[s] == keys[i] else np.nan
+    return out
+
+
+@nb.njit(cache=True)
+def _grow_cells(cells, lo, dims, tk, tv, ck, new):
+    """Surface following, one step: for each cell and each of its 6 faces whose 4 corner
+    values change sign (min < 0 < max, as ``np.min``/``np.max``: a NaN corner never
+    does), the neighbour across the face unless it is in the cell set ``ck`` (then added
+    to it); written to ``new`` (lattice coordinates), returns their count."""
+    v = np.empty(8)
+    n = 0
+    for c in range(len(cells)):
+        for o in range(8):
+            v[o] = tv[_probe(tk, _pack1(cells[c, 0] + (o >> 2), cells[c, 1] + ((o >> 1) & 1),
+                                        cells[c, 2] + (o & 1), lo, dims))]
+        for a in range(3):
+            for side in range(2):
+                lo_v = np.inf
+                hi_v = -np.inf
+                nan = False
+                for o in range(8):
+                    if ((o >> (2 - a)) & 1) == side:
+                        x = v[o]
+                        if math.isnan(x):
+                            nan = True
+                        lo_v = min(lo_v, x)
+                        hi_v = max(hi_v, x)
+                if nan or not (lo_v < 0.0 and hi_v > 0.0):
+                    continue
+                i = cells[c, 0] + (2 * side - 1 if a == 0 else 0)
+                j = cells[c, 1] + (2 * side - 1 if a == 1 else 0)
+                k = cells[c, 2] + (2 * side - 1 if a == 2 else 0)
+                key = _pack1(i, j, k, lo, dims)
+                s = _probe(ck, key)
+                if ck[s] == -1:
+                    ck[s] = key
+                    new[n, 0] = i
+                    new[n, 1] = j
+                    new[n, 2] = k
+                    n += 1
+    return n
 
 
 class _Packer:
