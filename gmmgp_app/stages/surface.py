@@ -234,8 +234,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     cells = [cells]
     bar = progress(dilate + 1, "surface field") if progress else None
     for _ in range(dilate):
-        lattice.evaluate_corners(frontier)
-        new = lattice.grow(frontier, followed)
+        new = lattice.evaluate_corners(frontier, followed)
         if len(new):
             near = tree.query((new + 0.5) * h, k=1, distance_upper_bound=reach)[0] < np.inf
             new = new[near]
@@ -569,14 +568,19 @@ class _LatticeValues:
         self.values = np.zeros(1 << 16)
         self.count = 0
 
-    def evaluate_corners(self, cells: np.ndarray, chunk: int = 65536) -> None:
+    def evaluate_corners(self, cells: np.ndarray, followed: Optional["_KeySet"] = None,
+                         chunk: int = 65536) -> Optional[np.ndarray]:
         """Evaluate the corners of ``cells`` (lower corners, (n, 3)) not evaluated yet, a
-        chunk of cells at a time."""
+        chunk of cells at a time; with ``followed``, also one step of surface following:
+        the neighbours of ``cells`` across a face whose corner values change sign
+        (min < 0 < max) that are not in ``followed`` yet (added to it), returned (m, 3)."""
+        out = []
         for s in range(0, len(cells), chunk):
             c = np.ascontiguousarray(cells[s:s + chunk], dtype=np.int64)
             self._reserve(8 * len(c))
             new = np.empty(8 * len(c), np.int64)
-            n = _insert_corners(c, self.pack.lo, self.pack.dims, self.keys, new)
+            slots = np.empty((len(c), 8), np.int64)
+            n = _insert_corners(c, self.pack.lo, self.pack.dims, self.keys, new, slots)
             self.count += n
             new = new[:n]
             # evaluated in key order (as the sorted unique keys were before)
@@ -586,19 +590,15 @@ class _LatticeValues:
             for b in range(0, n, self.batch):
                 vals[b:b + self.batch] = self.predict(nodes[b:b + self.batch] * self.h)
             _set_values(self.keys, self.values, new, vals)
-
-    def grow(self, cells: np.ndarray, followed: "_KeySet") -> np.ndarray:
-        """The neighbours of ``cells`` across a face whose corner values change sign
-        (min < 0 < max) that are not in ``followed`` yet (added to it), (m, 3)."""
-        out = []
-        for s in range(0, len(cells), 65536):
-            c = np.ascontiguousarray(cells[s:s + 65536], dtype=np.int64)
-            followed.reserve(6 * len(c))
-            new = np.empty((6 * len(c), 3), np.int64)
-            n = _grow_cells(c, self.pack.lo, self.pack.dims, self.keys, self.values,
-                            followed.keys, new)
-            followed.count += n
-            out.append(new[:n])
+            if followed is not None:
+                followed.reserve(6 * len(c))
+                grown = np.empty((6 * len(c), 3), np.int64)
+                m = _grow_cells(c, self.pack.lo, self.pack.dims, self.values, slots,
+                                followed.keys, grown)
+                followed.count += m
+                out.append(grown[:m])
+        if followed is None:
+            return None
         return np.concatenate(out) if out else np.zeros((0, 3), np.int64)
 
     def _reserve(self, more: int) -> None:
@@ -686,15 +686,17 @@ def _pack1(i, j, k, lo, dims):
 
 
 @nb.njit(cache=True)
-def _insert_corners(cells, lo, dims, tk, new):
+def _insert_corners(cells, lo, dims, tk, new, slots):
     """Insert the 8 corner nodes of each cell into the node table (value unset), writing
-    each node not there before to ``new``; returns their count."""
+    each node not there before to ``new`` and each corner's table slot to ``slots``
+    (n, 8); returns the count of new nodes."""
     n = 0
     for c in range(len(cells)):
         for o in range(8):
             key = _pack1(cells[c, 0] + (o >> 2), cells[c, 1] + ((o >> 1) & 1),
                          cells[c, 2] + (o & 1), lo, dims)
             s = _probe(tk, key)
+            slots[c, o] = s
             if tk[s] == -1:
                 tk[s] = key
                 new[n] = key
@@ -718,17 +720,16 @@ def _get_values(tk, tv, keys):
 
 
 @nb.njit(cache=True)
-def _grow_cells(cells, lo, dims, tk, tv, ck, new):
+def _grow_cells(cells, lo, dims, tv, slots, ck, new):
     """Surface following, one step: for each cell and each of its 6 faces whose 4 corner
-    values change sign (min < 0 < max, as ``np.min``/``np.max``: a NaN corner never
-    does), the neighbour across the face unless it is in the cell set ``ck`` (then added
+    values (``tv`` at the corners' ``slots``) change sign (min < 0 < max, as
+    ``np.min``/``np.max``: a NaN corner never does), the neighbour across the face unless it is in the cell set ``ck`` (then added
     to it); written to ``new`` (lattice coordinates), returns their count."""
     v = np.empty(8)
     n = 0
     for c in range(len(cells)):
         for o in range(8):
-            v[o] = tv[_probe(tk, _pack1(cells[c, 0] + (o >> 2), cells[c, 1] + ((o >> 1) & 1),
-                                        cells[c, 2] + (o & 1), lo, dims))]
+            v[o] = tv[slots[c, o]]
         for a in range(3):
             for side in range(2):
                 lo_v = np.inf
