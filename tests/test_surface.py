@@ -432,3 +432,44 @@ def test_lattice_tables_grow_and_find_every_node():
     assert s.count == len(np.unique(keys))
     assert np.count_nonzero(s.keys >= 0) == s.count
     assert set(s.keys[s.keys >= 0].tolist()) == set(keys.tolist())
+
+
+def test_compiled_block_vertices_equal_the_numpy_functions():
+    # random node values with masked nodes and exact zeros (vertices on nodes): many
+    # ambiguous cubes (inner vertices), faces on masked nodes; the compiled pass must give
+    # the numpy path's keys, vertices and faces bit for bit
+    from skimage.measure import marching_cubes
+
+    from gmmgp_app.stages import surface as S
+
+    rng = np.random.default_rng(5)
+    nb_ = 9
+    pack = S._Packer(np.array([-40, -40, -40]), np.array([40, 40, 40]))
+    seen = np.zeros(3, int)
+    for trial in range(20):
+        vol = rng.normal(size=(nb_,) * 3)
+        vol[rng.random(vol.shape) < 0.1] = 0.0
+        finite = rng.random(vol.shape) > 0.15
+        vol[~finite] = 1.0
+        v, f, _, _ = marching_cubes(vol, level=0.0, mask=finite, allow_degenerate=False)
+        assert v.dtype == np.float32
+        off = rng.integers(-30, 30, 3)
+        got = S._block_vertices(v, f, vol, finite, off, pack, 7)
+        ref = S._block_vertices(v.astype(np.float64), f, vol, finite, off, pack, 7)
+        # the float64 path must do the float32 arithmetic of scikit-image's vertices:
+        # compare against the numpy functions on the float32 vertices themselves
+        fk = f[S._valid_vertices(v, finite)[f].all(1)]
+        used = np.zeros(len(v), bool)
+        used[fk.reshape(-1)] = True
+        fk = (np.cumsum(used) - 1)[fk]
+        lo, axis, vr = S._refine_on_edges(v[used], vol)
+        k = pack(lo + off) * 4 + (axis + 1)
+        inner = np.flatnonzero(axis == -2)
+        k[inner] = -(7 + 1 + np.arange(len(inner)))
+        np.testing.assert_array_equal(got[0], k)
+        np.testing.assert_array_equal(got[1], vr + off)
+        np.testing.assert_array_equal(got[2], fk)
+        assert got[3] == 7 + len(inner)
+        assert len(ref[2]) == len(fk)
+        seen += [len(inner) > 0, np.any(axis == -1), len(fk) < len(f)]
+    assert seen.min() > 0, "the trials must cover inner vertices, vertices on nodes and dropped faces"

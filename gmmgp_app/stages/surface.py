@@ -275,28 +275,12 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
                                         allow_degenerate=False)
         except (ValueError, RuntimeError):
             continue
-        # Faces touching a masked node interpolate a placeholder value: drop them.
-        f = f[_valid_vertices(v, finite)[f].all(1)]
+        k, v, f, n_inner = _block_vertices(v, f, vol_filled, finite, b * block_cells, pack,
+                                           n_inner)
         if len(f) == 0:
             continue
-        # keep only the vertices of the kept faces: the others (on edges with a masked
-        # end) would be stitched and have their variance evaluated for nothing
-        used = np.zeros(len(v), bool)
-        used[f.reshape(-1)] = True
-        if not used.all():
-            f = (np.cumsum(used) - 1)[f]
-            v = v[used]
-        lo, axis, v = _refine_on_edges(v, vol_filled)
-        # (lower lattice node, axis) of each vertex's edge packed into one int64 in the
-        # order of the rows (axis -1..2: a vertex on a node has axis -1); a vertex inside
-        # a cell (axis -2, Lewiner's extra point of an ambiguous cube) belongs to this
-        # block alone and gets its own negative key
-        k = pack(lo + b * block_cells) * 4 + (axis + 1)
-        inner = np.flatnonzero(axis == -2)
-        k[inner] = -(n_inner + 1 + np.arange(len(inner)))
-        n_inner += len(inner)
         keys_all.append(k)
-        verts_all.append(v + b * block_cells)           # lattice coordinates
+        verts_all.append(v)                             # lattice coordinates
         faces_all.append((f + n_verts).astype(np.int32 if n_verts + len(v) < 2**31
                                               else np.int64))
         n_verts += len(v)
@@ -779,6 +763,134 @@ class _Packer:
         q = np.column_stack([keys // plane, (keys % plane) // self.dims[2],
                              keys % self.dims[2]])
         return q + self.lo
+
+
+def _block_vertices(v, f, vol, finite, offset, pack, n_inner: int):
+    """One block's marching-cubes output made ready to stitch: faces touching a masked
+    node dropped (they interpolate a placeholder value, :func:`_valid_vertices`), the
+    vertices of no kept face dropped (they would be stitched and have their variance
+    evaluated for nothing), the rest snapped to their lattice edges in float64
+    (:func:`_refine_on_edges`) and keyed by (lower lattice node, axis) packed into one
+    int64 (axis -1..2: a vertex on a node has axis -1); a vertex inside a cell (axis -2,
+    Lewiner's extra point of an ambiguous cube) belongs to this block alone and gets its
+    own negative key, numbered on from ``n_inner``.
+
+    Returns keys (V,), vertices (V, 3) in lattice coordinates (``offset``, the block's
+    lower node, added), faces (F, 3) into them, and the inner vertices numbered so far.
+    One compiled pass for scikit-image's float32 vertices (the same arithmetic as the
+    numpy functions, which serve any other dtype)."""
+    if v.dtype == np.float32:
+        off = np.asarray(offset, np.int64)
+        keys, out, faces, n_in = _block_vertices_kernel(
+            v, np.ascontiguousarray(f, np.int64), vol, finite, off, pack.lo, pack.dims,
+            int(n_inner))
+        return keys, out, faces, n_in
+    f = f[_valid_vertices(v, finite)[f].all(1)]
+    used = np.zeros(len(v), bool)
+    used[f.reshape(-1)] = True
+    if not used.all():
+        f = (np.cumsum(used) - 1)[f]
+        v = v[used]
+    lo, axis, v = _refine_on_edges(v, vol)
+    k = pack(lo + offset) * 4 + (axis + 1)
+    inner = np.flatnonzero(axis == -2)
+    k[inner] = -(n_inner + 1 + np.arange(len(inner)))
+    return k, v + offset, f, n_inner + len(inner)
+
+
+@nb.njit(cache=True)
+def _block_vertices_kernel(v, f, vol, finite, off, plo, pdims, n_inner):
+    """:func:`_block_vertices` for float32 vertices: :func:`_valid_vertices` (float32
+    ``v +- 1e-9``), the kept faces' vertices, :func:`_refine_on_edges` (float32
+    ``v + 1e-4``, fractions and interpolation in float64) and the keys."""
+    V = v.shape[0]
+    n = finite.shape[0] - 1
+    eps9 = np.float32(1e-9)
+    eps4 = np.float32(1e-4)
+    valid = np.empty(V, np.bool_)
+    lo_c = np.empty(3, np.int64)
+    hi_c = np.empty(3, np.int64)
+    for i in range(V):
+        for a in range(3):
+            lo_c[a] = min(max(int(math.floor(v[i, a] + eps9)), 0), n)
+            hi_c[a] = min(max(int(math.ceil(v[i, a] - eps9)), 0), n)
+        ok = True
+        for o in range(8):
+            qa = hi_c[0] if (o >> 2) & 1 else lo_c[0]
+            qb = hi_c[1] if (o >> 1) & 1 else lo_c[1]
+            qc = hi_c[2] if o & 1 else lo_c[2]
+            if not finite[qa, qb, qc]:
+                ok = False
+                break
+        valid[i] = ok
+    keep = np.empty(len(f), np.bool_)
+    nf = 0
+    used = np.zeros(V, np.bool_)
+    for t in range(len(f)):
+        keep[t] = valid[f[t, 0]] and valid[f[t, 1]] and valid[f[t, 2]]
+        if keep[t]:
+            nf += 1
+            used[f[t, 0]] = True
+            used[f[t, 1]] = True
+            used[f[t, 2]] = True
+    remap = np.empty(V, np.int64)
+    nv = 0
+    for i in range(V):
+        remap[i] = nv
+        if used[i]:
+            nv += 1
+    faces = np.empty((nf, 3), np.int64)
+    m = 0
+    for t in range(len(f)):
+        if keep[t]:
+            for c in range(3):
+                faces[m, c] = remap[f[t, c]]
+            m += 1
+    keys = np.empty(nv, np.int64)
+    out = np.empty((nv, 3))
+    lo = np.empty(3, np.int64)
+    fr = np.empty(3)
+    m = 0
+    for i in range(V):
+        if not used[i]:
+            continue
+        for a in range(3):
+            lo[a] = int(math.floor(v[i, a] + eps4))
+            fr[a] = np.float64(v[i, a]) - lo[a]
+        axis = 0
+        for a in range(1, 3):
+            if fr[a] > fr[axis]:
+                axis = a                       # np.argmax: the first largest
+        nbig = 0
+        for a in range(3):
+            if fr[a] > 1e-4:
+                nbig += 1
+        for a in range(3):
+            out[m, a] = np.float64(lo[a])
+        if nbig >= 2:                          # inside a cube
+            axis = -2
+            for a in range(3):
+                out[m, a] = np.float64(v[i, a])
+        elif fr[axis] < 1e-4:                  # on a node
+            axis = -1
+        else:
+            v0 = vol[lo[0], lo[1], lo[2]]
+            hi0 = lo[0] + (1 if axis == 0 else 0)
+            hi1 = lo[1] + (1 if axis == 1 else 0)
+            hi2 = lo[2] + (1 if axis == 2 else 0)
+            v1 = vol[hi0, hi1, hi2]
+            den = v0 - v1
+            out[m, axis] += v0 / den if den != 0 else 0.5
+        if axis == -2:
+            n_inner += 1
+            keys[m] = -n_inner
+        else:
+            keys[m] = _pack1(lo[0] + off[0], lo[1] + off[1], lo[2] + off[2], plo, pdims) \
+                * 4 + (axis + 1)
+        for a in range(3):
+            out[m, a] += off[a]
+        m += 1
+    return keys, out, faces, n_inner
 
 
 def _refine_on_edges(v: np.ndarray, vol: np.ndarray):
