@@ -147,7 +147,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
                     progress=None, reach: Optional[float] = None,
                     predict_mean: Optional[Callable] = None,
                     project: Optional[Callable] = None, project_steps: int = 1,
-                    project_clamp: float = 0.5) -> SurfaceMesh:
+                    project_clamp: float = 0.5, timings: Optional[dict] = None) -> SurfaceMesh:
     """Zero level set of a field as a triangle mesh with per-vertex variance.
 
     The lattice is evaluated only where the surface is: starting from the cells
@@ -195,6 +195,11 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
         included); its variance is ``predict``'s there.
     project_steps, project_clamp : int, float
         Newton steps per vertex (>= 1), and the largest step in voxels.
+    timings : dict, optional
+        Filled with the process's CPU seconds per phase ("setup", "follow" (the lattice
+        field included), "block_nodes", "marching_cubes", "stitch", "vertices" (the
+        variance pass or the projection), "final"): what scripts/profile_surface.py
+        reports.
 
     Returns
     -------
@@ -202,6 +207,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     """
     from skimage.measure import marching_cubes
 
+    tick = _Ticker(timings)
     seeds = np.asarray(seeds, dtype=np.float64)
     if seeds.ndim != 2 or seeds.shape[1] != 3 or len(seeds) == 0:
         raise ValueError(f"Expected seed points with shape (N, 3), N >= 1, found {seeds.shape}.")
@@ -232,6 +238,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     followed.add(pack(cells))
     frontier = cells
     cells = [cells]
+    tick("setup")
     bar = progress(dilate + 1, "surface field") if progress else None
     for _ in range(dilate):
         new = lattice.evaluate_corners(frontier, followed)
@@ -251,6 +258,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     del tree, followed, frontier, lattice
     new = None
 
+    tick("follow")
     # 2. Marching cubes per block on its (B+1)^3 nodes, looked up by key.
     blocks = _unique_rows(np.floor_divide(cells, block_cells))
     del cells
@@ -260,6 +268,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     bar = progress(len(blocks), "marching cubes") if progress else None
     bptr, node_local, node_value = _block_nodes(node_keys, values, pack, blocks, block_cells)
     del node_keys, values
+    tick("block_nodes")
     for b, s0, s1 in zip(blocks, bptr[:-1], bptr[1:]):
         bar and bar.update(1)
         if s1 - s0 < 8:
@@ -285,6 +294,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
                                               else np.int64))
         n_verts += len(v)
     bar and bar.close()
+    tick("marching_cubes")
 
     if not verts_all:
         return SurfaceMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros(0))
@@ -301,6 +311,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
                   & (faces[:, 0] != faces[:, 2])]
     verts, faces, _ = _drop_unused(verts, faces, np.zeros(len(verts)))
+    tick("stitch")
     if project is not None:
         verts, _, var = project_vertices(project, verts, project_steps, project_clamp * h,
                                          batch, predict)
@@ -308,11 +319,30 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
         var = np.empty(len(verts))
         for s in range(0, len(verts), batch):
             var[s:s + batch] = predict(verts[s:s + batch])[1]
+    tick("vertices")
     if max_std is not None:
         bad = np.sqrt(np.maximum(var, 0)) > max_std
         faces = faces[~bad[faces].any(1)]
     verts, faces, var = _drop_unused(verts, faces, var)
+    tick("final")
     return SurfaceMesh(verts, faces, var)
+
+
+class _Ticker:
+    """CPU seconds of the process since the last call, added to ``out[name]`` (nothing
+    when ``out`` is None)."""
+
+    def __init__(self, out: Optional[dict]):
+        import time
+
+        self.out, self.clock = out, time.process_time
+        self.last = self.clock() if out is not None else 0.0
+
+    def __call__(self, name: str) -> None:
+        if self.out is not None:
+            now = self.clock()
+            self.out[name] = self.out.get(name, 0.0) + now - self.last
+            self.last = now
 
 
 def project_vertices(project: Callable, verts: np.ndarray, steps: int = 1,
