@@ -473,3 +473,12 @@ def test_compiled_block_vertices_equal_the_numpy_functions():
         assert len(ref[2]) == len(fk)
         seen += [len(inner) > 0, np.any(axis == -1), len(fk) < len(f)]
     assert seen.min() > 0, "the trials must cover inner vertices, vertices on nodes and dropped faces"
+
+
+def test_timings_record_every_phase():
+    t = {}
+    mesh = extract_surface(_sphere_field, _sphere_seeds(3000), voxel_size=0.1, timings=t)
+    assert len(mesh.faces) > 100
+    assert set(t) == {"setup", "follow", "block_nodes", "marching_cubes", "stitch",
+                      "vertices", "final"}
+    assert all(v >= 0 for v in t.values())
