@@ -472,7 +472,8 @@ def test_compiled_block_vertices_equal_the_numpy_functions():
         assert got[3] == 7 + len(inner)
         assert len(ref[2]) == len(fk)
         seen += [len(inner) > 0, np.any(axis == -1), len(fk) < len(f)]
-    assert seen.min() > 0, "the trials must cover inner vertices, vertices on nodes and dropped faces"
+    assert seen.min() > 0, "the trials must cover inner vertices, vertices on nodes and " \
+        "dropped faces"
 
 
 def test_timings_record_every_phase():

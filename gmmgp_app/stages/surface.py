@@ -737,8 +737,9 @@ def _get_values(tk, tv, keys):
 def _grow_cells(cells, lo, dims, tv, slots, ck, new):
     """Surface following, one step: for each cell and each of its 6 faces whose 4 corner
     values (``tv`` at the corners' ``slots``) change sign (min < 0 < max, as
-    ``np.min``/``np.max``: a NaN corner never does), the neighbour across the face unless it is in the cell set ``ck`` (then added
-    to it); written to ``new`` (lattice coordinates), returns their count."""
+    ``np.min``/``np.max``: a NaN corner never does), the neighbour across the face
+    unless it is in the cell set ``ck`` (then added to it); written to ``new`` (lattice
+    coordinates), returns their count."""
     v = np.empty(8)
     n = 0
     for c in range(len(cells)):
