@@ -5,13 +5,19 @@ Loads a map written by ``gmmgp run`` (or ``SurfaceMap.save``), extracts its surf
 (the map's own voxel unless ``--voxel``; ``--voxel-ht F`` for F times the training
 spacing h_t) with the field wrapped to count and time every evaluation, and reports:
 
-* field evaluations on the lattice and at the mesh vertices (the variance pass), the
-  seconds in the field and per evaluation;
+* field evaluations on the lattice (``SurfaceMap.lattice_mean``) and at the mesh
+  vertices (the variance pass, ``SurfaceMap.predict``), the seconds (wall and CPU, all
+  threads) in each and per evaluation;
 * the lattice nodes that are an end of a sign-changing lattice edge (the only ones a
   vertex is interpolated from) and the rest (evaluated to find out that no surface
   crosses there);
 * the rest of the stage (surface following, marching cubes, stitching) and the time
   to write the PLY;
+* the CPU seconds of each phase of ``extract_surface`` (``timings``: setup, follow (the
+  lattice field included; ``follow_bookkeeping_cpu_s`` without it), block_nodes,
+  marching_cubes, stitch, vertices, final);
+* with ``--repeat N``: the extraction N times in the process, the last one reported
+  (the first pays numba's cache loading);
 * with ``--mesh-ref`` (exact mesh) and ``--scan``: bench_peers' mesh metrics.
 
     PYTHONPATH=$PWD .venv/bin/python scripts/profile_surface.py out/street_run/map \\
@@ -49,6 +55,7 @@ def main(argv=None) -> int:
     ap.add_argument("--scan", help="scan .npz (points) for the mesh metrics")
     ap.add_argument("--mesh-ref", help="exact mesh .ply for the mesh metrics")
     ap.add_argument("--json", help="write the report here")
+    ap.add_argument("--repeat", type=int, default=1, help="extractions (the last reported)")
     args = ap.parse_args(argv)
 
     from gmmgp_app.pipeline import load_map
@@ -62,46 +69,63 @@ def main(argv=None) -> int:
         h = float(args.voxel_ht) * float(smap.far.rho0)
     elif args.voxel:
         h = float(args.voxel)
-    calls = []                                   # (n, seconds, xyz, mean)
-    field = smap.predict
+    calls = []                                   # (n, seconds, cpu seconds, xyz, mean, lattice?)
+    field, lattice = smap.predict, smap.lattice_mean
 
-    def counted(x, **kw):
-        t = time.perf_counter()
-        out = field(x, **kw)
-        calls.append((len(x), time.perf_counter() - t, np.asarray(x), out[0]))
-        return out
+    def counted(f, on_lattice):
+        def run(x, **kw):
+            t, c = time.perf_counter(), time.process_time()
+            out = f(x, **kw)
+            calls.append((len(x), time.perf_counter() - t, time.process_time() - c,
+                          np.asarray(x), out if on_lattice else out[0], on_lattice))
+            return out
+        return run
 
-    smap.predict = counted
-    t0 = time.perf_counter()
-    mesh = smap.extract_surface(h)
-    total = time.perf_counter() - t0
-    smap.predict = field
+    smap.predict, smap.lattice_mean = counted(field, False), counted(lattice, True)
+    import gmmgp_app.stages.surface as surface_stage
+
+    extract = surface_stage.extract_surface
+    phases = {}
+    # the phases' CPU seconds (the pipeline reaches extract_surface through the module)
+    surface_stage.extract_surface = lambda *a, **kw: extract(*a, timings=phases, **kw)
+    for _ in range(max(args.repeat, 1)):
+        calls.clear()
+        phases.clear()
+        t0, c0 = time.perf_counter(), time.process_time()
+        mesh = smap.extract_surface(h)
+        total, total_cpu = time.perf_counter() - t0, time.process_time() - c0
+    surface_stage.extract_surface = extract
+    smap.predict, smap.lattice_mean = field, lattice
     n_vert = len(mesh.vertices)
     # the last calls evaluate the vertices (variance pass): as many points as the
     # stitched vertices before faces were dropped; count from the end
     n_pts = np.array([c[0] for c in calls])
     secs = np.array([c[1] for c in calls])
-    # lattice calls are the ones whose points sit on lattice nodes
-    on_lattice = np.array([np.abs(c[2] / h - np.round(c[2] / h)).max() < 1e-6
-                           for c in calls])
-    lat_pts = np.concatenate([c[2] for c, ok in zip(calls, on_lattice) if ok])
-    lat_val = np.concatenate([c[3] for c, ok in zip(calls, on_lattice) if ok])
+    cpu = np.array([c[2] for c in calls])
+    on_lattice = np.array([c[5] for c in calls])
+    lat_pts = np.concatenate([c[3] for c, ok in zip(calls, on_lattice) if ok])
+    lat_val = np.concatenate([c[4] for c, ok in zip(calls, on_lattice) if ok])
     useful = _sign_change_nodes(np.round(lat_pts / h).astype(np.int64), lat_val)
     with tempfile.TemporaryDirectory() as tmp:
         t = time.perf_counter()
         write_mesh_ply(mesh, Path(tmp) / "m.ply")
         t_write = time.perf_counter() - t
     rep = {
-        "voxel_m": h, "surface_s": total, "write_ply_s": t_write,
+        "voxel_m": h, "surface_s": total, "surface_cpu_s": total_cpu, "write_ply_s": t_write,
         "vertices": n_vert, "faces": int(len(mesh.faces)),
         "lattice_evaluations": int(n_pts[on_lattice].sum()),
         "lattice_field_s": float(secs[on_lattice].sum()),
+        "lattice_field_cpu_s": float(cpu[on_lattice].sum()),
         "vertex_evaluations": int(n_pts[~on_lattice].sum()),
         "vertex_field_s": float(secs[~on_lattice].sum()),
+        "vertex_field_cpu_s": float(cpu[~on_lattice].sum()),
         "field_us_per_evaluation": float(1e6 * secs.sum() / max(n_pts.sum(), 1)),
         "lattice_nodes_on_a_sign_change": int(useful.sum()),
         "lattice_nodes_without": int((~useful).sum()),
         "rest_s": float(total - secs.sum()),
+        "rest_cpu_s": float(total_cpu - cpu.sum()),
+        "phases_cpu_s": phases,
+        "follow_bookkeeping_cpu_s": float(phases.get("follow", 0.0) - cpu[on_lattice].sum()),
         "load_avg": list(os.getloadavg()),
     }
     if args.scan and args.mesh_ref:

@@ -57,3 +57,27 @@ def test_ball_lists_match_the_kd_tree():
         assert ptr[-1] == sum(map(len, ref)) > 0
         for c in range(len(x)):
             assert sorted(idx[ptr[c]:ptr[c + 1]]) == sorted(ref[c])
+
+
+def test_grouped_queries_same_as_one_by_one_and_the_kd_tree():
+    # a dense lattice of queries near the data (the surface lattice case: many queries per
+    # group share one candidate list), far queries (the centre beyond max_ring: one by
+    # one) and groups cut short by a small candidate cap
+    rng = np.random.default_rng(4)
+    p = _points(rng, 8000)
+    ax = np.arange(-1.0, 1.0, 0.03)
+    lat = np.stack(np.meshgrid(ax, ax, [-0.05, 0.0, 0.04], indexing="ij"), -1).reshape(-1, 3)
+    q = np.vstack([lat, rng.uniform(-8, 8, (500, 3))])
+    ref_d, ref_i = cKDTree(p).query(q, k=16)
+    for group, cap in ((0.75, 2048), (0.3, 2048), (2.0, 2048), (0.75, 20)):
+        g = GridKNN(p, 16, group=group, max_candidates=cap)
+        d, i, done = g._query_groups(np.ascontiguousarray(q))
+        assert done[:len(lat)].mean() > (0.9 if cap > 100 else -1)
+        assert not done.all() or cap > 100
+        np.testing.assert_array_equal(i[done], ref_i[done])
+        np.testing.assert_array_equal(d[done], ref_d[done])
+        d, i = g.query(q)                       # the groups left are answered one by one
+        np.testing.assert_array_equal(i, ref_i)
+        np.testing.assert_array_equal(d, ref_d)
+    d0, i0 = GridKNN(p, 16, group=0).query(q)
+    np.testing.assert_array_equal(i0, ref_i)

@@ -349,3 +349,137 @@ def test_seeds_follow_the_extent_cell_not_the_voxel():
     np.testing.assert_array_equal(
         surface_seeds(pts, SurfaceConfig(voxel_size=0.2, extent_cell=0.05)), fine)
     assert len(coarse) < len(fine)
+
+
+# ------------------------------------------------------------ surface following (hash tables)
+def _followed_nodes_by_sets(field, seeds, h, dilate, reach):
+    """The surface following of extract_surface written with Python sets (the oracle):
+    seed cells, then `dilate` times the neighbours across faces whose 4 corner values
+    change sign, kept when their centre is within `reach` of a seed; the nodes evaluated
+    are the corners of every followed cell."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(seeds)
+    corners = np.stack(np.meshgrid(*([0, 1],) * 3, indexing="ij"), -1).reshape(-1, 3)
+    cells = {tuple(c) for c in np.floor(seeds / h).astype(np.int64)}
+    frontier = sorted(cells)
+    for _ in range(dilate):
+        grown = set()
+        for c in frontier:
+            v = field(((np.asarray(c) + corners) * h))
+            for a in range(3):
+                for side in (0, 1):
+                    f = v[corners[:, a] == side]
+                    if f.min() < 0 < f.max():
+                        n = list(c)
+                        n[a] += 1 if side else -1
+                        grown.add(tuple(n))
+        new = [c for c in sorted(grown - cells)
+               if tree.query((np.asarray(c) + 0.5) * h)[0] <= reach]
+        if not new:
+            break
+        cells |= set(new)
+        frontier = new
+    return {tuple(c + o) for c in cells for o in corners}
+
+
+def test_surface_following_evaluates_each_followed_node_once():
+    # cap of a sphere: the following must stop at the reach, and each lattice node is
+    # evaluated once, exactly the corners of the cells the set-based walk follows
+    cap = _sphere_seeds(3000)
+    cap = cap[cap[:, 2] > 0.3]
+    h, dilate, reach = 0.1, 3, 0.25
+    asked = []
+
+    def mean(x):
+        asked.append(np.array(x))
+        return _sphere_field(x)[0]
+
+    mesh = extract_surface(_sphere_field, cap, voxel_size=h, dilate=dilate, reach=reach,
+                           predict_mean=mean, block_cells=8)
+    assert len(mesh.faces) > 100
+    nodes = np.round(np.concatenate(asked) / h).astype(np.int64)
+    assert len(np.unique(nodes, axis=0)) == len(nodes), "a node was evaluated twice"
+    ref = _followed_nodes_by_sets(lambda x: _sphere_field(x)[0], cap, h, dilate, reach)
+    assert {tuple(n) for n in nodes} == ref
+
+
+def test_lattice_tables_grow_and_find_every_node():
+    # far more nodes than the tables' first size: they are rehashed several times
+    from gmmgp_app.stages.surface import _KeySet, _LatticeValues, _Packer
+
+    rng = np.random.default_rng(3)
+    cells = np.unique(rng.integers(-60, 60, (40000, 3)), axis=0)
+    pack = _Packer(cells.min(0) - 2, cells.max(0) + 2)
+    calls = []
+
+    def field(x):
+        calls.append(len(x))
+        return x @ np.array([1.0, -2.0, 0.5])
+
+    lat = _LatticeValues(field, 0.5, pack, 4096)
+    lat.evaluate_corners(cells[:20000], chunk=3000)
+    lat.evaluate_corners(cells, chunk=7000)           # half the corners known already
+    corners = np.stack(np.meshgrid(*([0, 1],) * 3, indexing="ij"), -1).reshape(-1, 3)
+    nodes = np.unique((cells[:, None, :] + corners).reshape(-1, 3), axis=0)
+    assert sum(calls) == len(nodes) == lat.count
+    np.testing.assert_array_equal(lat(nodes), field(nodes * 0.5))
+    assert np.isnan(lat(np.array([[-61, -61, -61]]))).all()     # in the box, never evaluated
+    s = _KeySet(4)
+    keys = rng.integers(0, 10 ** 9, 50000)
+    s.add(keys)
+    s.add(keys[:1000])
+    assert s.count == len(np.unique(keys))
+    assert np.count_nonzero(s.keys >= 0) == s.count
+    assert set(s.keys[s.keys >= 0].tolist()) == set(keys.tolist())
+
+
+def test_compiled_block_vertices_equal_the_numpy_functions():
+    # random node values with masked nodes and exact zeros (vertices on nodes): many
+    # ambiguous cubes (inner vertices), faces on masked nodes; the compiled pass must give
+    # the numpy path's keys, vertices and faces bit for bit
+    from skimage.measure import marching_cubes
+
+    from gmmgp_app.stages import surface as S
+
+    rng = np.random.default_rng(5)
+    nb_ = 9
+    pack = S._Packer(np.array([-40, -40, -40]), np.array([40, 40, 40]))
+    seen = np.zeros(3, int)
+    for trial in range(20):
+        vol = rng.normal(size=(nb_,) * 3)
+        vol[rng.random(vol.shape) < 0.1] = 0.0
+        finite = rng.random(vol.shape) > 0.15
+        vol[~finite] = 1.0
+        v, f, _, _ = marching_cubes(vol, level=0.0, mask=finite, allow_degenerate=False)
+        assert v.dtype == np.float32
+        off = rng.integers(-30, 30, 3)
+        got = S._block_vertices(v, f, vol, finite, off, pack, 7)
+        ref = S._block_vertices(v.astype(np.float64), f, vol, finite, off, pack, 7)
+        # the float64 path must do the float32 arithmetic of scikit-image's vertices:
+        # compare against the numpy functions on the float32 vertices themselves
+        fk = f[S._valid_vertices(v, finite)[f].all(1)]
+        used = np.zeros(len(v), bool)
+        used[fk.reshape(-1)] = True
+        fk = (np.cumsum(used) - 1)[fk]
+        lo, axis, vr = S._refine_on_edges(v[used], vol)
+        k = pack(lo + off) * 4 + (axis + 1)
+        inner = np.flatnonzero(axis == -2)
+        k[inner] = -(7 + 1 + np.arange(len(inner)))
+        np.testing.assert_array_equal(got[0], k)
+        np.testing.assert_array_equal(got[1], vr + off)
+        np.testing.assert_array_equal(got[2], fk)
+        assert got[3] == 7 + len(inner)
+        assert len(ref[2]) == len(fk)
+        seen += [len(inner) > 0, np.any(axis == -1), len(fk) < len(f)]
+    assert seen.min() > 0, "the trials must cover inner vertices, vertices on nodes and " \
+        "dropped faces"
+
+
+def test_timings_record_every_phase():
+    t = {}
+    mesh = extract_surface(_sphere_field, _sphere_seeds(3000), voxel_size=0.1, timings=t)
+    assert len(mesh.faces) > 100
+    assert set(t) == {"setup", "follow", "block_nodes", "marching_cubes", "stitch",
+                      "vertices", "final"}
+    assert all(v >= 0 for v in t.values())

@@ -9,6 +9,16 @@ distance is within the distance to the outside of the scanned box (so nothing ou
 can be nearer: the result is exact). Queries whose search would need more than
 ``max_ring`` shells (far from the data) are answered by the k-d tree instead.
 
+Many queries close together (a surface lattice, a mesh's vertices) share their candidates:
+:meth:`GridKNN.query` groups them by cubes of ``group`` cells, finds the exact k-th
+neighbour distance ``D`` of each cube's centre ``c``, and gathers once the points within
+``D + |q - c|_max`` of the cube, which by the triangle inequality hold every member's k
+nearest (``d_k(q) <= D + |q - c|``); each member then scans that list sorted by the
+distance to ``c``, stopping once ``|p - c| - |q - c|`` exceeds its k-th best. The
+neighbours and distances are the same (same formula, ascending); a cube whose centre is
+beyond ``max_ring`` shells or whose list would exceed ``max_candidates`` is answered
+query by query.
+
 Distances are computed as ``sqrt(dx^2 + dy^2 + dz^2)`` (the k-d tree's formula), in
 ascending order; ties between equidistant points may be ordered differently from the
 k-d tree (no effect on the far field, whose sums are order-independent up to round-off).
@@ -39,10 +49,15 @@ class GridKNN:
         the points (so one shell of cells usually holds the answer).
     max_ring : int
         Shells scanned before a query is handed to the k-d tree.
+    group : float
+        Edge of the cubes grouping queries that share a candidate list, in cells (0:
+        every query on its own).
+    max_candidates : int
+        Longest shared candidate list; a group needing more is answered query by query.
     """
 
     def __init__(self, points, k: int, tree=None, cell: float | None = None,
-                 max_ring: int = 3):
+                 max_ring: int = 3, group: float = 0.75, max_candidates: int = 2048):
         p = np.ascontiguousarray(np.asarray(points, dtype=np.float64))
         if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
             raise ValueError(f"Expected points with shape (P, 3), P >= 1, found {p.shape}.")
@@ -50,6 +65,7 @@ class GridKNN:
         self.k = int(min(max(k, 1), len(p)))
         self._tree = tree
         self.max_ring = int(max_ring)
+        self.group, self.max_candidates = float(group), int(max_candidates)
         if cell is None:
             cell = self._default_cell()
         self.cell = float(cell)
@@ -87,6 +103,38 @@ class GridKNN:
     def query(self, x):
         """(K, k) distances (ascending) and (K, k) point indices of the queries ``x``."""
         x = np.ascontiguousarray(np.asarray(x, dtype=np.float64).reshape(-1, 3))
+        if self.group > 0 and len(x) >= 64:
+            d, i, done = self._query_groups(x)
+            rest = np.flatnonzero(~done)
+            if len(rest):
+                d[rest], i[rest] = self._query_each(x[rest])
+            return d, i
+        return self._query_each(x)
+
+    def _query_groups(self, x):
+        """:func:`_knn_groups`: the queries grouped by cubes of ``group`` cells (sorted
+        by cube); (distances, indices, done)."""
+        g = self.group * self.cell
+        c = np.floor(x / g).astype(np.int64)
+        c -= c.min(0)
+        dims = c.max(0) + 1
+        if float(np.prod(dims.astype(np.float64))) >= 2.0 ** 62:
+            return (np.empty((len(x), self.k)), np.empty((len(x), self.k), np.int64),
+                    np.zeros(len(x), np.bool_))
+        key = (c[:, 0] * dims[1] + c[:, 1]) * dims[2] + c[:, 2]
+        qorder = np.argsort(key, kind="stable")
+        ks = key[qorder]
+        gptr = np.r_[np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]]), len(ks)].astype(np.int64)
+        d = np.empty((len(x), self.k))
+        i = np.empty((len(x), self.k), np.int64)
+        done = np.zeros(len(x), np.bool_)
+        _knn_groups(x, qorder, gptr, g, self.k, self.cell, self.lo, self.dims,
+                    self.table_keys, self.table_start, self.table_end, self.sorted_points,
+                    self.order, self.max_ring, self.max_candidates, d, i, done)
+        return d, i, done
+
+    def _query_each(self, x):
+        """Query by query (:func:`_knn_grid`, the k-d tree beyond ``max_ring`` shells)."""
         d, i, done = _knn_grid(x, self.k, self.cell, self.lo, self.dims, self.table_keys,
                                self.table_start, self.table_end, self.sorted_points,
                                self.order, self.max_ring)
@@ -238,6 +286,159 @@ def _knn_grid(x, k, cell, lo, dims, tk, ts, te, pts, order, max_ring):
                     idx[q, m] = order[bi[m]]
                 done[q] = True
     return dist, idx, done
+
+
+@nb.njit(cache=True, parallel=True)
+def _knn_groups(x, qorder, gptr, gcell, k, cell, lo, dims, tk, ts, te, pts, order, max_ring,
+                cap, dist, idx, done):
+    """Per group of queries (``qorder[gptr[g]:gptr[g + 1]]``, all in one cube of edge
+    ``gcell``): the exact k-th neighbour distance ``D`` of the cube's centre ``c`` (cube
+    shells of cells, as :func:`_knn_grid`), the points within ``R = D + gcell sqrt(3)/2``
+    of the cube (every member's k nearest: ``d_k(q) <= D + |q - c|``) sorted by their
+    distance to ``c``, then per member the k best by insertion, the scan stopping once
+    ``|p - c| - |q - c|`` is beyond its k-th best. Groups whose centre needs more than
+    ``max_ring`` shells, or more than ``cap`` candidates, are left (``done`` False)."""
+    G = len(gptr) - 1
+    mask = len(tk) - 1
+    half = gcell * math.sqrt(3.0) / 2
+    for g in nb.prange(G):
+        q0 = qorder[gptr[g]]
+        b0 = math.floor(x[q0, 0] / gcell)
+        b1 = math.floor(x[q0, 1] / gcell)
+        b2 = math.floor(x[q0, 2] / gcell)
+        cx = (b0 + 0.5) * gcell
+        cy = (b1 + 0.5) * gcell
+        cz = (b2 + 0.5) * gcell
+        # 1. the centre's k-th neighbour distance
+        bd = np.full(k, np.inf)
+        cnt = 0
+        c0 = int(math.floor(cx / cell))
+        c1 = int(math.floor(cy / cell))
+        c2 = int(math.floor(cz / cell))
+        ok = False
+        for r in range(max_ring + 1):
+            for a in range(c0 - r, c0 + r + 1):
+                qa = a - lo[0]
+                if qa < 0 or qa >= dims[0]:
+                    continue
+                for b in range(c1 - r, c1 + r + 1):
+                    qb = b - lo[1]
+                    if qb < 0 or qb >= dims[1]:
+                        continue
+                    edge_ab = a == c0 - r or a == c0 + r or b == c1 - r or b == c1 + r
+                    for c in range(c2 - r, c2 + r + 1):
+                        if not edge_ab and c != c2 - r and c != c2 + r:
+                            continue
+                        qc = c - lo[2]
+                        if qc < 0 or qc >= dims[2]:
+                            continue
+                        s = _cell_slot(tk, mask, dims, qa, qb, qc)
+                        if s < 0:
+                            continue
+                        for j in range(ts[s], te[s]):
+                            e0 = cx - pts[j, 0]
+                            e1 = cy - pts[j, 1]
+                            e2 = cz - pts[j, 2]
+                            dd = e0 * e0 + e1 * e1 + e2 * e2
+                            if cnt < k or dd < bd[k - 1]:
+                                m = cnt if cnt < k else k - 1
+                                while m > 0 and bd[m - 1] > dd:
+                                    bd[m] = bd[m - 1]
+                                    m -= 1
+                                bd[m] = dd
+                                if cnt < k:
+                                    cnt += 1
+            out = math.inf
+            for ax in range(3):
+                xa = cx if ax == 0 else (cy if ax == 1 else cz)
+                ca = c0 if ax == 0 else (c1 if ax == 1 else c2)
+                out = min(out, xa - (ca - r) * cell, (ca + r + 1) * cell - xa)
+            if cnt == k and bd[k - 1] <= out * out:
+                ok = True
+                break
+        if not ok:
+            continue
+        # 2. the candidates: points within R of the cube (margins cover round-off)
+        R = (math.sqrt(bd[k - 1]) + half) * (1.0 + 1e-9) + 1e-12 * gcell
+        R2 = R * R
+        lx = b0 * gcell
+        ly = b1 * gcell
+        lz = b2 * gcell
+        hx = lx + gcell
+        hy = ly + gcell
+        hz = lz + gcell
+        cand = np.empty(cap, np.int64)
+        cd = np.empty(cap)
+        n = 0
+        over = False
+        for a in range(int(math.floor((lx - R) / cell)), int(math.floor((hx + R) / cell)) + 1):
+            qa = a - lo[0]
+            if qa < 0 or qa >= dims[0] or over:
+                continue
+            for b in range(int(math.floor((ly - R) / cell)),
+                           int(math.floor((hy + R) / cell)) + 1):
+                qb = b - lo[1]
+                if qb < 0 or qb >= dims[1] or over:
+                    continue
+                for c in range(int(math.floor((lz - R) / cell)),
+                               int(math.floor((hz + R) / cell)) + 1):
+                    qc = c - lo[2]
+                    if qc < 0 or qc >= dims[2] or over:
+                        continue
+                    s = _cell_slot(tk, mask, dims, qa, qb, qc)
+                    if s < 0:
+                        continue
+                    for j in range(ts[s], te[s]):
+                        g0 = max(lx - pts[j, 0], pts[j, 0] - hx, 0.0)
+                        g1 = max(ly - pts[j, 1], pts[j, 1] - hy, 0.0)
+                        g2 = max(lz - pts[j, 2], pts[j, 2] - hz, 0.0)
+                        if g0 * g0 + g1 * g1 + g2 * g2 <= R2:
+                            if n == cap:
+                                over = True
+                                break
+                            e0 = cx - pts[j, 0]
+                            e1 = cy - pts[j, 1]
+                            e2 = cz - pts[j, 2]
+                            cand[n] = j
+                            cd[n] = e0 * e0 + e1 * e1 + e2 * e2
+                            n += 1
+        if over:
+            continue
+        o = np.argsort(cd[:n])
+        cs = cand[:n][o]
+        cdist = np.sqrt(cd[:n][o])
+        # 3. each member's k best among them
+        bi = np.empty(k, np.int64)
+        for t in range(gptr[g], gptr[g + 1]):
+            q = qorder[t]
+            bd[:] = np.inf
+            cnt = 0
+            e0 = x[q, 0] - cx
+            e1 = x[q, 1] - cy
+            e2 = x[q, 2] - cz
+            dq = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2) * (1.0 + 1e-9) + 1e-12 * gcell
+            lim = math.inf
+            for u in range(n):
+                if cnt == k and cdist[u] - dq > lim:
+                    break              # this and every later candidate: beyond the k-th
+                j = cs[u]
+                dd = _sq_dist(x, q, pts, j)
+                if cnt < k or dd < bd[k - 1]:
+                    m = cnt if cnt < k else k - 1
+                    while m > 0 and bd[m - 1] > dd:
+                        bd[m] = bd[m - 1]
+                        bi[m] = bi[m - 1]
+                        m -= 1
+                    bd[m] = dd
+                    bi[m] = j
+                    if cnt < k:
+                        cnt += 1
+                    if cnt == k:
+                        lim = math.sqrt(bd[k - 1]) * (1.0 + 1e-9) + 1e-12 * gcell
+            for m in range(k):
+                dist[q, m] = math.sqrt(bd[m])
+                idx[q, m] = order[bi[m]]
+            done[q] = True
 
 
 def ball_lists(points, centres, radius: float):

@@ -147,7 +147,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
                     progress=None, reach: Optional[float] = None,
                     predict_mean: Optional[Callable] = None,
                     project: Optional[Callable] = None, project_steps: int = 1,
-                    project_clamp: float = 0.5) -> SurfaceMesh:
+                    project_clamp: float = 0.5, timings: Optional[dict] = None) -> SurfaceMesh:
     """Zero level set of a field as a triangle mesh with per-vertex variance.
 
     The lattice is evaluated only where the surface is: starting from the cells
@@ -195,6 +195,11 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
         included); its variance is ``predict``'s there.
     project_steps, project_clamp : int, float
         Newton steps per vertex (>= 1), and the largest step in voxels.
+    timings : dict, optional
+        Filled with the process's CPU seconds per phase ("setup", "follow" (the lattice
+        field included), "block_nodes", "marching_cubes", "stitch", "vertices" (the
+        variance pass or the projection), "final"): what scripts/profile_surface.py
+        reports.
 
     Returns
     -------
@@ -202,6 +207,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     """
     from skimage.measure import marching_cubes
 
+    tick = _Ticker(timings)
     seeds = np.asarray(seeds, dtype=np.float64)
     if seeds.ndim != 2 or seeds.shape[1] != 3 or len(seeds) == 0:
         raise ValueError(f"Expected seed points with shape (N, 3), N >= 1, found {seeds.shape}.")
@@ -226,35 +232,33 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
                    cells.max(0) + dilate + block_cells + 2)
     lattice = _LatticeValues(predict_mean if predict_mean is not None
                              else (lambda x: predict(x)[0]), h, pack, batch)
-    cell_keys = np.sort(pack(cells))
+    # the followed cells (and those refused as too far from a seed: never proposed
+    # twice), by packed key in a hash set
+    followed = _KeySet(2 * len(cells))
+    followed.add(pack(cells))
     frontier = cells
+    cells = [cells]
+    tick("setup")
     bar = progress(dilate + 1, "surface field") if progress else None
     for _ in range(dilate):
-        vals = lattice.corners(frontier)
-        grown = []
-        for step, face in _FACES:
-            fv = vals[:, face]
-            crosses = (fv.min(1) < 0) & (fv.max(1) > 0)
-            grown.append(frontier[crosses] + step)
-        grown = _unique_rows(np.concatenate(grown), pack)
-        keys = pack(grown)
-        new = grown[~_contains(cell_keys, keys)]
+        new = lattice.evaluate_corners(frontier, followed)
         if len(new):
             near = tree.query((new + 0.5) * h, k=1, distance_upper_bound=reach)[0] < np.inf
             new = new[near]
         bar and bar.update(1)
         if len(new) == 0:
             break
-        cell_keys = np.sort(np.concatenate([cell_keys, pack(new)]))
-        cells = np.concatenate([cells, new])
+        cells.append(new)
         frontier = new
-    lattice.corners(frontier)  # the last cells' corners
+    lattice.evaluate_corners(frontier)  # the last cells' corners
     bar and bar.close()
-    node_keys, values = lattice.keys, lattice.values
+    cells = np.concatenate(cells)
+    node_keys, values = lattice.keys, lattice.values    # hash table: key -1 = empty slot
     # memory: only the node values go on
-    del tree, cell_keys, frontier, lattice
-    vals = grown = keys = new = None
+    del tree, followed, frontier, lattice
+    new = None
 
+    tick("follow")
     # 2. Marching cubes per block on its (B+1)^3 nodes, looked up by key.
     blocks = _unique_rows(np.floor_divide(cells, block_cells))
     del cells
@@ -264,6 +268,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     bar = progress(len(blocks), "marching cubes") if progress else None
     bptr, node_local, node_value = _block_nodes(node_keys, values, pack, blocks, block_cells)
     del node_keys, values
+    tick("block_nodes")
     for b, s0, s1 in zip(blocks, bptr[:-1], bptr[1:]):
         bar and bar.update(1)
         if s1 - s0 < 8:
@@ -279,32 +284,17 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
                                         allow_degenerate=False)
         except (ValueError, RuntimeError):
             continue
-        # Faces touching a masked node interpolate a placeholder value: drop them.
-        f = f[_valid_vertices(v, finite)[f].all(1)]
+        k, v, f, n_inner = _block_vertices(v, f, vol_filled, finite, b * block_cells, pack,
+                                           n_inner)
         if len(f) == 0:
             continue
-        # keep only the vertices of the kept faces: the others (on edges with a masked
-        # end) would be stitched and have their variance evaluated for nothing
-        used = np.zeros(len(v), bool)
-        used[f.reshape(-1)] = True
-        if not used.all():
-            f = (np.cumsum(used) - 1)[f]
-            v = v[used]
-        lo, axis, v = _refine_on_edges(v, vol_filled)
-        # (lower lattice node, axis) of each vertex's edge packed into one int64 in the
-        # order of the rows (axis -1..2: a vertex on a node has axis -1); a vertex inside
-        # a cell (axis -2, Lewiner's extra point of an ambiguous cube) belongs to this
-        # block alone and gets its own negative key
-        k = pack(lo + b * block_cells) * 4 + (axis + 1)
-        inner = np.flatnonzero(axis == -2)
-        k[inner] = -(n_inner + 1 + np.arange(len(inner)))
-        n_inner += len(inner)
         keys_all.append(k)
-        verts_all.append(v + b * block_cells)           # lattice coordinates
+        verts_all.append(v)                             # lattice coordinates
         faces_all.append((f + n_verts).astype(np.int32 if n_verts + len(v) < 2**31
                                               else np.int64))
         n_verts += len(v)
     bar and bar.close()
+    tick("marching_cubes")
 
     if not verts_all:
         return SurfaceMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros(0))
@@ -321,6 +311,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
                   & (faces[:, 0] != faces[:, 2])]
     verts, faces, _ = _drop_unused(verts, faces, np.zeros(len(verts)))
+    tick("stitch")
     if project is not None:
         verts, _, var = project_vertices(project, verts, project_steps, project_clamp * h,
                                          batch, predict)
@@ -328,11 +319,30 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
         var = np.empty(len(verts))
         for s in range(0, len(verts), batch):
             var[s:s + batch] = predict(verts[s:s + batch])[1]
+    tick("vertices")
     if max_std is not None:
         bad = np.sqrt(np.maximum(var, 0)) > max_std
         faces = faces[~bad[faces].any(1)]
     verts, faces, var = _drop_unused(verts, faces, var)
+    tick("final")
     return SurfaceMesh(verts, faces, var)
+
+
+class _Ticker:
+    """CPU seconds of the process since the last call, added to ``out[name]`` (nothing
+    when ``out`` is None)."""
+
+    def __init__(self, out: Optional[dict]):
+        import time
+
+        self.out, self.clock = out, time.process_time
+        self.last = self.clock() if out is not None else 0.0
+
+    def __call__(self, name: str) -> None:
+        if self.out is not None:
+            now = self.clock()
+            self.out[name] = self.out.get(name, 0.0) + now - self.last
+            self.last = now
 
 
 def project_vertices(project: Callable, verts: np.ndarray, steps: int = 1,
@@ -407,15 +417,6 @@ def _median_spacing(points: np.ndarray, n: int = 20000) -> float:
 
 
 _CORNERS = np.stack(np.meshgrid(*([0, 1],) * 3, indexing="ij"), -1).reshape(-1, 3)
-# For each of the 6 faces of a cell: the step to the neighbour across it and the
-# indices (into _CORNERS) of the face's 4 corner nodes.
-_FACES = [(np.eye(3, dtype=np.int64)[a] * (1 if side else -1),
-           np.flatnonzero(_CORNERS[:, a] == side)) for a in range(3) for side in (0, 1)]
-
-
-def _contains(sorted_keys: np.ndarray, keys: np.ndarray) -> np.ndarray:
-    pos = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
-    return sorted_keys[pos] == keys
 
 
 def _unique_rows(cells: np.ndarray, pack=None) -> np.ndarray:
@@ -433,7 +434,8 @@ def _block_nodes(node_keys, values, pack, blocks, block_cells: int, dense=None):
     """Lattice nodes grouped by the marching-cubes blocks ``blocks`` whose (B+1)^3 node
     boxes hold them (a node on a block face belongs to both blocks, on an edge or
     corner to 4 or 8): CSR ``ptr`` (len(blocks) + 1) over the flat local indices
-    ``(i nb + j) nb + k`` (int32) and values of each block's nodes.
+    ``(i nb + j) nb + k`` (int32) and values of each block's nodes. Negative keys (the
+    empty slots of :class:`_LatticeValues`' table) are skipped.
 
     One compiled counting pass over the nodes (no per-block box lookups, no sort of
     (block, node) pairs: the grouping needs ~12 bytes per pair). Blocks are found in a
@@ -486,6 +488,8 @@ def _block_nodes_kernel(keys, values, lo, dims, B, bkeys_sorted, bindex, blo, bd
             val = np.empty(ptr[-1])
         for n in range(len(keys)):
             kq = keys[n]
+            if kq < 0:
+                continue                         # an empty slot of a hash table
             ijk[0] = kq // plane + lo[0]
             ijk[1] = (kq % plane) // dims[2] + lo[1]
             ijk[2] = kq % dims[2] + lo[2]
@@ -566,40 +570,207 @@ def _fill_block(node_local, node_value, s0, s1, vol, finite):
 
 
 class _LatticeValues:
-    """Field values at lattice nodes, evaluated once each, in large batches."""
+    """Field values at lattice nodes, evaluated once each, in large batches; held in an
+    open-addressing hash table (``keys``: packed node keys, -1 for an empty slot;
+    ``values``), so that looking up a cell's corners costs a probe, not a binary search
+    of every node evaluated so far."""
 
     def __init__(self, predict_mean, h: float, pack, batch: int):
         # predict_mean(xyz) -> (K,) mean
         self.predict, self.h, self.pack, self.batch = predict_mean, h, pack, batch
-        self.keys = np.zeros(0, dtype=np.int64)       # sorted
-        self.values = np.zeros(0)
+        self.keys = np.full(1 << 16, -1, np.int64)
+        self.values = np.zeros(1 << 16)
+        self.count = 0
 
-    def corners(self, cells: np.ndarray, chunk: int = 65536) -> np.ndarray:
-        """(n, 8) values at the corners of ``cells`` (lower corners, (n, 3)), a chunk of
-        cells at a time (the (n, 8, 3) corner arrays of a million cells are ~200 MB)."""
-        out = np.empty((len(cells), 8))
+    def evaluate_corners(self, cells: np.ndarray, followed: Optional["_KeySet"] = None,
+                         chunk: int = 65536) -> Optional[np.ndarray]:
+        """Evaluate the corners of ``cells`` (lower corners, (n, 3)) not evaluated yet, a
+        chunk of cells at a time; with ``followed``, also one step of surface following:
+        the neighbours of ``cells`` across a face whose corner values change sign
+        (min < 0 < max) that are not in ``followed`` yet (added to it), returned (m, 3)."""
+        out = []
         for s in range(0, len(cells), chunk):
-            c = cells[s:s + chunk]
-            out[s:s + chunk] = self(c[:, None, :] + _CORNERS[None]).reshape(len(c), 8)
-        return out
+            c = np.ascontiguousarray(cells[s:s + chunk], dtype=np.int64)
+            self._reserve(8 * len(c))
+            new = np.empty(8 * len(c), np.int64)
+            slots = np.empty((len(c), 8), np.int64)
+            n = _insert_corners(c, self.pack.lo, self.pack.dims, self.keys, new, slots)
+            self.count += n
+            new = new[:n]
+            # evaluated in key order (as the sorted unique keys were before)
+            new.sort()
+            nodes = self.pack.unpack(new)
+            vals = np.empty(n)
+            for b in range(0, n, self.batch):
+                vals[b:b + self.batch] = self.predict(nodes[b:b + self.batch] * self.h)
+            _set_values(self.keys, self.values, new, vals)
+            if followed is not None:
+                followed.reserve(6 * len(c))
+                grown = np.empty((6 * len(c), 3), np.int64)
+                m = _grow_cells(c, self.pack.lo, self.pack.dims, self.values, slots,
+                                followed.keys, grown)
+                followed.count += m
+                out.append(grown[:m])
+        if followed is None:
+            return None
+        return np.concatenate(out) if out else np.zeros((0, 3), np.int64)
+
+    def _reserve(self, more: int) -> None:
+        self.keys, self.values = _reserve_table(self.keys, self.values, self.count + more)
 
     def __call__(self, ijk: np.ndarray) -> np.ndarray:
-        """Values at integer nodes ``ijk`` (..., 3), evaluating the missing ones."""
-        flat = ijk.reshape(-1, 3)
-        keys = self.pack(flat)
-        missing = ~_contains(self.keys, keys) if len(self.keys) else np.ones(len(keys), bool)
-        if missing.any():
-            new_keys, first = np.unique(keys[missing], return_index=True)
-            nodes = flat[np.flatnonzero(missing)[first]]
-            vals = np.empty(len(nodes))
-            for s in range(0, len(nodes), self.batch):
-                vals[s:s + self.batch] = self.predict(nodes[s:s + self.batch] * self.h)
-            # merge the sorted new keys into the sorted keys (none is in both)
-            at = np.searchsorted(self.keys, new_keys)
-            self.keys = np.insert(self.keys, at, new_keys)
-            self.values = np.insert(self.values, at, vals)
-        pos = np.searchsorted(self.keys, keys)
-        return self.values[pos].reshape(ijk.shape[:-1])
+        """Values at integer nodes ``ijk`` (..., 3), all evaluated before (NaN where not)."""
+        flat = np.ascontiguousarray(ijk.reshape(-1, 3), dtype=np.int64)
+        return _get_values(self.keys, self.values, self.pack(flat)).reshape(ijk.shape[:-1])
+
+
+class _KeySet:
+    """A hash set of non-negative int64 keys (open addressing, -1 empty)."""
+
+    def __init__(self, capacity: int):
+        self.keys = np.full(_table_size(capacity), -1, np.int64)
+        self.count = 0
+
+    def reserve(self, more: int) -> None:
+        self.keys = _reserve_table(self.keys, None, self.count + more)[0]
+
+    def add(self, keys: np.ndarray) -> None:
+        keys = np.ascontiguousarray(keys, dtype=np.int64)
+        self.reserve(len(keys))
+        self.count += _add_keys(self.keys, keys)
+
+
+_MAX_LOAD = 0.7
+
+
+def _table_size(n: int) -> int:
+    """Smallest power of two holding ``n`` keys at a load of at most ``_MAX_LOAD``."""
+    return 1 << max(4, int(math.ceil(math.log2(max(n, 1) / _MAX_LOAD + 1))))
+
+
+def _reserve_table(keys, values, need: int):
+    """The table (keys, values or None) rehashed into a larger one when ``need`` keys
+    would exceed ``_MAX_LOAD`` (the same arrays otherwise)."""
+    if need <= _MAX_LOAD * len(keys):
+        return keys, values
+    size = _table_size(need)
+    nk = np.full(size, -1, np.int64)
+    nv = np.zeros(size) if values is not None else np.zeros(0)
+    _rehash(keys, values if values is not None else np.zeros(0), nk, nv)
+    return nk, (nv if values is not None else None)
+
+
+@nb.njit(cache=True, inline="always")
+def _probe(tk, key):
+    """The slot of ``key`` in the table ``tk`` (linear probing), or the empty slot where
+    it would go."""
+    mask = len(tk) - 1
+    s = ((key * 0x9E3779B97F4A7C15) & 0x7FFFFFFFFFFFFFFF) >> 17 & mask
+    while tk[s] != -1 and tk[s] != key:
+        s = (s + 1) & mask
+    return s
+
+
+@nb.njit(cache=True)
+def _rehash(keys, values, nk, nv):
+    with_values = len(nv) > 0
+    for i in range(len(keys)):
+        if keys[i] != -1:
+            s = _probe(nk, keys[i])
+            nk[s] = keys[i]
+            if with_values:
+                nv[s] = values[i]
+
+
+@nb.njit(cache=True)
+def _add_keys(tk, keys):
+    """Insert ``keys``; returns how many were new."""
+    n = 0
+    for i in range(len(keys)):
+        s = _probe(tk, keys[i])
+        if tk[s] == -1:
+            tk[s] = keys[i]
+            n += 1
+    return n
+
+
+@nb.njit(cache=True, inline="always")
+def _pack1(i, j, k, lo, dims):
+    return ((i - lo[0]) * dims[1] + (j - lo[1])) * dims[2] + (k - lo[2])
+
+
+@nb.njit(cache=True)
+def _insert_corners(cells, lo, dims, tk, new, slots):
+    """Insert the 8 corner nodes of each cell into the node table (value unset), writing
+    each node not there before to ``new`` and each corner's table slot to ``slots``
+    (n, 8); returns the count of new nodes."""
+    n = 0
+    for c in range(len(cells)):
+        for o in range(8):
+            key = _pack1(cells[c, 0] + (o >> 2), cells[c, 1] + ((o >> 1) & 1),
+                         cells[c, 2] + (o & 1), lo, dims)
+            s = _probe(tk, key)
+            slots[c, o] = s
+            if tk[s] == -1:
+                tk[s] = key
+                new[n] = key
+                n += 1
+    return n
+
+
+@nb.njit(cache=True)
+def _set_values(tk, tv, keys, vals):
+    for i in range(len(keys)):
+        tv[_probe(tk, keys[i])] = vals[i]
+
+
+@nb.njit(cache=True)
+def _get_values(tk, tv, keys):
+    out = np.empty(len(keys))
+    for i in range(len(keys)):
+        s = _probe(tk, keys[i])
+        out[i] = tv[s] if tk[s] == keys[i] else np.nan
+    return out
+
+
+@nb.njit(cache=True)
+def _grow_cells(cells, lo, dims, tv, slots, ck, new):
+    """Surface following, one step: for each cell and each of its 6 faces whose 4 corner
+    values (``tv`` at the corners' ``slots``) change sign (min < 0 < max, as
+    ``np.min``/``np.max``: a NaN corner never does), the neighbour across the face
+    unless it is in the cell set ``ck`` (then added to it); written to ``new`` (lattice
+    coordinates), returns their count."""
+    v = np.empty(8)
+    n = 0
+    for c in range(len(cells)):
+        for o in range(8):
+            v[o] = tv[slots[c, o]]
+        for a in range(3):
+            for side in range(2):
+                lo_v = np.inf
+                hi_v = -np.inf
+                nan = False
+                for o in range(8):
+                    if ((o >> (2 - a)) & 1) == side:
+                        x = v[o]
+                        if math.isnan(x):
+                            nan = True
+                        lo_v = min(lo_v, x)
+                        hi_v = max(hi_v, x)
+                if nan or not (lo_v < 0.0 and hi_v > 0.0):
+                    continue
+                i = cells[c, 0] + (2 * side - 1 if a == 0 else 0)
+                j = cells[c, 1] + (2 * side - 1 if a == 1 else 0)
+                k = cells[c, 2] + (2 * side - 1 if a == 2 else 0)
+                key = _pack1(i, j, k, lo, dims)
+                s = _probe(ck, key)
+                if ck[s] == -1:
+                    ck[s] = key
+                    new[n, 0] = i
+                    new[n, 1] = j
+                    new[n, 2] = k
+                    n += 1
+    return n
 
 
 class _Packer:
@@ -623,6 +794,134 @@ class _Packer:
         q = np.column_stack([keys // plane, (keys % plane) // self.dims[2],
                              keys % self.dims[2]])
         return q + self.lo
+
+
+def _block_vertices(v, f, vol, finite, offset, pack, n_inner: int):
+    """One block's marching-cubes output made ready to stitch: faces touching a masked
+    node dropped (they interpolate a placeholder value, :func:`_valid_vertices`), the
+    vertices of no kept face dropped (they would be stitched and have their variance
+    evaluated for nothing), the rest snapped to their lattice edges in float64
+    (:func:`_refine_on_edges`) and keyed by (lower lattice node, axis) packed into one
+    int64 (axis -1..2: a vertex on a node has axis -1); a vertex inside a cell (axis -2,
+    Lewiner's extra point of an ambiguous cube) belongs to this block alone and gets its
+    own negative key, numbered on from ``n_inner``.
+
+    Returns keys (V,), vertices (V, 3) in lattice coordinates (``offset``, the block's
+    lower node, added), faces (F, 3) into them, and the inner vertices numbered so far.
+    One compiled pass for scikit-image's float32 vertices (the same arithmetic as the
+    numpy functions, which serve any other dtype)."""
+    if v.dtype == np.float32:
+        off = np.asarray(offset, np.int64)
+        keys, out, faces, n_in = _block_vertices_kernel(
+            v, np.ascontiguousarray(f, np.int64), vol, finite, off, pack.lo, pack.dims,
+            int(n_inner))
+        return keys, out, faces, n_in
+    f = f[_valid_vertices(v, finite)[f].all(1)]
+    used = np.zeros(len(v), bool)
+    used[f.reshape(-1)] = True
+    if not used.all():
+        f = (np.cumsum(used) - 1)[f]
+        v = v[used]
+    lo, axis, v = _refine_on_edges(v, vol)
+    k = pack(lo + offset) * 4 + (axis + 1)
+    inner = np.flatnonzero(axis == -2)
+    k[inner] = -(n_inner + 1 + np.arange(len(inner)))
+    return k, v + offset, f, n_inner + len(inner)
+
+
+@nb.njit(cache=True)
+def _block_vertices_kernel(v, f, vol, finite, off, plo, pdims, n_inner):
+    """:func:`_block_vertices` for float32 vertices: :func:`_valid_vertices` (float32
+    ``v +- 1e-9``), the kept faces' vertices, :func:`_refine_on_edges` (float32
+    ``v + 1e-4``, fractions and interpolation in float64) and the keys."""
+    V = v.shape[0]
+    n = finite.shape[0] - 1
+    eps9 = np.float32(1e-9)
+    eps4 = np.float32(1e-4)
+    valid = np.empty(V, np.bool_)
+    lo_c = np.empty(3, np.int64)
+    hi_c = np.empty(3, np.int64)
+    for i in range(V):
+        for a in range(3):
+            lo_c[a] = min(max(int(math.floor(v[i, a] + eps9)), 0), n)
+            hi_c[a] = min(max(int(math.ceil(v[i, a] - eps9)), 0), n)
+        ok = True
+        for o in range(8):
+            qa = hi_c[0] if (o >> 2) & 1 else lo_c[0]
+            qb = hi_c[1] if (o >> 1) & 1 else lo_c[1]
+            qc = hi_c[2] if o & 1 else lo_c[2]
+            if not finite[qa, qb, qc]:
+                ok = False
+                break
+        valid[i] = ok
+    keep = np.empty(len(f), np.bool_)
+    nf = 0
+    used = np.zeros(V, np.bool_)
+    for t in range(len(f)):
+        keep[t] = valid[f[t, 0]] and valid[f[t, 1]] and valid[f[t, 2]]
+        if keep[t]:
+            nf += 1
+            used[f[t, 0]] = True
+            used[f[t, 1]] = True
+            used[f[t, 2]] = True
+    remap = np.empty(V, np.int64)
+    nv = 0
+    for i in range(V):
+        remap[i] = nv
+        if used[i]:
+            nv += 1
+    faces = np.empty((nf, 3), np.int64)
+    m = 0
+    for t in range(len(f)):
+        if keep[t]:
+            for c in range(3):
+                faces[m, c] = remap[f[t, c]]
+            m += 1
+    keys = np.empty(nv, np.int64)
+    out = np.empty((nv, 3))
+    lo = np.empty(3, np.int64)
+    fr = np.empty(3)
+    m = 0
+    for i in range(V):
+        if not used[i]:
+            continue
+        for a in range(3):
+            lo[a] = int(math.floor(v[i, a] + eps4))
+            fr[a] = np.float64(v[i, a]) - lo[a]
+        axis = 0
+        for a in range(1, 3):
+            if fr[a] > fr[axis]:
+                axis = a                       # np.argmax: the first largest
+        nbig = 0
+        for a in range(3):
+            if fr[a] > 1e-4:
+                nbig += 1
+        for a in range(3):
+            out[m, a] = np.float64(lo[a])
+        if nbig >= 2:                          # inside a cube
+            axis = -2
+            for a in range(3):
+                out[m, a] = np.float64(v[i, a])
+        elif fr[axis] < 1e-4:                  # on a node
+            axis = -1
+        else:
+            v0 = vol[lo[0], lo[1], lo[2]]
+            hi0 = lo[0] + (1 if axis == 0 else 0)
+            hi1 = lo[1] + (1 if axis == 1 else 0)
+            hi2 = lo[2] + (1 if axis == 2 else 0)
+            v1 = vol[hi0, hi1, hi2]
+            den = v0 - v1
+            out[m, axis] += v0 / den if den != 0 else 0.5
+        if axis == -2:
+            n_inner += 1
+            keys[m] = -n_inner
+        else:
+            keys[m] = _pack1(lo[0] + off[0], lo[1] + off[1], lo[2] + off[2], plo, pdims) \
+                * 4 + (axis + 1)
+        for a in range(3):
+            out[m, a] += off[a]
+        m += 1
+    return keys, out, faces, n_inner
 
 
 def _refine_on_edges(v: np.ndarray, vol: np.ndarray):
