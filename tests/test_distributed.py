@@ -1089,3 +1089,53 @@ def test_a_tiled_build_warns_when_the_scan_is_not_z_up():
         for up in (None, (0.0, 0.0, -1.0)):
             with pytest.raises(TilingError, match="at least one tile"):
                 build_tiled_map(gm.Scan(pts, up=up), spec=spec)
+
+
+# ---------------------------------------------------------------- streamed surface
+
+
+def _face_set(m):
+    """The faces of a mesh as a sorted array of their vertices' coordinates (each face's
+    three vertices in lexicographic order): equal for the same faces on the same
+    vertices in any vertex and face order."""
+    tri = m.vertices[m.faces]                                   # (F, 3, 3)
+    key = np.lexsort(tri.transpose(2, 0, 1)[::-1], axis=1)      # order within a face
+    tri = np.take_along_axis(tri, key[:, :, None], axis=1).reshape(len(tri), 9)
+    return tri[np.lexsort(tri.T[::-1])]
+
+
+def test_streamed_tiled_surface_is_the_whole_lattice_mesh(tiled, tmp_path):
+    """Meshed region by region (tiling/mesh.py) the stitched surface has the same
+    vertices, variances and faces, bit for bit, as TiledMap.extract_surface's single
+    lattice; the PLY written from pieces on disk is byte for byte write_mesh_ply's of
+    that mesh; on a saved map every tile is loaded once for the seeds and once more for
+    the regions."""
+    from gmmgp_app.pipeline import read_mesh_ply, std_colour_max, write_mesh_ply
+    from gmmgp_app.tiling import load_tiled_map
+    from gmmgp_app.tiling.mesh import streamed_surface_mesh, write_tiled_surface_ply
+
+    whole = tiled.extract_surface(voxel_size=0.15)
+    stats = {}
+    parts = streamed_surface_mesh(tiled, voxel_size=0.15, stats=stats)
+    assert stats["regions"] >= 4 and len(whole.faces) > 5000
+    assert len(parts.vertices) == len(whole.vertices) and len(parts.faces) == len(whole.faces)
+    ow, op = (np.lexsort(m.vertices.T[::-1]) for m in (whole, parts))
+    assert np.array_equal(whole.vertices[ow], parts.vertices[op])
+    assert np.array_equal(whole.vertex_variance[ow], parts.vertex_variance[op])
+    assert np.array_equal(_face_set(whole), _face_set(parts))
+    # a face moved to other vertices would be caught
+    bad = type(parts)(parts.vertices, parts.faces.copy(), parts.vertex_variance)
+    bad.faces[0, 0] = bad.faces[1, 1] if bad.faces[1, 1] != bad.faces[0, 0] else bad.faces[2, 2]
+    assert not np.array_equal(_face_set(whole), _face_set(bad))
+
+    saved = load_tiled_map(tiled.save(tmp_path / "tm"), load_points=False)
+    made = write_tiled_surface_ply(saved, tmp_path / "s.ply", offset=saved.offset,
+                                   voxel_size=0.15)
+    assert made["tile_loads"] == 2 * len(saved.keys)
+    assert made["vertices"] == len(parts.vertices) and made["faces"] == len(parts.faces)
+    write_mesh_ply(parts, tmp_path / "w.ply", offset=saved.offset,
+                   vmax=std_colour_max([parts]))
+    assert (tmp_path / "s.ply").read_bytes() == (tmp_path / "w.ply").read_bytes()
+    back = read_mesh_ply(tmp_path / "s.ply")
+    assert np.array_equal(_face_set(back), _face_set(parts))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.ply", "tm", "w.ply"]
