@@ -77,6 +77,28 @@ class _TileHolder:
             self._held.pop(k, None)
 
 
+class _Inside:
+    """A field evaluated only at queries whose (x, y) lie in a box; zeros elsewhere."""
+
+    def __init__(self, lo, hi):
+        self.lo, self.hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+
+    def wrap(self, fn, grad: bool = False):
+        """``fn`` (-> mean, var[, grad]) evaluated inside the box only."""
+        def inside(x):
+            x = np.asarray(x, np.float64)
+            ok = np.all((x[:, :2] >= self.lo) & (x[:, :2] <= self.hi), axis=1)
+            if ok.all():
+                return fn(x)
+            n = len(x)
+            out = [np.zeros(n), np.zeros(n)] + ([np.zeros((n, 3))] if grad else [])
+            if ok.any():
+                for z, a in zip(out, fn(x[ok])):
+                    z[ok] = a
+            return tuple(out)
+        return inside
+
+
 def _region_index(block, size: float, span: float) -> np.ndarray:
     """Tile-square index of block columns ``block`` (int array): the square holding the
     block's lower corner (``span``: a block's edge in m)."""
@@ -129,6 +151,8 @@ def stream_tiled_surface(tmap, voxel_size: Optional[float] = None, max_std=None,
     span = BLOCK_CELLS * h
     size = float(spec.size)
     margin = (dilate + 4) * h + reach
+    # projected vertices leave the border planes by up to steps * clamp voxels
+    tol = steps * float(getattr(cfg, "project_clamp", 0.5)) * h / span if steps > 0 else 0.0
 
     # regions: the tile squares holding a block column near a seed
     sb = np.floor_divide(np.floor(seeds[:, :2] / h).astype(np.int64), BLOCK_CELLS)
@@ -169,10 +193,17 @@ def stream_tiled_surface(tmap, voxel_size: Optional[float] = None, max_std=None,
         sel = np.all((seeds[:, :2] >= x0) & (seeds[:, :2] <= x1), axis=1)
         piece = None
         if sel.any():
-            piece = extract_surface(view.predict, seeds[sel], voxel_size=h, max_std=max_std,
+            # the field at the vertices only where the region may keep faces (a kept
+            # face's vertices lie in its block columns, or within the projection's
+            # reach of them); elsewhere zeros, for vertices whose faces are dropped
+            pad = (steps * float(getattr(cfg, "project_clamp", 0.5)) + 1.0) * h
+            inside = _Inside(lo * span - pad, hi * span + pad)
+            piece = extract_surface(inside.wrap(view.predict), seeds[sel], voxel_size=h,
+                                    max_std=max_std,
                                     block_cells=BLOCK_CELLS, dilate=dilate, reach=reach,
                                     predict_mean=view.lattice_mean,
-                                    project=((lambda x: view.predict(x, return_grad=True))
+                                    project=(inside.wrap(lambda x: view.predict(
+                                        x, return_grad=True), grad=True)
                                              if steps > 0 else None),
                                     project_steps=max(steps, 1),
                                     project_clamp=float(getattr(cfg, "project_clamp", 0.5)))
@@ -190,7 +221,7 @@ def stream_tiled_surface(tmap, voxel_size: Optional[float] = None, max_std=None,
             idx = np.flatnonzero(used)
             # vertices on the region's border planes may be shared with a neighbour
             q = v[idx, :2] / span
-            border = np.any(np.abs(q - np.round(q)) < 1e-6, axis=1)
+            border = np.any(np.abs(q - np.round(q)) < 1e-6 + tol, axis=1)
             glob = np.full(len(v), -1, np.int64)
             mine = []
             for i in idx[border]:
@@ -233,8 +264,16 @@ def streamed_surface_mesh(tmap, voxel_size=None, max_std=None, progress=None, st
     return SurfaceMesh(np.concatenate(vs), np.concatenate(fs), np.concatenate(vars_))
 
 
+def _chunks(path, width: int, n: int, chunk: int, dtype="<f8"):
+    """``(start, rows (m, width))`` of a raw array file, ``chunk`` rows at a time."""
+    with open(path, "rb") as f:
+        for s in range(0, n, chunk):
+            m = min(chunk, n - s)
+            yield s, np.fromfile(f, dtype, m * width).reshape(m, width)
+
+
 def write_tiled_surface_ply(tmap, path, offset=None, voxel_size=None, max_std=None,
-                            progress=None, chunk: int = 1 << 20) -> dict:
+                            progress=None, chunk: int = 1 << 16) -> dict:
     """Write the stitched surface of ``tmap`` to the binary PLY ``path``
     (:func:`gmmgp_app.pipeline.write_mesh_ply`'s layout: vertices with std colours on
     viridis, top of the scale the 98th percentile of the std, and a ``variance``
@@ -264,8 +303,11 @@ def write_tiled_surface_ply(tmap, path, offset=None, voxel_size=None, max_std=No
                 f.astype("<i4").tofile(ff)
                 nv += len(v)
                 nf += len(f)
-        vdata = np.memmap(work / "v.bin", "<f8", "r", shape=(nv, 4)) if nv else np.zeros((0, 4))
-        var_all = np.asarray(vdata[:, 3])
+        # read back in chunks with plain reads (a memory map's pages would count in the
+        # resident set); the variances alone for the colour scale's percentile
+        var_all = np.empty(nv)
+        for s, d in _chunks(work / "v.bin", 4, nv, chunk):
+            var_all[s:s + len(d)] = d[:, 3]
         vmax = float(np.sqrt(np.quantile(var_all, 0.98))) if nv else None
         del var_all
         header = ("ply\nformat binary_little_endian 1.0\ncomment gmmgp_app surface, variance "
@@ -275,23 +317,18 @@ def write_tiled_surface_ply(tmap, path, offset=None, voxel_size=None, max_std=No
                   f"element face {nf}\nproperty list uchar int vertex_indices\nend_header\n")
         with atomic_path(path) as tmp, open(tmp, "wb") as out:
             out.write(header.encode())
-            for s in range(0, nv, chunk):
-                d = np.asarray(vdata[s:s + chunk])
+            for s, d in _chunks(work / "v.bin", 4, nv, chunk):
                 rec = np.empty(len(d), _VERTEX_DTYPE)
                 rec["x"], rec["y"], rec["z"] = (d[:, :3] + off).T
                 rgb = variance_colors(d[:, 3], vmax)
                 rec["red"], rec["green"], rec["blue"] = rgb.T
                 rec["variance"] = d[:, 3]
                 out.write(rec.tobytes())
-            fdata = (np.memmap(work / "f.bin", "<i4", "r", shape=(nf, 3)) if nf
-                     else np.zeros((0, 3), "<i4"))
-            for s in range(0, nf, chunk):
-                rec = np.empty(min(chunk, nf - s), _FACE_DTYPE)
+            for s, d in _chunks(work / "f.bin", 3, nf, chunk, "<i4"):
+                rec = np.empty(len(d), _FACE_DTYPE)
                 rec["n"] = 3
-                rec["i"] = fdata[s:s + chunk]
+                rec["i"] = d
                 out.write(rec.tobytes())
-            del fdata
-        del vdata
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return dict(vertices=nv, faces=nf, vmax=vmax, **stats)
