@@ -1139,3 +1139,25 @@ def test_streamed_tiled_surface_is_the_whole_lattice_mesh(tiled, tmp_path):
     back = read_mesh_ply(tmp_path / "s.ply")
     assert np.array_equal(_face_set(back), _face_set(parts))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.ply", "tm", "w.ply"]
+
+
+def test_streamed_tiled_surface_with_projection_is_the_whole_lattice_mesh(street):
+    """With surface.project_steps = 1 (vertices projected onto the stitched zero level)
+    the region-by-region mesh still has the whole lattice mesh's vertices and faces:
+    the faces go to the region of their projected centroid, and the vertices two
+    regions share are merged within the projection's reach of the border planes."""
+    import dataclasses
+
+    from gmmgp_app.tiling.mesh import streamed_surface_mesh
+
+    scan, _ = street
+    cfg = gm.MappingConfig()
+    cfg = dataclasses.replace(cfg, surface=dataclasses.replace(cfg.surface, project_steps=1))
+    tm = build_tiled_map(scan, cfg, TileSpec(size=8.0, overlap=2.0))
+    whole = tm.extract_surface(voxel_size=0.2)
+    parts = streamed_surface_mesh(tm, voxel_size=0.2)
+    assert len(whole.faces) > 2000
+    assert len(parts.vertices) == len(whole.vertices)
+    ow, op = (np.lexsort(m.vertices.T[::-1]) for m in (whole, parts))
+    assert np.array_equal(whole.vertices[ow], parts.vertices[op])
+    assert np.array_equal(_face_set(whole), _face_set(parts))

@@ -151,8 +151,11 @@ def stream_tiled_surface(tmap, voxel_size: Optional[float] = None, max_std=None,
     span = BLOCK_CELLS * h
     size = float(spec.size)
     margin = (dilate + 4) * h + reach
-    # projected vertices leave the border planes by up to steps * clamp voxels
-    tol = steps * float(getattr(cfg, "project_clamp", 0.5)) * h / span if steps > 0 else 0.0
+    # with projection a face goes to the region of its projected centroid, which moves
+    # by up to steps * clamp voxels: the vertices a neighbour may share lie within a cell
+    # plus twice that of a border plane
+    clamp = float(getattr(cfg, "project_clamp", 0.5))
+    tol = (2 * steps * clamp + 1) * h / span if steps > 0 else 0.0
 
     # regions: the tile squares holding a block column near a seed
     sb = np.floor_divide(np.floor(seeds[:, :2] / h).astype(np.int64), BLOCK_CELLS)
