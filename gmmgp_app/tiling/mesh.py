@@ -267,6 +267,46 @@ def streamed_surface_mesh(tmap, voxel_size=None, max_std=None, progress=None, st
     return SurfaceMesh(np.concatenate(vs), np.concatenate(fs), np.concatenate(vars_))
 
 
+def chunked_quantile(chunks, q: float, bins: int = 4096) -> float:
+    """``np.quantile(x, q)`` (its default, linear method; the same float bit for bit) of
+    the values ``x`` that ``chunks()`` yields, a chunk at a time, without holding them:
+    a pass for their count and range, a histogram pass to find the bins of the two
+    order statistics the quantile interpolates, and a pass collecting those bins'
+    values. NaN if a value is NaN (as np.quantile)."""
+    n, lo, hi = 0, np.inf, -np.inf
+    for x in chunks():
+        if len(x):
+            if np.isnan(x).any():
+                return float("nan")
+            n += len(x)
+            lo, hi = min(lo, float(x.min())), max(hi, float(x.max()))
+    if n == 0:
+        raise ValueError("Expected at least one value for a quantile, found none.")
+    # numpy's linear method (Hyndman & Fan type 7): virtual index (n - 1) q
+    virtual = (n - 1) * np.float64(q)
+    prev = np.floor(virtual)
+    gamma = virtual - prev
+    k0 = int(min(max(prev, 0), n - 1))
+    k1 = int(min(max(prev + 1, 0), n - 1))
+    if lo == hi:
+        a = b = np.float64(lo)
+    else:
+        def bin_of(x):
+            return np.clip(((x - lo) / (hi - lo) * bins).astype(np.int64), 0, bins - 1)
+
+        counts = np.zeros(bins, np.int64)
+        for x in chunks():
+            counts += np.bincount(bin_of(x), minlength=bins)
+        cum = np.cumsum(counts)
+        b0, b1 = (int(np.searchsorted(cum, k, side="right")) for k in (k0, k1))
+        vals = np.sort(np.concatenate([x[(bin_of(x) >= b0) & (bin_of(x) <= b1)]
+                                       for x in chunks()]))
+        start = int(cum[b0 - 1]) if b0 > 0 else 0
+        a, b = vals[k0 - start], vals[k1 - start]
+    diff = b - a
+    return float(b - diff * (1 - gamma) if gamma >= 0.5 else a + diff * gamma)
+
+
 def _chunks(path, width: int, n: int, chunk: int, dtype="<f8"):
     """``(start, rows (m, width))`` of a raw array file, ``chunk`` rows at a time."""
     with open(path, "rb") as f:
@@ -307,12 +347,10 @@ def write_tiled_surface_ply(tmap, path, offset=None, voxel_size=None, max_std=No
                 nv += len(v)
                 nf += len(f)
         # read back in chunks with plain reads (a memory map's pages would count in the
-        # resident set); the variances alone for the colour scale's percentile
-        var_all = np.empty(nv)
-        for s, d in _chunks(work / "v.bin", 4, nv, chunk):
-            var_all[s:s + len(d)] = d[:, 3]
-        vmax = float(np.sqrt(np.quantile(var_all, 0.98))) if nv else None
-        del var_all
+        # resident set); the colour scale's percentile without holding every variance
+        vmax = (float(np.sqrt(chunked_quantile(
+            lambda: (d[:, 3] for _, d in _chunks(work / "v.bin", 4, nv, chunk)), 0.98)))
+            if nv else None)
         header = ("ply\nformat binary_little_endian 1.0\ncomment gmmgp_app surface, variance "
                   f"in m^2\nelement vertex {nv}\nproperty double x\nproperty double y\n"
                   "property double z\nproperty uchar red\nproperty uchar green\n"
