@@ -248,7 +248,7 @@ def stream_tiled_surface(tmap, voxel_size: Optional[float] = None, max_std=None,
                 shared.pop(key, None)
     bar and bar.close()
     if stats is not None:
-        stats.update(regions=len(regions), tile_loads=holder.loads + 0,
+        stats.update(regions=len(regions), tile_loads=holder.loads,
                      peak_tiles_held=holder.peak_held, voxel=h)
 
 
@@ -341,8 +341,8 @@ def write_tiled_surface_ply(tmap, path, offset=None, voxel_size=None, max_std=No
             for v, var, f in stream_tiled_surface(tmap, voxel_size, max_std, progress, stats):
                 np.column_stack([v, var]).astype("<f8").tofile(fv)
                 if nv + len(v) >= 2 ** 31:
-                    raise ValueError(f"Expected fewer than 2^31 mesh vertices for a PLY with "
-                                     f"int indices, found more; mesh at a larger voxel.")
+                    raise ValueError("Expected fewer than 2^31 mesh vertices for a PLY with "
+                                     "int indices, found more; mesh at a larger voxel.")
                 f.astype("<i4").tofile(ff)
                 nv += len(v)
                 nf += len(f)
