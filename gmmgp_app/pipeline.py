@@ -1070,6 +1070,7 @@ prepare = _prepare.prepare
 fit_hgmm = _hgmm.fit_hgmm
 new_space_fraction = _octree.new_space_fraction
 extract_surface = _surface.extract_surface
+check_grid_size = _surface.check_grid_size
 mesh_field = _surface.mesh_field
 surface_reach = _surface.surface_reach
 std_colour_max = _surface.std_colour_max

@@ -9,6 +9,13 @@ at random points.
 
     python scripts/bench_scale.py                        # writes out/bench/bench_scale.json
     python scripts/bench_scale.py --sizes 1,2 --density 0.01   # quicker
+    python scripts/bench_scale.py --dask-sizes 0 --mesh streamed,memory   # + the mesh
+
+With ``--mesh`` the serial run's tiled map is saved and meshed in a fresh process per
+mode (``streamed``: region by region into the PLY, what ``gmmgp run --tile-size`` does;
+``memory``: the whole stitched lattice and mesh at once, the path before), and the two
+meshes are compared; a tiled run's peak RSS with its mesh is the larger of the build's
+and the mesh's.
 
 Every process runs with one BLAS thread (as Dask workers do): multithreaded BLAS on
 a loaded 2-core machine slows the blocks' Cholesky factorisations down ~100x.
@@ -50,8 +57,9 @@ def make_laz(path: Path, length: float, density: float, seed: int = 0) -> dict:
 
 
 def run_map(laz: Path, work: Path, tile: float, overlap: float, workers: int,
-            chunk: int, queries: Path, pred_out: Path) -> dict:
-    """Stream-map one file (child process) and report time, peak RSS, counts."""
+            chunk: int, queries: Path, pred_out: Path, save: str = "") -> dict:
+    """Stream-map one file (child process) and report time, CPU, peak RSS, counts;
+    with ``save`` also save the tiled map there (for the mesh runs)."""
     import gmmgp_app as gm
     from gmmgp_app.distributed import open_executor
     from gmmgp_app.tiling import TileSpec, build_tiled_map_from_las
@@ -60,6 +68,7 @@ def run_map(laz: Path, work: Path, tile: float, overlap: float, workers: int,
     cfg = gm.MappingConfig()
     spec = TileSpec(size=tile, overlap=overlap)
     t_open = time.perf_counter()
+    cpu0 = time.process_time()
     worker_rss = None
     with open_executor(workers=workers or None) as ex:
         client = getattr(ex, "_client", None)
@@ -70,16 +79,75 @@ def run_map(laz: Path, work: Path, tile: float, overlap: float, workers: int,
         tm = build_tiled_map_from_las(laz, cfg, spec, work_dir=work, executor=ex,
                                       chunk_size=chunk, offset=OFFSET)
         t1 = time.perf_counter()
+        cpu1 = time.process_time()
         if client is not None:
             worker_rss = max(client.run(_rss_mb).values())
+    build_rss = _rss_mb()
+    if save:
+        tm.save(save)
     q = np.load(queries)
     m, v = tm.predict(q)
     np.save(pred_out, np.column_stack([m, v]))
     return dict(seconds=t1 - t0, cluster_start_seconds=t0 - t_open,
+                cpu_seconds=cpu1 - cpu0, build_peak_rss_mb=build_rss,
                 peak_rss_mb=_rss_mb(), rss_after_imports_mb=rss0,
                 worker_peak_rss_mb=worker_rss,
                 n_tiles=tm.summary["n_tiles"], n_points=tm.summary["n_points"],
                 skipped_tiles=len(tm.summary["skipped_tiles"]))
+
+
+def run_mesh(tiled: Path, mode: str, ply: Path) -> dict:
+    """Mesh a saved tiled map (child process) as ``gmmgp run --tile-size`` does after its
+    build: ``memory``, the whole stitched lattice and mesh held at once
+    (TiledMap.extract_surface + write_mesh_ply, the path before session 7), or
+    ``streamed``, region by region into the PLY (tiling/mesh.py). Reports wall and CPU
+    seconds, peak RSS (the map opened as gmmgp run reopens it, without points)."""
+    from gmmgp_app.pipeline import std_colour_max, write_mesh_ply
+    from gmmgp_app.tiling import load_tiled_map
+    from gmmgp_app.tiling.mesh import write_tiled_surface_ply
+
+    rss0 = _rss_mb()
+    tm = load_tiled_map(tiled, load_points=False)
+    t0, c0 = time.perf_counter(), time.process_time()
+    if mode == "memory":
+        mesh = tm.extract_surface()
+        write_mesh_ply(mesh, ply, offset=tm.offset, vmax=std_colour_max([mesh]))
+        info = dict(vertices=len(mesh.vertices), faces=len(mesh.faces))
+        del mesh
+    else:
+        info = write_tiled_surface_ply(tm, ply, offset=tm.offset)
+    return dict(info, mode=mode, seconds=time.perf_counter() - t0,
+                cpu_seconds=time.process_time() - c0, peak_rss_mb=_rss_mb(),
+                rss_after_imports_mb=rss0)
+
+
+def compare_meshes(a: Path, b: Path) -> dict:
+    """Two PLY meshes of the same surface compared (child process): counts, whether the
+    vertex sets and the face sets (faces as their vertices' coordinates) are equal bit
+    for bit, and the largest vertex-to-vertex distance between them otherwise."""
+    from scipy.spatial import cKDTree
+
+    from gmmgp_app.pipeline import read_mesh_ply
+
+    ma, mb = read_mesh_ply(a), read_mesh_ply(b)
+    out = dict(vertices=[len(ma.vertices), len(mb.vertices)],
+               faces=[len(ma.faces), len(mb.faces)])
+    va = ma.vertices[np.lexsort(ma.vertices.T[::-1])]
+    vb = mb.vertices[np.lexsort(mb.vertices.T[::-1])]
+    out["vertices_equal"] = bool(va.shape == vb.shape and np.array_equal(va, vb))
+
+    def faces(m):
+        tri = m.vertices[m.faces]
+        key = np.lexsort(tri.transpose(2, 0, 1)[::-1], axis=1)
+        tri = np.take_along_axis(tri, key[:, :, None], axis=1).reshape(len(tri), 9)
+        return tri[np.lexsort(tri.T[::-1])]
+
+    out["faces_equal"] = bool(out["faces"][0] == out["faces"][1]
+                              and np.array_equal(faces(ma), faces(mb)))
+    if not (out["vertices_equal"] and out["faces_equal"]):
+        out["max_vertex_distance_m"] = float(max(cKDTree(vb).query(va)[0].max(),
+                                                 cKDTree(va).query(vb)[0].max()))
+    return out
 
 
 def _warm_up() -> None:
@@ -90,8 +158,9 @@ def _warm_up() -> None:
 
 def _child(args) -> None:
     kw = json.loads(args.child_args)
-    fn = {"make_laz": make_laz, "run_map": run_map}[args.child]
-    for k in ("path", "laz", "work", "queries", "pred_out"):
+    fn = {"make_laz": make_laz, "run_map": run_map, "run_mesh": run_mesh,
+          "compare_meshes": compare_meshes}[args.child]
+    for k in ("path", "laz", "work", "queries", "pred_out", "tiled", "ply", "a", "b"):
         if k in kw:
             kw[k] = Path(kw[k])
     print("RESULT " + json.dumps(fn(**kw)))
@@ -120,6 +189,9 @@ def main(argv=None) -> int:
     ap.add_argument("--dask-sizes", default="", help="sizes also run on Dask (default: "
                     "the largest)")
     ap.add_argument("--repeat", type=int, default=3, help="runs per setting (median)")
+    ap.add_argument("--mesh", default="", help="also mesh the serial run's saved map, in "
+                    "a fresh process per mode: 'streamed', 'memory' or 'streamed,memory' "
+                    "(the meshes compared)")
     ap.add_argument("--out", default="out/bench/bench_scale.json")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     ap.add_argument("--child-args", help=argparse.SUPPRESS)
@@ -149,19 +221,45 @@ def main(argv=None) -> int:
         preds = {}
         for name, w in runs:
             pf = cache / f"pred_{k}_{name}.npy"
+            saved = cache / f"map_{k}" if (args.mesh and name == "serial") else ""
             reps = [_spawn("run_map", laz=laz, work=cache / f"work_{k}_{name}_{r}",
                            tile=args.tile, overlap=args.overlap, workers=w,
-                           chunk=args.chunk, queries=qf, pred_out=pf)
+                           chunk=args.chunk, queries=qf, pred_out=pf, save=str(saved))
                     for r in range(args.repeat)]
             # the machine is shared: medians of fresh-process runs
             res = dict(reps[0], seconds=float(np.median([r["seconds"] for r in reps])),
                        seconds_all=[r["seconds"] for r in reps],
-                       peak_rss_mb=float(np.median([r["peak_rss_mb"] for r in reps])))
+                       cpu_seconds=float(np.median([r["cpu_seconds"] for r in reps])),
+                       build_peak_rss_mb=float(np.median([r["build_peak_rss_mb"]
+                                                          for r in reps])),
+                       peak_rss_mb=float(np.median([r["peak_rss_mb"] for r in reps])),
+                       load=os.getloadavg()[0])
             row[name] = res
             preds[name] = np.load(pf)
             print(f"{k}x {length:g} m {name}: {res['seconds']:.1f} s, peak RSS "
                   f"{res['peak_rss_mb']:.0f} MB, {res['n_tiles']} tiles, "
                   f"{res['n_points']} points", flush=True)
+        for mode in [m for m in args.mesh.split(",") if m]:
+            ms = [_spawn("run_mesh", tiled=cache / f"map_{k}", mode=mode,
+                         ply=cache / f"mesh_{k}_{mode}.ply") for _ in range(args.repeat)]
+            row[f"mesh_{mode}"] = dict(ms[0], seconds=float(np.median([m["seconds"] for m in ms])),
+                                       cpu_seconds=float(np.median([m["cpu_seconds"]
+                                                                    for m in ms])),
+                                       cpu_all=[m["cpu_seconds"] for m in ms],
+                                       peak_rss_mb=float(np.median([m["peak_rss_mb"]
+                                                                    for m in ms])),
+                                       load=os.getloadavg()[0])
+            # the peak of a tiled run with its mesh: the build's or the mesh's
+            row[f"run_peak_rss_mb_{mode}"] = max(row["serial"]["build_peak_rss_mb"],
+                                                 row[f"mesh_{mode}"]["peak_rss_mb"])
+            m = row[f"mesh_{mode}"]
+            print(f"{k}x mesh {mode}: {m['seconds']:.1f} s, {m['cpu_seconds']:.1f} CPU-s, "
+                  f"peak RSS {m['peak_rss_mb']:.0f} MB, {m['vertices']} vertices, "
+                  f"{m['faces']} faces", flush=True)
+        if {"streamed", "memory"} <= set(args.mesh.split(",")):
+            row["mesh_compare"] = _spawn("compare_meshes", a=cache / f"mesh_{k}_memory.ply",
+                                         b=cache / f"mesh_{k}_streamed.ply")
+            print(f"{k}x meshes: {row['mesh_compare']}", flush=True)
         if "dask" in preds:
             d = np.abs(preds["dask"] - preds["serial"])
             row["dask_vs_serial_max_abs_diff"] = dict(mean=float(d[:, 0].max()),
@@ -173,6 +271,16 @@ def main(argv=None) -> int:
         ratio = r["multiple"] / base["multiple"]
         r["time_vs_linear"] = r["serial"]["seconds"] / (base["serial"]["seconds"] * ratio)
         r["rss_vs_1x"] = r["serial"]["peak_rss_mb"] / base["serial"]["peak_rss_mb"]
+        n, n0 = r["serial"]["n_points"], base["serial"]["n_points"]
+        r["cpu_us_per_point"] = 1e6 * r["serial"]["cpu_seconds"] / n
+        r["cpu_per_point_vs_1x"] = r["cpu_us_per_point"] / (1e6 * base["serial"]["cpu_seconds"] / n0)
+        for mode in [m for m in args.mesh.split(",") if m]:
+            key = f"mesh_{mode}"
+            r[key]["cpu_us_per_point"] = 1e6 * r[key]["cpu_seconds"] / n
+            r[key]["cpu_per_point_vs_1x"] = (r[key]["cpu_us_per_point"]
+                                             / (1e6 * base[key]["cpu_seconds"] / n0))
+            r[f"run_rss_vs_1x_{mode}"] = (r[f"run_peak_rss_mb_{mode}"]
+                                          / base[f"run_peak_rss_mb_{mode}"])
     result = dict(settings=vars(args) | {"child": None, "child_args": None},
                   machine=dict(cpus=os.cpu_count(), load=os.getloadavg()), rows=rows)
     out.write_text(json.dumps(result, indent=2))

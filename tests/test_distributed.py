@@ -1089,3 +1089,92 @@ def test_a_tiled_build_warns_when_the_scan_is_not_z_up():
         for up in (None, (0.0, 0.0, -1.0)):
             with pytest.raises(TilingError, match="at least one tile"):
                 build_tiled_map(gm.Scan(pts, up=up), spec=spec)
+
+
+# ---------------------------------------------------------------- streamed surface
+
+
+def _face_set(m):
+    """The faces of a mesh as a sorted array of their vertices' coordinates (each face's
+    three vertices in lexicographic order): equal for the same faces on the same
+    vertices in any vertex and face order."""
+    tri = m.vertices[m.faces]                                   # (F, 3, 3)
+    key = np.lexsort(tri.transpose(2, 0, 1)[::-1], axis=1)      # order within a face
+    tri = np.take_along_axis(tri, key[:, :, None], axis=1).reshape(len(tri), 9)
+    return tri[np.lexsort(tri.T[::-1])]
+
+
+def test_streamed_tiled_surface_is_the_whole_lattice_mesh(tiled, tmp_path):
+    """Meshed region by region (tiling/mesh.py) the stitched surface has the same
+    vertices, variances and faces, bit for bit, as TiledMap.extract_surface's single
+    lattice; the PLY written from pieces on disk is byte for byte write_mesh_ply's of
+    that mesh; on a saved map every tile is loaded once for the seeds and once more for
+    the regions."""
+    from gmmgp_app.pipeline import read_mesh_ply, std_colour_max, write_mesh_ply
+    from gmmgp_app.tiling import load_tiled_map
+    from gmmgp_app.tiling.mesh import streamed_surface_mesh, write_tiled_surface_ply
+
+    whole = tiled.extract_surface(voxel_size=0.15)
+    stats = {}
+    parts = streamed_surface_mesh(tiled, voxel_size=0.15, stats=stats)
+    assert stats["regions"] >= 4 and len(whole.faces) > 5000
+    assert len(parts.vertices) == len(whole.vertices) and len(parts.faces) == len(whole.faces)
+    ow, op = (np.lexsort(m.vertices.T[::-1]) for m in (whole, parts))
+    assert np.array_equal(whole.vertices[ow], parts.vertices[op])
+    assert np.array_equal(whole.vertex_variance[ow], parts.vertex_variance[op])
+    assert np.array_equal(_face_set(whole), _face_set(parts))
+    # a face moved to other vertices would be caught
+    bad = type(parts)(parts.vertices, parts.faces.copy(), parts.vertex_variance)
+    bad.faces[0, 0] = bad.faces[1, 1] if bad.faces[1, 1] != bad.faces[0, 0] else bad.faces[2, 2]
+    assert not np.array_equal(_face_set(whole), _face_set(bad))
+
+    saved = load_tiled_map(tiled.save(tmp_path / "tm"), load_points=False)
+    made = write_tiled_surface_ply(saved, tmp_path / "s.ply", offset=saved.offset,
+                                   voxel_size=0.15)
+    assert made["tile_loads"] == 2 * len(saved.keys)
+    assert made["vertices"] == len(parts.vertices) and made["faces"] == len(parts.faces)
+    write_mesh_ply(parts, tmp_path / "w.ply", offset=saved.offset,
+                   vmax=std_colour_max([parts]))
+    assert (tmp_path / "s.ply").read_bytes() == (tmp_path / "w.ply").read_bytes()
+    back = read_mesh_ply(tmp_path / "s.ply")
+    assert np.array_equal(_face_set(back), _face_set(parts))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.ply", "tm", "w.ply"]
+
+
+def test_streamed_tiled_surface_with_projection_is_the_whole_lattice_mesh(street):
+    """With surface.project_steps = 1 (vertices projected onto the stitched zero level)
+    the region-by-region mesh still has the whole lattice mesh's vertices and faces:
+    the faces go to the region of their projected centroid, and the vertices two
+    regions share are merged within the projection's reach of the border planes."""
+    import dataclasses
+
+    from gmmgp_app.tiling.mesh import streamed_surface_mesh
+
+    scan, _ = street
+    cfg = gm.MappingConfig()
+    cfg = dataclasses.replace(cfg, surface=dataclasses.replace(cfg.surface, project_steps=1))
+    tm = build_tiled_map(scan, cfg, TileSpec(size=8.0, overlap=2.0))
+    whole = tm.extract_surface(voxel_size=0.2)
+    parts = streamed_surface_mesh(tm, voxel_size=0.2)
+    assert len(whole.faces) > 2000
+    assert len(parts.vertices) == len(whole.vertices)
+    ow, op = (np.lexsort(m.vertices.T[::-1]) for m in (whole, parts))
+    assert np.array_equal(whole.vertices[ow], parts.vertices[op])
+    assert np.array_equal(_face_set(whole), _face_set(parts))
+
+
+def test_chunked_quantile_is_numpys_quantile_bit_for_bit():
+    """The PLY colour scale's percentile, computed a chunk at a time (no array of every
+    vertex variance), equals np.quantile exactly: skewed, tied, tiny and NaN inputs."""
+    from gmmgp_app.tiling.mesh import chunked_quantile
+
+    rng = np.random.default_rng(1)
+    for x in (rng.exponential(size=5003), rng.integers(0, 4, 2000).astype(float),
+              rng.normal(size=333) ** 4, np.array([2.5]), np.full(10, 1e-9)):
+        for q in (0.98, 0.5, 0.0, 1.0, 0.123):
+            for c in (1, 64, 10000):
+                got = chunked_quantile(lambda: (x[s:s + c] for s in range(0, len(x), c)), q)
+                assert got == float(np.quantile(x, q))
+    assert np.isnan(chunked_quantile(lambda: iter([np.array([1.0, np.nan])]), 0.98))
+    with pytest.raises(ValueError, match="at least one value"):
+        chunked_quantile(lambda: iter([]), 0.5)

@@ -238,8 +238,8 @@ def _run_tiled(args, cfg, spec, scan, out: Path, console, t0: float, read_s: flo
     from .._atomic import atomic_write_text
     from ..distributed import open_executor
     from .._json import jsonable
-    from ..pipeline import std_colour_max, write_mesh_ply
     from ..tiling import build_tiled_map, load_tiled_map, stream_tiles
+    from ..tiling.mesh import write_tiled_surface_ply
     from ..tiling.las import STREAM_CHUNK_POINTS
 
     created = not out.exists()
@@ -288,12 +288,15 @@ def _run_tiled(args, cfg, spec, scan, out: Path, console, t0: float, read_s: flo
         written = [out / "map"]
         if not args.no_mesh:
             t3 = time.perf_counter()
-            mesh = tmap.extract_surface(progress=console.progress)
+            # meshed region by region and streamed to the PLY: memory holds one region,
+            # not the street's lattice and mesh (tiling/mesh.py)
+            ply = out / f"mesh_{args.method}.ply"
+            made = write_tiled_surface_ply(tmap, ply, offset=tmap.offset,
+                                           progress=console.progress)
             seconds["surface"] = time.perf_counter() - t3
-            summary["counts"]["surface"] = {args.method: {"vertices": len(mesh.vertices),
-                                                          "faces": len(mesh.faces)}}
-            written.append(write_mesh_ply(mesh, out / f"mesh_{args.method}.ply",
-                                          offset=tmap.offset, vmax=std_colour_max([mesh])))
+            summary["counts"]["surface"] = {args.method: {"vertices": made["vertices"],
+                                                          "faces": made["faces"]}}
+            written.append(ply)
         atomic_write_text(out / "config.toml", cfg.to_toml())
         seconds["total"] = time.perf_counter() - t0
         atomic_write_text(out / "summary.json", json.dumps(jsonable(summary), indent=2))

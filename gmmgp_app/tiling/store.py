@@ -60,6 +60,17 @@ class TileStore:
         self._cache.move_to_end(key)
         return self._cache[key]
 
+    def load_uncached(self, key):
+        """Tile ``key`` loaded from disk (or its replacement in memory) without entering
+        it in the cache: for a caller that holds tiles itself (the streamed surface)."""
+        from ..pipeline import load_map
+
+        if key in self._written:
+            return self._written[key]
+        if key not in self:
+            raise KeyError(key)
+        return self._cache[key] if key in self._cache else load_map(self._path(key))
+
     def __setitem__(self, key, smap):
         if self.read_only:
             self._written[key] = smap

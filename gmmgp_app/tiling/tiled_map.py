@@ -321,10 +321,19 @@ class TiledMap:
     def stitched_seeds(self) -> np.ndarray:
         """Where the stitched surface is sought: every tile's seed points (with smooth
         blending, those the tile weighs), without duplicates."""
-        seeds = [t.seed_points[self._weighs(k, t.seed_points)]
-                 if self.spec.blend == "smooth" else t.seed_points
-                 for k, t in self.tiles.items()]
-        return np.unique(np.concatenate(seeds), axis=0) if seeds else np.zeros((0, 3))
+        return self._stitch_seeds([self._tile_seeds(k, t) for k, t in self.tiles.items()])
+
+    def _tile_seeds(self, key, tile) -> np.ndarray:
+        """Tile ``key``'s share of :meth:`stitched_seeds` (with smooth blending, the seeds
+        it weighs)."""
+        if self.spec.blend == "smooth":
+            return tile.seed_points[self._weighs(key, tile.seed_points)]
+        return tile.seed_points
+
+    @staticmethod
+    def _stitch_seeds(parts) -> np.ndarray:
+        """:meth:`stitched_seeds` of the tiles' shares: without duplicates, sorted."""
+        return np.unique(np.concatenate(parts), axis=0) if parts else np.zeros((0, 3))
 
     def surface_reach(self, seeds) -> Optional[float]:
         """How far from a seed the stitched surface is followed (m), whatever voxel it
@@ -340,10 +349,17 @@ class TiledMap:
         values: one lattice needs one voxel."""
         from ..config import is_auto
 
+        if not is_auto(self.config.surface.voxel_size):
+            return float(self.config.surface.voxel_size)
+        return self._median_voxel([t.config.surface.voxel_size for _, t in self.tiles.items()])
+
+    def _median_voxel(self, voxels) -> float:
+        """:meth:`surface_voxel` from the tiles' ``surface.voxel_size`` values."""
+        from ..config import is_auto
+
         v = self.config.surface.voxel_size
         if not is_auto(v):
             return float(v)
-        voxels = [t.config.surface.voxel_size for _, t in self.tiles.items()]
         voxels = [x for x in voxels if not is_auto(x)]
         if not voxels:
             raise TilingError("The tiled map has no mapped tile with a surface voxel; "
