@@ -123,7 +123,8 @@ def stream_tiled_surface(tmap, voxel_size: Optional[float] = None, max_std=None,
     :meth:`TiledMap.extract_surface`'s mesh (the same faces on the same vertices, in
     another order). ``stats`` (a dict) receives ``regions``, ``tile_loads``,
     ``peak_tiles_held``, ``voxel``."""
-    from ..pipeline import check_grid_size, extract_surface, surface_reach
+    from ..pipeline import (check_grid_size, mesh_field, project_clamp, project_steps,
+                            surface_reach)
     from .tiled_map import TiledMap
 
     spec = tmap.spec
@@ -146,16 +147,14 @@ def stream_tiled_surface(tmap, voxel_size: Optional[float] = None, max_std=None,
     reach = surface_reach(seeds, map_voxel)
     dilate = check_grid_size(seeds, h)
     cfg = tmap.config.surface
-    steps = int(getattr(cfg, "project_steps", 0) or 0)
-    max_std = cfg.max_std if max_std is None else max_std
+    steps = project_steps(cfg)
     span = BLOCK_CELLS * h
     size = float(spec.size)
     margin = (dilate + 4) * h + reach
     # with projection a face goes to the region of its projected centroid, which moves
     # by up to steps * clamp voxels: the vertices a neighbour may share lie within a cell
     # plus twice that of a border plane
-    clamp = float(getattr(cfg, "project_clamp", 0.5))
-    tol = (2 * steps * clamp + 1) * h / span if steps > 0 else 0.0
+    tol = (2 * steps * project_clamp(cfg) + 1) * h / span if steps > 0 else 0.0
 
     # regions: the tile squares holding a block column near a seed
     sb = np.floor_divide(np.floor(seeds[:, :2] / h).astype(np.int64), BLOCK_CELLS)
@@ -199,17 +198,13 @@ def stream_tiled_surface(tmap, voxel_size: Optional[float] = None, max_std=None,
             # the field at the vertices only where the region may keep faces (a kept
             # face's vertices lie in its block columns, or within the projection's
             # reach of them); elsewhere zeros, for vertices whose faces are dropped
-            pad = (steps * float(getattr(cfg, "project_clamp", 0.5)) + 1.0) * h
+            pad = (steps * project_clamp(cfg) + 1.0) * h
             inside = _Inside(lo * span - pad, hi * span + pad)
-            piece = extract_surface(inside.wrap(view.predict), seeds[sel], voxel_size=h,
-                                    max_std=max_std,
-                                    block_cells=BLOCK_CELLS, dilate=dilate, reach=reach,
-                                    predict_mean=view.lattice_mean,
-                                    project=(inside.wrap(lambda x: view.predict(
-                                        x, return_grad=True), grad=True)
-                                             if steps > 0 else None),
-                                    project_steps=max(steps, 1),
-                                    project_clamp=float(getattr(cfg, "project_clamp", 0.5)))
+            piece = mesh_field(inside.wrap(view.predict), seeds[sel], cfg, h, max_std,
+                               reach=reach, predict_mean=view.lattice_mean,
+                               project=inside.wrap(lambda x: view.predict(
+                                   x, return_grad=True), grad=True),
+                               block_cells=BLOCK_CELLS, dilate=dilate)
         bar and bar.update(1)
         holder.drop([k for k in list(holder._held) if last_use.get(k, -1) <= t_i])
         if piece is not None and len(piece.faces):
