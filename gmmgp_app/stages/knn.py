@@ -208,79 +208,90 @@ def _build_table(ukeys, starts, ends, size):
     return tk, ts, te
 
 
+@nb.njit(cache=True, inline="always")
+def _shell_knn(p0, p1, p2, k, cell, lo, dims, tk, ts, te, pts, max_ring, bd, bi):
+    """The k nearest points of ``(p0, p1, p2)``: cube shells of cells around its own,
+    the k best kept sorted by insertion in ``bd`` (squared distances) and ``bi`` (point
+    rows), cells wholly farther than the k-th best skipped; stop when the k-th best is no
+    farther than the outside of the scanned box. False when ``max_ring`` shells were not
+    enough (``bd``, ``bi`` then incomplete)."""
+    mask = len(tk) - 1
+    slack = (1e-9 * cell) ** 2
+    bd[:] = np.inf
+    bi[:] = -1
+    cnt = 0
+    c0 = int(math.floor(p0 / cell))
+    c1 = int(math.floor(p1 / cell))
+    c2 = int(math.floor(p2 / cell))
+    for r in range(max_ring + 1):
+        for a in range(c0 - r, c0 + r + 1):
+            qa = a - lo[0]
+            if qa < 0 or qa >= dims[0]:
+                continue
+            for b in range(c1 - r, c1 + r + 1):
+                qb = b - lo[1]
+                if qb < 0 or qb >= dims[1]:
+                    continue
+                edge_ab = a == c0 - r or a == c0 + r or b == c1 - r or b == c1 + r
+                for c in range(c2 - r, c2 + r + 1):
+                    if not edge_ab and c != c2 - r and c != c2 + r:
+                        continue          # inside the shell: scanned before
+                    qc = c - lo[2]
+                    if qc < 0 or qc >= dims[2]:
+                        continue
+                    if cnt == k:
+                        # skip a cell wholly farther than the k-th best (its points
+                        # could not enter; the margin covers the cell bounds' round-off)
+                        g0 = max(a * cell - p0, p0 - (a + 1) * cell, 0.0)
+                        g1 = max(b * cell - p1, p1 - (b + 1) * cell, 0.0)
+                        g2 = max(c * cell - p2, p2 - (c + 1) * cell, 0.0)
+                        gg = g0 * g0 + g1 * g1 + g2 * g2
+                        if gg > bd[k - 1] * (1.0 + 1e-9) + slack:
+                            continue
+                    s = _cell_slot(tk, mask, dims, qa, qb, qc)
+                    if s < 0:
+                        continue
+                    for j in range(ts[s], te[s]):
+                        d0 = p0 - pts[j, 0]
+                        d1 = p1 - pts[j, 1]
+                        d2 = p2 - pts[j, 2]
+                        dd = d0 * d0 + d1 * d1 + d2 * d2
+                        if cnt < k or dd < bd[k - 1]:
+                            m = cnt if cnt < k else k - 1
+                            while m > 0 and bd[m - 1] > dd:
+                                bd[m] = bd[m - 1]
+                                bi[m] = bi[m - 1]
+                                m -= 1
+                            bd[m] = dd
+                            bi[m] = j
+                            if cnt < k:
+                                cnt += 1
+        # nearest point outside the scanned box of cells [c - r, c + r]
+        out = math.inf
+        for ax in range(3):
+            pa = p0 if ax == 0 else (p1 if ax == 1 else p2)
+            ca = c0 if ax == 0 else (c1 if ax == 1 else c2)
+            out = min(out, pa - (ca - r) * cell, (ca + r + 1) * cell - pa)
+        if cnt == k and bd[k - 1] <= out * out:
+            return True
+    return False
+
+
 @nb.njit(cache=True, parallel=True)
 def _knn_grid(x, k, cell, lo, dims, tk, ts, te, pts, order, max_ring):
-    """Per query: cube shells of cells around its own, k best kept sorted by insertion,
-    stop when the k-th best is no farther than the outside of the scanned box."""
+    """Per query: :func:`_shell_knn` around it; ``done`` False where ``max_ring``
+    shells were not enough."""
     K = x.shape[0]
     dist = np.empty((K, k))
     idx = np.empty((K, k), np.int64)
     done = np.zeros(K, np.bool_)
-    mask = len(tk) - 1
-    slack = (1e-9 * cell) ** 2
     chunk = 512
     for t in nb.prange((K + chunk - 1) // chunk):
         bd = np.empty(k)                 # one scratch pair per chunk of queries
         bi = np.empty(k, np.int64)
         for q in range(t * chunk, min(K, (t + 1) * chunk)):
-            bd[:] = np.inf
-            bi[:] = -1
-            cnt = 0
-            c0 = int(math.floor(x[q, 0] / cell))
-            c1 = int(math.floor(x[q, 1] / cell))
-            c2 = int(math.floor(x[q, 2] / cell))
-            ok = False
-            for r in range(max_ring + 1):
-                for a in range(c0 - r, c0 + r + 1):
-                    qa = a - lo[0]
-                    if qa < 0 or qa >= dims[0]:
-                        continue
-                    for b in range(c1 - r, c1 + r + 1):
-                        qb = b - lo[1]
-                        if qb < 0 or qb >= dims[1]:
-                            continue
-                        edge_ab = a == c0 - r or a == c0 + r or b == c1 - r or b == c1 + r
-                        for c in range(c2 - r, c2 + r + 1):
-                            if not edge_ab and c != c2 - r and c != c2 + r:
-                                continue          # inside the shell: scanned before
-                            qc = c - lo[2]
-                            if qc < 0 or qc >= dims[2]:
-                                continue
-                            if cnt == k:
-                                # skip a cell wholly farther than the k-th best (its points
-                                # could not enter; the margin covers the cell bounds' round-off)
-                                g0 = max(a * cell - x[q, 0], x[q, 0] - (a + 1) * cell, 0.0)
-                                g1 = max(b * cell - x[q, 1], x[q, 1] - (b + 1) * cell, 0.0)
-                                g2 = max(c * cell - x[q, 2], x[q, 2] - (c + 1) * cell, 0.0)
-                                gg = g0 * g0 + g1 * g1 + g2 * g2
-                                if gg > bd[k - 1] * (1.0 + 1e-9) + slack:
-                                    continue
-                            s = _cell_slot(tk, mask, dims, qa, qb, qc)
-                            if s < 0:
-                                continue
-                            for j in range(ts[s], te[s]):
-                                dd = _sq_dist(x, q, pts, j)
-                                if cnt < k or dd < bd[k - 1]:
-                                    m = cnt if cnt < k else k - 1
-                                    while m > 0 and bd[m - 1] > dd:
-                                        bd[m] = bd[m - 1]
-                                        bi[m] = bi[m - 1]
-                                        m -= 1
-                                    bd[m] = dd
-                                    bi[m] = j
-                                    if cnt < k:
-                                        cnt += 1
-                # nearest point outside the scanned box of cells [c - r, c + r]
-                out = math.inf
-                for ax in range(3):
-                    ca = c0 if ax == 0 else (c1 if ax == 1 else c2)
-                    lo_f = x[q, ax] - (ca - r) * cell
-                    hi_f = (ca + r + 1) * cell - x[q, ax]
-                    out = min(out, lo_f, hi_f)
-                if cnt == k and bd[k - 1] <= out * out:
-                    ok = True
-                    break
-            if ok:
+            if _shell_knn(x[q, 0], x[q, 1], x[q, 2], k, cell, lo, dims, tk, ts, te, pts,
+                          max_ring, bd, bi):
                 for m in range(k):
                     dist[q, m] = math.sqrt(bd[m])
                     idx[q, m] = order[bi[m]]
@@ -310,53 +321,9 @@ def _knn_groups(x, qorder, gptr, gcell, k, cell, lo, dims, tk, ts, te, pts, orde
         cy = (b1 + 0.5) * gcell
         cz = (b2 + 0.5) * gcell
         # 1. the centre's k-th neighbour distance
-        bd = np.full(k, np.inf)
-        cnt = 0
-        c0 = int(math.floor(cx / cell))
-        c1 = int(math.floor(cy / cell))
-        c2 = int(math.floor(cz / cell))
-        ok = False
-        for r in range(max_ring + 1):
-            for a in range(c0 - r, c0 + r + 1):
-                qa = a - lo[0]
-                if qa < 0 or qa >= dims[0]:
-                    continue
-                for b in range(c1 - r, c1 + r + 1):
-                    qb = b - lo[1]
-                    if qb < 0 or qb >= dims[1]:
-                        continue
-                    edge_ab = a == c0 - r or a == c0 + r or b == c1 - r or b == c1 + r
-                    for c in range(c2 - r, c2 + r + 1):
-                        if not edge_ab and c != c2 - r and c != c2 + r:
-                            continue
-                        qc = c - lo[2]
-                        if qc < 0 or qc >= dims[2]:
-                            continue
-                        s = _cell_slot(tk, mask, dims, qa, qb, qc)
-                        if s < 0:
-                            continue
-                        for j in range(ts[s], te[s]):
-                            e0 = cx - pts[j, 0]
-                            e1 = cy - pts[j, 1]
-                            e2 = cz - pts[j, 2]
-                            dd = e0 * e0 + e1 * e1 + e2 * e2
-                            if cnt < k or dd < bd[k - 1]:
-                                m = cnt if cnt < k else k - 1
-                                while m > 0 and bd[m - 1] > dd:
-                                    bd[m] = bd[m - 1]
-                                    m -= 1
-                                bd[m] = dd
-                                if cnt < k:
-                                    cnt += 1
-            out = math.inf
-            for ax in range(3):
-                xa = cx if ax == 0 else (cy if ax == 1 else cz)
-                ca = c0 if ax == 0 else (c1 if ax == 1 else c2)
-                out = min(out, xa - (ca - r) * cell, (ca + r + 1) * cell - xa)
-            if cnt == k and bd[k - 1] <= out * out:
-                ok = True
-                break
-        if not ok:
+        bd = np.empty(k)
+        bi = np.empty(k, np.int64)
+        if not _shell_knn(cx, cy, cz, k, cell, lo, dims, tk, ts, te, pts, max_ring, bd, bi):
             continue
         # 2. the candidates: points within R of the cube (margins cover round-off)
         R = (math.sqrt(bd[k - 1]) + half) * (1.0 + 1e-9) + 1e-12 * gcell
@@ -408,7 +375,6 @@ def _knn_groups(x, qorder, gptr, gcell, k, cell, lo, dims, tk, ts, te, pts, orde
         cs = cand[:n][o]
         cdist = np.sqrt(cd[:n][o])
         # 3. each member's k best among them
-        bi = np.empty(k, np.int64)
         for t in range(gptr[g], gptr[g + 1]):
             q = qorder[t]
             bd[:] = np.inf
