@@ -96,6 +96,11 @@ def _pipes():
     # a vertical pipe and a tank
     parts.append((_cylinder((-0.9, 0.55, 0.02), (0, 0, 1), 0.04, 1.2, 48), OBJECT))
     parts.append((_cylinder((0.8, 0.55, 0.05), (0, 0, 1), 0.30, 1.0, 96), OBJECT))
+    return _join_parts(parts)
+
+
+def _join_parts(parts):
+    """One mesh ``(vertices, faces, face labels)`` from ``[((vertices, faces), label)]``."""
     vs, fs, ls, off = [], [], [], 0
     for (v, f), lab in parts:
         vs.append(v)

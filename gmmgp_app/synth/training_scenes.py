@@ -29,7 +29,7 @@ import math
 
 import numpy as np
 
-from .field_scenes import _cylinder
+from .field_scenes import _cylinder, _join_parts
 from .scanner import simulate_mms, simulate_static
 from .scenes import (FACADE, GROUND, OBJECT, POLE, SynthError, SyntheticScene, _box_mesh,
                      _CellSolid, _compact, _icosphere, mesh_topology)
@@ -117,13 +117,7 @@ def _objects(rng):
             continue
         placed.append((c, bound))
         parts.append((mesh, OBJECT))
-    vs, fs, ls, off = [], [], [], 0
-    for (v, f), lab in parts:
-        vs.append(v)
-        fs.append(f + off)
-        ls.append(np.full(len(f), lab))
-        off += len(v)
-    return np.concatenate(vs), np.concatenate(fs), np.concatenate(ls)
+    return _join_parts(parts)
 
 
 def make_training_scene(kind: str, seed: int) -> SyntheticScene:
