@@ -209,6 +209,21 @@ def _build_table(ukeys, starts, ends, size):
 
 
 @nb.njit(cache=True, inline="always")
+def _insert(bd, bi, cnt, k, dd, j):
+    """Insert squared distance ``dd`` of point ``j`` into the ascending best lists
+    ``bd``, ``bi`` holding ``cnt`` of at most ``k`` (the caller checked that it enters);
+    returns the new count."""
+    m = cnt if cnt < k else k - 1
+    while m > 0 and bd[m - 1] > dd:
+        bd[m] = bd[m - 1]
+        bi[m] = bi[m - 1]
+        m -= 1
+    bd[m] = dd
+    bi[m] = j
+    return cnt + 1 if cnt < k else cnt
+
+
+@nb.njit(cache=True, inline="always")
 def _shell_knn(p0, p1, p2, k, cell, lo, dims, tk, ts, te, pts, max_ring, bd, bi):
     """The k nearest points of ``(p0, p1, p2)``: cube shells of cells around its own,
     the k best kept sorted by insertion in ``bd`` (squared distances) and ``bi`` (point
@@ -257,15 +272,7 @@ def _shell_knn(p0, p1, p2, k, cell, lo, dims, tk, ts, te, pts, max_ring, bd, bi)
                         d2 = p2 - pts[j, 2]
                         dd = d0 * d0 + d1 * d1 + d2 * d2
                         if cnt < k or dd < bd[k - 1]:
-                            m = cnt if cnt < k else k - 1
-                            while m > 0 and bd[m - 1] > dd:
-                                bd[m] = bd[m - 1]
-                                bi[m] = bi[m - 1]
-                                m -= 1
-                            bd[m] = dd
-                            bi[m] = j
-                            if cnt < k:
-                                cnt += 1
+                            cnt = _insert(bd, bi, cnt, k, dd, j)
         # nearest point outside the scanned box of cells [c - r, c + r]
         out = math.inf
         for ax in range(3):
@@ -390,15 +397,7 @@ def _knn_groups(x, qorder, gptr, gcell, k, cell, lo, dims, tk, ts, te, pts, orde
                 j = cs[u]
                 dd = _sq_dist(x, q, pts, j)
                 if cnt < k or dd < bd[k - 1]:
-                    m = cnt if cnt < k else k - 1
-                    while m > 0 and bd[m - 1] > dd:
-                        bd[m] = bd[m - 1]
-                        bi[m] = bi[m - 1]
-                        m -= 1
-                    bd[m] = dd
-                    bi[m] = j
-                    if cnt < k:
-                        cnt += 1
+                    cnt = _insert(bd, bi, cnt, k, dd, j)
                     if cnt == k:
                         lim = math.sqrt(bd[k - 1]) * (1.0 + 1e-9) + 1e-12 * gcell
             for m in range(k):

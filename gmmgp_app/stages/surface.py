@@ -1016,6 +1016,23 @@ def std_colour_max(meshes) -> Optional[float]:
                 for m in meshes if len(m.vertices)), default=None)
 
 
+#: Record layouts of :func:`write_mesh_ply`'s binary PLY (vertex, face).
+PLY_VERTEX = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("red", "u1"), ("green", "u1"),
+                       ("blue", "u1"), ("variance", "<f8")])
+PLY_FACE = np.dtype([("n", "u1"), ("i", "<i4", (3,))])
+
+
+def ply_header(n_vertices: int, n_faces: int) -> bytes:
+    """The header of :func:`write_mesh_ply`'s binary PLY (records :data:`PLY_VERTEX`,
+    :data:`PLY_FACE`)."""
+    return ("ply\nformat binary_little_endian 1.0\ncomment gmmgp_app surface, variance in m^2\n"
+            f"element vertex {n_vertices}\nproperty double x\nproperty double y\n"
+            "property double z\nproperty uchar red\nproperty uchar green\n"
+            "property uchar blue\nproperty double variance\n"
+            f"element face {n_faces}\nproperty list uchar int vertex_indices\nend_header\n"
+            ).encode()
+
+
 def write_mesh_ply(mesh: SurfaceMesh, path, offset=None, vmax: Optional[float] = None) -> Path:
     """Binary PLY with vertex colours (std on viridis) and a float ``variance`` property.
 
@@ -1024,23 +1041,15 @@ def write_mesh_ply(mesh: SurfaceMesh, path, offset=None, vmax: Optional[float] =
     path = Path(path)
     v = mesh.vertices + (0 if offset is None else np.asarray(offset))
     rgb = variance_colors(mesh.vertex_variance, vmax)
-    vdt = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("red", "u1"), ("green", "u1"),
-                    ("blue", "u1"), ("variance", "<f8")])
-    vert = np.empty(len(v), vdt)
+    vert = np.empty(len(v), PLY_VERTEX)
     vert["x"], vert["y"], vert["z"] = v.T
     vert["red"], vert["green"], vert["blue"] = rgb.T
     vert["variance"] = mesh.vertex_variance
-    fdt = np.dtype([("n", "u1"), ("i", "<i4", (3,))])
-    face = np.empty(len(mesh.faces), fdt)
+    face = np.empty(len(mesh.faces), PLY_FACE)
     face["n"] = 3
     face["i"] = mesh.faces
-    header = ("ply\nformat binary_little_endian 1.0\ncomment gmmgp_app surface, variance in m^2\n"
-              f"element vertex {len(v)}\nproperty double x\nproperty double y\n"
-              "property double z\nproperty uchar red\nproperty uchar green\n"
-              "property uchar blue\nproperty double variance\n"
-              f"element face {len(face)}\nproperty list uchar int vertex_indices\nend_header\n")
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        f.write(header.encode())
+        f.write(ply_header(len(v), len(face)))
         f.write(vert.data)      # the arrays themselves, no bytes copy
         f.write(face.data)
     return path

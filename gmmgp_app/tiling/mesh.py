@@ -37,9 +37,6 @@ __all__ = ["write_tiled_surface_ply", "stream_tiled_surface", "streamed_surface_
 #: Marching-cubes block edge in cells (extract_surface's ``block_cells``, passed explicitly).
 BLOCK_CELLS = 32
 
-_VERTEX_DTYPE = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("red", "u1"),
-                          ("green", "u1"), ("blue", "u1"), ("variance", "<f8")])
-_FACE_DTYPE = np.dtype([("n", "u1"), ("i", "<i4", (3,))])
 
 
 class _TileHolder:
@@ -323,7 +320,7 @@ def write_tiled_surface_ply(tmap, path, offset=None, voxel_size=None, max_std=No
     dict with ``vertices``, ``faces``, ``vmax`` and :func:`stream_tiled_surface`'s stats.
     """
     from .._atomic import atomic_path
-    from ..pipeline import variance_colors
+    from ..pipeline import PLY_FACE, PLY_VERTEX, ply_header, variance_colors
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -346,22 +343,17 @@ def write_tiled_surface_ply(tmap, path, offset=None, voxel_size=None, max_std=No
         vmax = (float(np.sqrt(chunked_quantile(
             lambda: (d[:, 3] for _, d in _chunks(work / "v.bin", 4, nv, chunk)), 0.98)))
             if nv else None)
-        header = ("ply\nformat binary_little_endian 1.0\ncomment gmmgp_app surface, variance "
-                  f"in m^2\nelement vertex {nv}\nproperty double x\nproperty double y\n"
-                  "property double z\nproperty uchar red\nproperty uchar green\n"
-                  "property uchar blue\nproperty double variance\n"
-                  f"element face {nf}\nproperty list uchar int vertex_indices\nend_header\n")
         with atomic_path(path) as tmp, open(tmp, "wb") as out:
-            out.write(header.encode())
+            out.write(ply_header(nv, nf))
             for s, d in _chunks(work / "v.bin", 4, nv, chunk):
-                rec = np.empty(len(d), _VERTEX_DTYPE)
+                rec = np.empty(len(d), PLY_VERTEX)
                 rec["x"], rec["y"], rec["z"] = (d[:, :3] + off).T
                 rgb = variance_colors(d[:, 3], vmax)
                 rec["red"], rec["green"], rec["blue"] = rgb.T
                 rec["variance"] = d[:, 3]
                 out.write(rec.tobytes())
             for s, d in _chunks(work / "f.bin", 3, nf, chunk, "<i4"):
-                rec = np.empty(len(d), _FACE_DTYPE)
+                rec = np.empty(len(d), PLY_FACE)
                 rec["n"] = 3
                 rec["i"] = d
                 out.write(rec.tobytes())
