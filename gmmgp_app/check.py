@@ -847,7 +847,8 @@ INNER_IRLS = 20
 
 
 def _coarse_to_fine(smap, x, x_dense, T0, frozen, frame, max_iter, kw,
-                    coarse_points=_COARSE_POINTS, tol=None, correct=False, dense_rows=None):
+                    coarse_points=_COARSE_POINTS, tol=None, correct=False, dense_rows=None,
+                    start=None):
     """Gauss-Newton on every ``len(x) // coarse_points``-th point until the steps are
     under 1 mm and 0.006 deg, then on all of ``x`` until they are under 0.2 mm and
     20 urad, then on the dense points ``x_dense`` (None: ``x`` is the last stage, to
@@ -858,7 +859,10 @@ def _coarse_to_fine(smap, x, x_dense, T0, frozen, frame, max_iter, kw,
     A stage ends with the map's prediction at its solution, where the next one starts:
     the next stage's first iteration takes it for the points both share (the coarse
     points are rows of ``x``; ``dense_rows``, optional: the row of ``x_dense`` of each
-    row of ``x``, -1 for none) and predicts the others only."""
+    row of ``x``, -1 for none) and predicts the others only. ``start``, optional: the
+    GP field's ``(m, var, g)`` at ``T0`` of ``x[::max(len(x) // coarse_points, 1)]``
+    (the caller's test whether the map knows anything there), the first stage's first
+    prediction."""
     history: list = []
     it = 0
     T = T0
@@ -870,10 +874,15 @@ def _coarse_to_fine(smap, x, x_dense, T0, frozen, frame, max_iter, kw,
         frame = (pivot, np.r_[np.ones(3), np.full(3, 1.0 / lever)])
     stride = len(x) // coarse_points if coarse_points > 0 else 0
     known = None
+    if start is not None and coarse_points > 0:
+        rows = np.arange(len(start[0])) if stride >= 2 else \
+            np.arange(0, len(x), max(stride, 1))
+        known = (rows,) + tuple(start) if len(rows) == len(start[0]) else None
     if stride >= 2:
         T, it, _, history, last = _gauss_newton(smap, x[::stride], T0, frozen,
                                                 max_iter=max_iter, frame=frame, tol_t=1e-3,
-                                                tol_r=1e-4, inner=INNER_IRLS, **kw)
+                                                tol_r=1e-4, inner=INNER_IRLS, known=known,
+                                                **kw)
         history = [dict(h, stage="coarse") for h in history]
         known = _known_rows(last, np.arange(0, len(x), stride))
     if tol is None:
@@ -980,7 +989,7 @@ def _finite_information(smap, x, T, info, v, delta, stride: int = 4):
 def _register(smap, x, x_dense, T0, *, noise, known_std, c_robust, loss, max_iter,
               degeneracy_ratio, cluster_size, share_cell, candidate_ratio=0.02, probe=0.2,
               min_clusters=24, probe_points=7000, cell_factors=True, surface=None,
-              dense_rows=None):
+              dense_rows=None, start=None):
     """Gauss-Newton/IRLS on d(T x) with the map's gradient (see module docstring).
 
     1. Gauss-Newton from ``T0``. 2. At the solution, eigen-directions of the scaled
@@ -993,7 +1002,8 @@ def _register(smap, x, x_dense, T0, *, noise, known_std, c_robust, loss, max_ite
     (or None): the points of the last stage, the solution's information and
     covariance.
     ``dense_rows``
-    (optional): the row of ``x_dense`` of each row of ``x`` (-1: none).
+    (optional): the row of ``x_dense`` of each row of ``x`` (-1: none); ``start``
+    (optional): the first stage's first prediction (:func:`_coarse_to_fine`).
     """
     noise2 = noise * noise
     surface = SURFACE_CORRECTION if surface is None else surface
@@ -1002,7 +1012,7 @@ def _register(smap, x, x_dense, T0, *, noise, known_std, c_robust, loss, max_ite
               share_cell=share_cell, cell_factors=cell_factors)
     T, it, converged, history, last = _coarse_to_fine(smap, x, x_dense, T0, [], None,
                                                       max_iter, kw, correct=surface,
-                                                      dense_rows=dense_rows)
+                                                      dense_rows=dense_rows, start=start)
     info = _information(smap, xs, T, last=last, **kw)
     stride = max(4, int((info["w"] > 0).sum()) // probe_points)
     Hs = info["H_geo"] * info["D"][:, None] * info["D"][None, :]
@@ -1020,7 +1030,8 @@ def _register(smap, x, x_dense, T0, *, noise, known_std, c_robust, loss, max_ite
         # the frozen vectors refer to the solution's pivot and lever: keep them
         T, it2, converged, history2, last = _coarse_to_fine(
             smap, x, x_dense, T0, [d.vector for d in degenerate],
-            (info["pivot"], info["D"]), max_iter, kw, correct=surface, dense_rows=dense_rows)
+            (info["pivot"], info["D"]), max_iter, kw, correct=surface, dense_rows=dense_rows,
+            start=start)
         history = history + [{"restart": "frozen " + ", ".join(d.name for d in degenerate)}] \
             + history2
         it += it2
@@ -1266,7 +1277,8 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
                              f"{len(sample)}.")
         # the registration's own field (no far field), on the points of its coarse
         # stage: is anything known at all?
-        m0, v0, _ = _predict(smap, y=y0[sample][::max(len(sample) // _COARSE_POINTS, 1)])
+        start = _predict(smap, y=y0[sample][::max(len(sample) // _COARSE_POINTS, 1)])
+        v0 = start[1]
         if not (np.sqrt(v0) < known_std).any():
             raise _nothing_known(src, known_std, float(np.sqrt(v0.min())))
         ta = time.perf_counter()
@@ -1280,7 +1292,7 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
                 pos = np.minimum(np.searchsorted(sel, sample), len(sel) - 1)
                 dense_rows = np.where(sel[pos] == sample, pos, -1)
         fit = _register(smap, x[sample], dense, T_loc, noise=noise, known_std=known_std,
-                        dense_rows=dense_rows,
+                        dense_rows=dense_rows, start=start,
                         share_cell=share_cell,
                         c_robust=robust_c, loss=loss, max_iter=max_iter,
                         degeneracy_ratio=degeneracy_ratio, cluster_size=cluster_size)
