@@ -674,7 +674,7 @@ PRUNE_STD = 2.0
 def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, share_cell,
                   max_iter, cell_factors=False, frame=None, tol_t=5e-5, tol_r=5e-6,
                   max_step_t=0.5, max_step_r=0.05, refactor_tol=None,
-                  accelerate=True, prune=False, inner=0, correct=False):
+                  accelerate=True, prune=False, inner=0, correct=False, known=None):
     """Robust Gauss-Newton from ``T0``, never stepping along the ``frozen`` directions.
 
     ``frozen`` holds unit vectors of the scaled space (rotation times the lever of
@@ -692,6 +692,9 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
     make its step; 0: one Gauss-Newton step per prediction. ``correct``: the residuals
     are the GP field's mean plus the per-point correction of :func:`_surface_correction`,
     measured at the first iteration and kept (``last`` holds it as ``corr``).
+    ``known``: ``(rows, m, var, g)``, the map's prediction at ``T0`` of the rows
+    ``rows`` of ``x`` when the caller has it (the previous stage's last prediction at
+    the points both stages share): the first iteration predicts the other rows only.
     """
     T = T0.copy()
     corr = None
@@ -707,7 +710,10 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
     index = np.arange(len(x))
     for it in range(1, max_iter + 1):
         y = _apply(T, x)
-        m, var, g = _predict(smap, y)
+        if it == 1 and known is not None:
+            m, var, g = _predict_rest(smap, y, known)
+        else:
+            m, var, g = _predict(smap, y)
         if it == 1 and prune:
             # points far from any surface the map knows cannot take part in the steps
             # to come (they move by millimetres, the std changes over the GP's length
@@ -770,6 +776,19 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
     return T, it, converged, history, last
 
 
+def _predict_rest(smap, y, known):
+    """The map's prediction at ``y`` (GP field) where ``known = (rows, m, var, g)``
+    already holds it for the rows ``rows``: only the other rows are predicted."""
+    rows, km, kv, kg = known
+    m, var, g = np.empty(len(y)), np.empty(len(y)), np.empty((len(y), 3))
+    m[rows], var[rows], g[rows] = km, kv, kg
+    rest = np.ones(len(y), bool)
+    rest[rows] = False
+    if rest.any():
+        m[rest], var[rest], g[rest] = _predict(smap, y[rest])
+    return m, var, g
+
+
 def _solve_step(H, b, D, P):
     """The Gauss-Newton step ``H^+ b`` (m, rad) in the scaled space (rotations times
     the lever, ``D``), restricted by ``P`` to the non-frozen directions."""
@@ -828,13 +847,22 @@ INNER_IRLS = 20
 
 
 def _coarse_to_fine(smap, x, x_dense, T0, frozen, frame, max_iter, kw,
-                    coarse_points=_COARSE_POINTS, tol=None, correct=False):
+                    coarse_points=_COARSE_POINTS, tol=None, correct=False, dense_rows=None,
+                    start=None):
     """Gauss-Newton on every ``len(x) // coarse_points``-th point until the steps are
     under 1 mm and 0.006 deg, then on all of ``x`` until they are under 0.2 mm and
     20 urad, then on the dense points ``x_dense`` (None: ``x`` is the last stage, to
     50 um and 5 urad) until they are under 0.1 mm and 10 urad (each dense query
     costs 4-5 of the fine stage's) (the costly map queries of the first, long steps are made on
-    few points; the dense stage starts next to its solution)."""
+    few points; the dense stage starts next to its solution).
+
+    A stage ends with the map's prediction at its solution, where the next one starts:
+    the next stage's first iteration takes it for the points both share (the coarse
+    points are rows of ``x``; ``dense_rows``, optional: the row of ``x_dense`` of each
+    row of ``x``, -1 for none) and predicts the others only. ``start``, optional: the
+    GP field's ``(m, var, g)`` at ``T0`` of ``x[::max(len(x) // coarse_points, 1)]``
+    (the caller's test whether the map knows anything there), the first stage's first
+    prediction."""
     history: list = []
     it = 0
     T = T0
@@ -845,25 +873,49 @@ def _coarse_to_fine(smap, x, x_dense, T0, frozen, frame, max_iter, kw,
         lever = max(float(np.sqrt(((y - pivot) ** 2).sum(1).mean())), 1e-3)
         frame = (pivot, np.r_[np.ones(3), np.full(3, 1.0 / lever)])
     stride = len(x) // coarse_points if coarse_points > 0 else 0
+    known = None
+    if start is not None and coarse_points > 0:
+        rows = np.arange(len(start[0])) if stride >= 2 else \
+            np.arange(0, len(x), max(stride, 1))
+        known = (rows,) + tuple(start) if len(rows) == len(start[0]) else None
     if stride >= 2:
-        T, it, _, history, _ = _gauss_newton(smap, x[::stride], T0, frozen, max_iter=max_iter,
-                                             frame=frame, tol_t=1e-3, tol_r=1e-4,
-                                             inner=INNER_IRLS, **kw)
+        T, it, _, history, last = _gauss_newton(smap, x[::stride], T0, frozen,
+                                                max_iter=max_iter, frame=frame, tol_t=1e-3,
+                                                tol_r=1e-4, inner=INNER_IRLS, known=known,
+                                                **kw)
         history = [dict(h, stage="coarse") for h in history]
+        known = _known_rows(last, np.arange(0, len(x), stride))
     if tol is None:
         tol = (5e-5, 5e-6) if x_dense is None else (2e-4, 2e-5)
     T, it2, converged, h2, last = _gauss_newton(smap, x, T, frozen, max_iter=max_iter,
                                                 frame=frame, tol_t=tol[0], tol_r=tol[1],
                                                 inner=INNER_IRLS,
-                                                correct=correct and x_dense is None, **kw)
+                                                correct=correct and x_dense is None,
+                                                known=known, **kw)
     if x_dense is None:
         return T, it + it2, converged, history + h2, last
     history += [dict(h, stage="fine") for h in h2]
+    known = None if dense_rows is None else _known_rows(last, dense_rows)
     T, it3, converged, h3, last = _gauss_newton(smap, x_dense, T, frozen, max_iter=max_iter,
                                                 frame=frame, tol_t=DENSE_TOL[0],
                                                 tol_r=DENSE_TOL[1], prune=True,
-                                                inner=INNER_IRLS, correct=correct, **kw)
+                                                inner=INNER_IRLS, correct=correct,
+                                                known=known, **kw)
     return T, it + it2 + it3, converged, history + [dict(h, stage="dense") for h in h3], last
+
+
+def _known_rows(last, rows):
+    """``known`` for the next stage's :func:`_gauss_newton` from a stage's ``last``
+    (its prediction at its solution, the GP field; None if it did not converge):
+    ``rows[i]`` is the next stage's row of the stage's ``i``-th point (-1: none)."""
+    if last is None:
+        return None
+    idx = last["index"]
+    r = np.asarray(rows)[idx]
+    ok = r >= 0
+    if not ok.any():
+        return None
+    return r[ok], last["m"][ok], last["var"][ok], last["g"][ok]
 
 
 def _information(smap, x, T, *, noise2, known_std, c_robust, loss, share_cell,
@@ -936,7 +988,8 @@ def _finite_information(smap, x, T, info, v, delta, stride: int = 4):
 
 def _register(smap, x, x_dense, T0, *, noise, known_std, c_robust, loss, max_iter,
               degeneracy_ratio, cluster_size, share_cell, candidate_ratio=0.02, probe=0.2,
-              min_clusters=24, probe_points=7000, cell_factors=True, surface=None):
+              min_clusters=24, probe_points=7000, cell_factors=True, surface=None,
+              dense_rows=None, start=None):
     """Gauss-Newton/IRLS on d(T x) with the map's gradient (see module docstring).
 
     1. Gauss-Newton from ``T0``. 2. At the solution, eigen-directions of the scaled
@@ -948,6 +1001,9 @@ def _register(smap, x, x_dense, T0, *, noise, known_std, c_robust, loss, max_ite
     covariance at the solution. ``x``: the voxel sample of the fine stage; ``x_dense``
     (or None): the points of the last stage, the solution's information and
     covariance.
+    ``dense_rows``
+    (optional): the row of ``x_dense`` of each row of ``x`` (-1: none); ``start``
+    (optional): the first stage's first prediction (:func:`_coarse_to_fine`).
     """
     noise2 = noise * noise
     surface = SURFACE_CORRECTION if surface is None else surface
@@ -955,7 +1011,8 @@ def _register(smap, x, x_dense, T0, *, noise, known_std, c_robust, loss, max_ite
     kw = dict(noise2=noise2, known_std=known_std, c_robust=c_robust, loss=loss,
               share_cell=share_cell, cell_factors=cell_factors)
     T, it, converged, history, last = _coarse_to_fine(smap, x, x_dense, T0, [], None,
-                                                      max_iter, kw, correct=surface)
+                                                      max_iter, kw, correct=surface,
+                                                      dense_rows=dense_rows, start=start)
     info = _information(smap, xs, T, last=last, **kw)
     stride = max(4, int((info["w"] > 0).sum()) // probe_points)
     Hs = info["H_geo"] * info["D"][:, None] * info["D"][None, :]
@@ -973,7 +1030,8 @@ def _register(smap, x, x_dense, T0, *, noise, known_std, c_robust, loss, max_ite
         # the frozen vectors refer to the solution's pivot and lever: keep them
         T, it2, converged, history2, last = _coarse_to_fine(
             smap, x, x_dense, T0, [d.vector for d in degenerate],
-            (info["pivot"], info["D"]), max_iter, kw, correct=surface)
+            (info["pivot"], info["D"]), max_iter, kw, correct=surface, dense_rows=dense_rows,
+            start=start)
         history = history + [{"restart": "frozen " + ", ".join(d.name for d in degenerate)}] \
             + history2
         it += it2
@@ -1219,15 +1277,22 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
                              f"{len(sample)}.")
         # the registration's own field (no far field), on the points of its coarse
         # stage: is anything known at all?
-        m0, v0, _ = _predict(smap, y=y0[sample][::max(len(sample) // _COARSE_POINTS, 1)])
+        start = _predict(smap, y=y0[sample][::max(len(sample) // _COARSE_POINTS, 1)])
+        v0 = start[1]
         if not (np.sqrt(v0) < known_std).any():
             raise _nothing_known(src, known_std, float(np.sqrt(v0.min())))
         ta = time.perf_counter()
-        dense = None
+        dense, dense_rows = None, None
         if dense_points > 0 and len(x) > len(sample):
-            dense = x if len(x) <= dense_points else \
-                x[np.sort(rng.choice(len(x), dense_points, replace=False))]
+            if len(x) <= dense_points:
+                dense, dense_rows = x, sample
+            else:
+                sel = np.sort(rng.choice(len(x), dense_points, replace=False))
+                dense = x[sel]
+                pos = np.minimum(np.searchsorted(sel, sample), len(sel) - 1)
+                dense_rows = np.where(sel[pos] == sample, pos, -1)
         fit = _register(smap, x[sample], dense, T_loc, noise=noise, known_std=known_std,
+                        dense_rows=dense_rows, start=start,
                         share_cell=share_cell,
                         c_robust=robust_c, loss=loss, max_iter=max_iter,
                         degeneracy_ratio=degeneracy_ratio, cluster_size=cluster_size)

@@ -252,6 +252,39 @@ def test_check_after_alignment_reuses_the_registrations_last_prediction(corridor
     assert np.array_equal(res.known, ref.known) and np.array_equal(res.changed, ref.changed)
 
 
+def test_stages_start_from_the_previous_stages_last_prediction(corridor_map, monkeypatch):
+    """Each registration stage's first iteration takes the previous stage's last
+    prediction (and the first stage check_scan's test prediction) at the points both
+    share instead of predicting them again: the same transform and covariance as when
+    every stage predicts all its points, with fewer points predicted. The corridor's
+    degenerate direction makes the registration run twice (both runs reuse)."""
+    import gmmgp_app.check as C
+
+    scan = _corridor(20000, np.random.default_rng(1))
+    T = _truth(rot_deg=0.3, axis=(0.2, 0.1, 0.3), t=(0.05, 0.02, -0.01))
+    moved = _move(scan.points, T)
+    out = {}
+    for reuse in (True, False):
+        if not reuse:
+            monkeypatch.setattr(C, "_predict_rest", lambda smap, y, known: C._predict(smap, y))
+        points = []
+
+        class Spy:
+            offset, seed_points = corridor_map.offset, corridor_map.seed_points
+
+            def predict(self, xyz, return_grad=False, far=True, near=None):
+                points.append(len(xyz))
+                return corridor_map.predict(xyz, return_grad=return_grad, far=far, near=near)
+
+        out[reuse] = (check_scan(moved, Spy(), align=True), sum(points))
+    (a, na), (b, nb) = out[True], out[False]
+    np.testing.assert_allclose(a.transform, b.transform, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(a.covariance, b.covariance, rtol=1e-9, atol=1e-18)
+    assert a.iterations == b.iterations
+    # the fine sample's and the coarse points' predictions are not made again
+    assert na < nb, (na, nb)
+
+
 # ----------------------------------------------------------------------------- second drive
 
 
