@@ -140,3 +140,30 @@ def test_run_path_imports_no_viewer_cluster_or_recorder():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          cwd=ROOT, check=True)
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+def test_run_reports_the_meshing_error_when_the_background_save_fails_too(tmp_path, capsys,
+                                                                           monkeypatch):
+    """`gmmgp run` writes the map on a thread while it meshes: when both fail, the
+    meshing's error is the one reported (the save is still waited for), exit 2, and no
+    half-written map folder is left."""
+    import gmmgp_app.pipeline as P
+    from gmmgp_app.commands import run as run_cmd
+
+    assert main(["synth", "box", "--out", str(tmp_path / "box"), "--density", "0.2"]) == 0
+
+    def failing_write(directory, arrays, meta_text):
+        raise OSError("the save failed")
+
+    def failing_meshes(*a, **k):
+        raise ValueError("the meshing failed")
+
+    monkeypatch.setattr(P, "_write_map", failing_write)
+    monkeypatch.setattr(run_cmd, "_write_meshes", failing_meshes)
+    capsys.readouterr()
+    out = tmp_path / "run"
+    code = main(["run", str(tmp_path / "box" / "scan.npz"), "--out", str(out), "-q"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "the meshing failed" in err and "the save failed" not in err, err
+    assert not (out / "map").exists()

@@ -149,8 +149,10 @@ def run(args) -> int:
             try:
                 written += _write_meshes(smap, out, observer, console,
                                          prior_mesh=args.prior_mesh)
-            finally:
-                saving.result()
+            except BaseException:
+                saving.exception()   # wait for the save; the meshing's error is reported
+                raise
+            saving.result()
         else:
             smap.save(out / "map")
         if recorder is not None:
