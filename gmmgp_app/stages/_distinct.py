@@ -7,7 +7,9 @@ voxel grids, plus the (N, 3) temporaries of the keys); the auto scale
 each, in no particular order. One compiled pass computes each point's voxel
 ``floor((p - lo) / size)`` (the same float64 operations as numpy's), packs it into one
 int64 and looks it up in an open-addressing table (linear probing, Fibonacci hashing,
-at least twice as many slots as points): O(N).
+at least twice as many slots as points): O(N). The probing is written here, not
+imported from knn.py or surface.py's tables: numba's on-disk cache of this file's
+kernels would not see a change to another file's function they call.
 """
 
 from __future__ import annotations

@@ -674,7 +674,9 @@ def _reserve_table(keys, values, need: int):
 @nb.njit(cache=True, inline="always")
 def _probe(tk, key):
     """The slot of ``key`` in the table ``tk`` (linear probing), or the empty slot where
-    it would go."""
+    it would go. The hash is knn.py's ``_hash``, repeated here rather than imported:
+    numba's on-disk cache of this file's kernels would not see a change to another
+    file's function they inline."""
     mask = len(tk) - 1
     s = ((key * 0x9E3779B97F4A7C15) & 0x7FFFFFFFFFFFFFFF) >> 17 & mask
     while tk[s] != -1 and tk[s] != key:
