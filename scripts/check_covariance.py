@@ -151,7 +151,7 @@ def collect(a) -> int:
         y = info["y"]
         np.savez(out / (name.replace(" ", "_") + ".npz"),
                  name=name, xi=_xi(truth, res), cov=res.covariance,
-                 y=y, m=info["m"], var=info["var"], g=info["J"][:, :3], w=info["w"],
+                 y=y, m=info["m_field"], var=info["var"], g=info["J"][:, :3], w_fit=info["w_fit"],
                  w_geo=info["w_geo"], pivot=info["pivot"], D=info["D"], P=grab["P"],
                  size=grab["size"], noise=noise,
                  corr=np.zeros(len(y)) if corr is None else corr,
