@@ -742,6 +742,11 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
                 n_share, cell, index = n_share[keep], cell[keep], index[keep]
         if correct and it == 1:
             corr = _surface_correction(smap, y, m, var, g)
+        if prune and _REUSE_DENSE_VAR:  # study (docs/check.md, Session 8): off
+            if it == 1:
+                var_first = var
+            else:
+                var = var_first
         m_field = m
         if corr is not None:
             m = m + corr
@@ -853,6 +858,10 @@ def _linear_irls(J, m, var, step, D, P, *, noise2, known_std, c_robust, loss, n_
 
 
 _COARSE_POINTS = 5000
+#: Study only (off): the dense stage's later iterations take the variance of its first
+#: one (what a mean-and-gradient-only prediction would allow), to measure how the
+#: result moves (docs/check.md, Session 8).
+_REUSE_DENSE_VAR = False
 #: The registration's last stage fits the blended field's mean (:func:`_surface_correction`).
 SURFACE_CORRECTION = True
 #: Tolerance of the dense stage's last Gauss-Newton step (m, rad).
@@ -1026,9 +1035,9 @@ def _register(smap, x, x_dense, T0, *, noise, known_std, c_robust, loss, max_ite
     unconstrained. 3. If there are any, Gauss-Newton again from ``T0`` with them
     frozen (the transform keeps the guess's value along them). 4. Covariance at
     the solution (the jackknife of the minimised residuals and the map-error model,
-    the larger per direction; module docstring). ``x``: the voxel sample of the fine stage; ``x_dense``
-    (or None): the points of the last stage, the solution's information and
-    covariance.
+    the larger per direction; module docstring). ``x``: the voxel sample of the fine
+    stage; ``x_dense`` (or None): the points of the last stage, the solution's
+    information and covariance.
     ``dense_rows``
     (optional): the row of ``x_dense`` of each row of ``x`` (-1: none); ``start``
     (optional): the first stage's first prediction (:func:`_coarse_to_fine`).

@@ -273,7 +273,14 @@ def main(argv=None) -> int:
     ap.add_argument("--nseeds", type=int, nargs="+", default=[1, 2, 3])
     ap.add_argument("--only", default=None, help="comma list of bench,test,kitti,half")
     ap.add_argument("--json", default=None, help="--analyse: write the rows here")
+    ap.add_argument("--reuse-var", action="store_true",
+                    help="the dense stage's later iterations take its first one's variance "
+                         "(check._REUSE_DENSE_VAR, a study)")
     a = ap.parse_args(argv)
+    if a.reuse_var:
+        import gmmgp_app.check as ck
+
+        ck._REUSE_DENSE_VAR = True
     if a.collect:
         return collect(a)
     if a.analyse:
