@@ -151,6 +151,31 @@ def test_covariance_covers_a_map_error_correlated_over_a_length_scale():
     assert 2.0 < np.median(m2) < 12.0, m2
 
 
+def test_covariance_max_contains_both_and_no_more():
+    """check._cov_max: C - A and C - B positive semi-definite (both 3-sigma ellipsoids
+    inside C's), C = A where A already contains B, and zero along a frozen direction."""
+    from gmmgp_app.check import _cov_max
+
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        X, Y = rng.normal(size=(6, 6)), rng.normal(size=(6, 6))
+        A, B = X @ X.T + 1e-3 * np.eye(6), Y @ Y.T * rng.uniform(0.01, 10)
+        C = _cov_max(A, B, np.eye(6))
+        for S in (A, B):
+            assert np.linalg.eigvalsh(C - S).min() > -1e-9 * np.abs(C).max()
+        # along each generalised eigenvector C is exactly the larger of the two
+        lam, U = np.linalg.eigh(np.linalg.solve(np.linalg.cholesky(A), np.linalg.solve(
+            np.linalg.cholesky(A), B).T))
+        np.testing.assert_allclose(np.sort(np.linalg.eigvals(np.linalg.solve(A, C)).real),
+                                   np.sort(np.maximum(lam, 1.0)), rtol=1e-8)
+        np.testing.assert_allclose(_cov_max(A, 0.5 * A, np.eye(6)), A, rtol=1e-9, atol=1e-12)
+    f = np.zeros(6)
+    f[2] = 1.0
+    P = np.eye(6) - np.outer(f, f)
+    C = _cov_max(A, B, P)
+    assert np.abs(C[2]).max() == 0 and np.abs(C[:, 2]).max() == 0
+
+
 def test_cell_factors_recomputed_only_when_the_points_moved(monkeypatch):
     """The per-cell variance factors are computed at the start of each stage and again
     only after the points moved by more than REFACTOR_TOL: fewer fits than iterations,
