@@ -223,7 +223,7 @@ def variants(a) -> int:
     """``--variants DIR``: per kept pair, the registration's estimate moved by the IRLS
     solution of its residuals linearised at the solution (:func:`check._linear_irls`)
     with other weights (robust constant, loss, share cell, no cell factors, the GP
-    field's residuals without the correction); the truth's error after it (rotation
+    field's residuals without the correction, a smaller ``known_std``: fewer points); the truth's error after it (rotation
     mdeg / translation at the pivot mm). Linearised: a map's field over the few
     millimetres moved is linear to microns apart from the GP's block jumps."""
     import gmmgp_app.check as ck
@@ -231,7 +231,8 @@ def variants(a) -> int:
     sets = {"as run": {}, "tukey 3": dict(c_robust=3.0), "tukey 7": dict(c_robust=7.0),
             "cauchy": dict(loss="cauchy", c_robust=2.3849), "share 0.5": dict(share=0.5),
             "share 2": dict(share=2.0), "no factors": dict(nofactor=True),
-            "no correction": dict(nocorr=True), "share 0 (1/(s2+n2))": dict(share=-1)}
+            "no correction": dict(nocorr=True), "share 0 (1/(s2+n2))": dict(share=-1),
+            "known_std 0.05": dict(known=0.05), "known_std 0.03": dict(known=0.03)}
     rows = []
     for f in sorted(Path(a.variants).glob("*.npz")):
         d = dict(np.load(f, allow_pickle=True))
@@ -244,9 +245,10 @@ def variants(a) -> int:
             if "share" in v:
                 n_share = np.ones(len(y)) if v["share"] < 0 else ck._share_counts(y, v["share"])
             factor = None if v.get("nofactor") else d["factor"]
-            kw = dict(noise2=noise2, known_std=0.1, c_robust=v.get("c_robust", 4.685),
+            kn = v.get("known", 0.1)
+            kw = dict(noise2=noise2, known_std=kn, c_robust=v.get("c_robust", 4.685),
                       loss=v.get("loss", "tukey"))
-            w, _ = ck._weights(mc, var, noise2, np.sqrt(var) < 0.1, kw["c_robust"], kw["loss"],
+            w, _ = ck._weights(mc, var, noise2, np.sqrt(var) < kn, kw["c_robust"], kw["loss"],
                                n_share, factor)
             J, H, b = ck._normal_matrix(y, g, w, mc, pivot)
             step = ck._solve_step(H, b, D, d["P"])
