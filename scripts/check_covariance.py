@@ -232,7 +232,8 @@ def variants(a) -> int:
             "cauchy": dict(loss="cauchy", c_robust=2.3849), "share 0.5": dict(share=0.5),
             "share 2": dict(share=2.0), "no factors": dict(nofactor=True),
             "no correction": dict(nocorr=True), "share 0 (1/(s2+n2))": dict(share=-1),
-            "known_std 0.05": dict(known=0.05), "known_std 0.03": dict(known=0.03)}
+            "known_std 0.05": dict(known=0.05), "known_std 0.03": dict(known=0.03),
+            "unit gradient": dict(unit=True), "no robust loss": dict(c_robust=1e6)}
     rows = []
     for f in sorted(Path(a.variants).glob("*.npz")):
         d = dict(np.load(f, allow_pickle=True))
@@ -241,6 +242,11 @@ def variants(a) -> int:
         row = {"pair": str(d["name"])}
         for label, v in sets.items():
             mc = m if v.get("nocorr") else m + d["corr"]
+            if v.get("unit"):  # residual and Jacobian per unit gradient: distances
+                gn = np.maximum(np.linalg.norm(g, axis=1), 1e-12)
+                mc, g = mc / gn, g / gn[:, None]
+            else:
+                g = d["g"]
             n_share = d["n_share"]
             if "share" in v:
                 n_share = np.ones(len(y)) if v["share"] < 0 else ck._share_counts(y, v["share"])
