@@ -20,8 +20,14 @@ counts, the pivot, the scaling, the frozen directions) and the truth; ``--analys
 prints per pair the truth's Mahalanobis^2 and the sigmas of the covariance check_scan
 reported and of its parts and alternatives (:func:`covariances`).
 
+``--variants DIR`` moves each kept solution by the IRLS solution of its residuals
+linearised there with other weights (:func:`variants`); ``--reuse-var`` with
+``--collect``: the dense stage's later iterations keep its first variance (a study of a
+mean-and-gradient-only prediction, ``check._REUSE_DENSE_VAR``).
+
     PYTHONPATH=$PWD python scripts/check_covariance.py --collect /tmp/cov --maps /tmp/maps
     PYTHONPATH=$PWD python scripts/check_covariance.py --analyse /tmp/cov
+    PYTHONPATH=$PWD python scripts/check_covariance.py --variants /tmp/cov
 """
 
 from __future__ import annotations
