@@ -106,7 +106,8 @@ def pairs(a):
                                        scene_params=dict(length=length), lane_y=-1.5)
                 moved = (second.points - T[:3, 3]) @ T[:3, :3]
                 yield f"{kind} h{h} n{n}", smap, moved, np.eye(4), T, 0.01
-    if (on("kitti") or on("half")) and KITTI.is_dir():
+    dT = None
+    if (on("kitti") or on("half") or a.half_scans) and KITTI.is_dir():
         from bench_check import _rot
         from gmmgp_app.datasets import read_scan
         from gmmgp_app.datasets.kitti import read_poses
@@ -132,6 +133,17 @@ def pairs(a):
             even = Scan(pts[0::2], origins=org, offset=scan.offset)
             smap = _map(cache, "kitti0_even", lambda: gm.build_map(even))
             yield "kitti half", smap, pts[1::2], init, np.eye(4), 0.02
+    for k in a.half_scans if KITTI.is_dir() else ():
+        # another scan's halves, in that scan's own frame: the guess is the perturbation
+        from gmmgp_app.datasets import read_scan
+        from gmmgp_app.types import Scan
+
+        scan = read_scan(KITTI / "velodyne" / f"{k:06d}.bin")
+        pts = scan.points
+        org = None if scan.origins is None else scan.origins[0::2]
+        even = Scan(pts[0::2], origins=org, offset=scan.offset)
+        smap = _map(cache, f"kitti{k}_even", lambda: gm.build_map(even))
+        yield f"kitti half {k}", smap, pts[1::2], dT, np.eye(4), 0.02
 
 
 def collect(a) -> int:
@@ -287,6 +299,9 @@ def main(argv=None) -> int:
     ap.add_argument("--nseeds", type=int, nargs="+", default=[1, 2, 3])
     ap.add_argument("--only", default=None, help="comma list of bench,test,kitti,half")
     ap.add_argument("--json", default=None, help="--analyse: write the rows here")
+    ap.add_argument("--half-scans", type=int, nargs="*", default=[],
+                    help="also these KITTI scans' odd points onto the maps of their even "
+                         "points (each in its own frame)")
     ap.add_argument("--reuse-var", action="store_true",
                     help="the dense stage's later iterations take its first one's variance "
                          "(check._REUSE_DENSE_VAR, a study)")
