@@ -95,19 +95,35 @@ street a 0.15 m pole mapped with std 3-5 mm but 2-18
 cm wrong in shape otherwise held most of the along-street information and moved the
 solution 4 cm (docs/check.md, scripts/check_seed_sweep.py).
 
-Covariance (of ``xi`` at the solution, same order and units): the delete-one-cluster
-jackknife (CR3, linearised) over cubic clusters of ``cluster_size`` metres,
-``(G - 1) / G sum_c (theta_c - mean)(theta_c - mean)^T`` with ``theta_c`` the
-Gauss-Newton solution without cluster ``c`` (:func:`_cluster_consistency`); the
-cluster-robust sandwich ``H^+ (sum_c b_c b_c^T) H^+`` (``b_c = sum_{i in c} w_i J_i^T
-d_i``) is in the history. Neither trusts the map's std to be calibrated nor its errors
-to be independent from point to point (they are correlated over the GP's length
-scale); the jackknife also sees a cluster that holds most of a direction's
-information (the sandwich sees only its score at the solution, which it fitted). The
-inverses are pseudo-inverses on the constrained directions, so the covariance says
-nothing along a degenerate direction (there the uncertainty is unbounded, see
-``degenerate``). Neither sees an error common to all clusters (a bias of the map's
-surfaces that one-sided faces turn into a shift).
+Covariance (of ``xi`` at the solution, same order and units): the larger, direction by
+direction (:func:`_cov_max`), of two estimates, one from the data and one from the map:
+
+- the delete-one-cluster jackknife (CR3, linearised) of the residuals the solution
+  minimised (the GP field's plus the last stage's surface correction) over cubic
+  clusters of ``cluster_size`` metres, ``(G - 1) / G sum_c (theta_c - mean)(theta_c -
+  mean)^T`` with ``theta_c`` the Gauss-Newton solution without cluster ``c``
+  (:func:`_cluster_consistency`; the cluster-robust sandwich ``H^+ (sum_c b_c b_c^T)
+  H^+`` is in the history). It trusts neither the map's std nor the independence of
+  its errors, and sees a cluster that holds most of a direction's information; it
+  cannot see an error the residuals do not show: where the scan is the map's own data
+  the residuals are that data's scatter about itself (KITTI 000000 onto its own map:
+  the truth at Mahalanobis^2 62 with it alone), and an error common to all clusters (a
+  bias of the map's surfaces that one-sided faces turn into a shift: the test street,
+  Mahalanobis^2 60-90 on one map).
+- the map-error model (:func:`_map_error_covariance`): the sandwich of the solution
+  under the error model its weights assume, the map's variance at each point shared by
+  all the points of its ``share_cell`` (its errors are correlated over the GP's length
+  scale, so N dense points are not N independent constraints) plus the scan's noise,
+  independent from point to point.
+
+With both, the truth lay inside the 3-sigma ellipsoid on 20 pairs with known truth
+(synthetic bench street, HGMM seeds 0-2 x noise seeds 1-3; the test street, the same;
+KITTI 000000 onto its own map and onto the map of its other half): Mahalanobis^2
+0.26-5.3 (the jackknife alone 2.4-90); on a box whose map error is a smooth random field
+of known std and length scale, median 9 over 10 draws (the jackknife alone 19);
+docs/check.md, Session 8. The inverses are pseudo-inverses on the constrained
+directions, so the covariance says nothing along a degenerate direction (there the
+uncertainty is unbounded, see ``degenerate``).
 
 The registration's stages fit the GP field (``predict(..., far=False)``,
 :func:`_predict`; the known/changed decision uses the blended field): the far field
@@ -298,8 +314,10 @@ class CheckResult:
             out["covariance_convention"] = (
                 "xi = (tx, ty, tz, rx, ry, rz) in m and rad; T_true = exp(xi) T (left "
                 "perturbation in the map frame), to first order y_true = y + r x (y - pivot) "
-                "+ t; delete-one-cluster jackknife estimate; zero information (pseudo-inverse) "
-                "along the degenerate directions")
+                "+ t; the larger per direction of the delete-one-cluster jackknife of the "
+                "residuals and the map-error model (the map's variance shared within "
+                "share_cell); zero information (pseudo-inverse) along the degenerate "
+                "directions")
             out["pivot"] = self.pivot.tolist()
             out["degenerate"] = [d.to_dict() for d in self.degenerate]
         return out
@@ -724,6 +742,11 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
                 n_share, cell, index = n_share[keep], cell[keep], index[keep]
         if correct and it == 1:
             corr = _surface_correction(smap, y, m, var, g)
+        if prune and _REUSE_DENSE_VAR:  # study (docs/check.md, Session 8): off
+            if it == 1:
+                var_first = var
+            else:
+                var = var_first
         m_field = m
         if corr is not None:
             m = m + corr
@@ -835,6 +858,10 @@ def _linear_irls(J, m, var, step, D, P, *, noise2, known_std, c_robust, loss, n_
 
 
 _COARSE_POINTS = 5000
+#: Study only (off): the dense stage's later iterations take the variance of its first
+#: one (what a mean-and-gradient-only prediction would allow), to measure how the
+#: result moves (docs/check.md, Session 8).
+_REUSE_DENSE_VAR = False
 #: The registration's last stage fits the blended field's mean (:func:`_surface_correction`).
 SURFACE_CORRECTION = True
 #: Tolerance of the dense stage's last Gauss-Newton step (m, rad).
@@ -928,10 +955,10 @@ def _information(smap, x, T, *, noise2, known_std, c_robust, loss, share_cell,
     else:
         # the GP field's own residuals, without the last stage's surface correction
         # (_surface_correction): the degeneracy probes compare the field's moves with
-        # its mean, and the covariance is the GP field's. With the corrected residuals
-        # the jackknife shrank where the blended mean is the scan's own data (KITTI
-        # 000000 against its own map: translation std 6-12 um instead of 12-33, the
-        # truth at Mahalanobis^2 351; docs/check.md, Session 7)
+        # its mean. The covariance's jackknife takes the residuals minimised (m_fit):
+        # where the blended mean is the scan's own data they shrink (KITTI 000000
+        # against its own map: translation std 6-12 um, the truth at Mahalanobis^2
+        # 351-382), which the map-error model covers (_register)
         y, m, var, g = last["y"], last["m"], last["var"], last["g"]
     m_field = m
     factor = None if last is None else last.get("factor")
@@ -952,8 +979,17 @@ def _information(smap, x, T, *, noise2, known_std, c_robust, loss, share_cell,
     # the weights favour the places the map knows best
     w_geo, _ = _weights(m, var, noise2, np.sqrt(var) < known_std, c_robust, loss, 1.0, factor)
     _, H_geo, _ = _normal_matrix(y, g, w_geo, m, pivot)
-    return dict(y=y, m=m, m_field=m_field, w=w, scale=scale, pivot=pivot, lever=lever, J=J,
-                H=H, D=D, w_geo=w_geo, H_geo=H_geo)
+    # the residuals the last stage minimised (with its surface correction) and their
+    # weights: the covariance's (_register)
+    corr = None if last is None else last.get("corr")
+    m_fit, w_fit = m, w
+    if corr is not None:
+        m_fit = m + corr
+        w_fit, _ = _weights(m_fit, var, noise2, np.sqrt(var) < known_std, c_robust, loss,
+                            n_share, factor)
+    return dict(y=y, m=m, m_field=m_field, var=var, n_share=n_share, factor=factor, w=w,
+                scale=scale, pivot=pivot, lever=lever, J=J, H=H, D=D, w_geo=w_geo, H_geo=H_geo,
+                corr=corr, m_fit=m_fit, w_fit=w_fit, noise2=noise2)
 
 
 def _finite_information(smap, x, T, info, v, delta, stride: int = 4):
@@ -997,10 +1033,11 @@ def _register(smap, x, x_dense, T0, *, noise, known_std, c_robust, loss, max_ite
     probed by :func:`_finite_information` (+-``probe`` m); those whose measured
     curvature is under ``degeneracy_ratio`` of the largest eigenvalue are
     unconstrained. 3. If there are any, Gauss-Newton again from ``T0`` with them
-    frozen (the transform keeps the guess's value along them). 4. Sandwich
-    covariance at the solution. ``x``: the voxel sample of the fine stage; ``x_dense``
-    (or None): the points of the last stage, the solution's information and
-    covariance.
+    frozen (the transform keeps the guess's value along them). 4. Covariance at
+    the solution (the jackknife of the minimised residuals and the map-error model,
+    the larger per direction; module docstring). ``x``: the voxel sample of the fine
+    stage; ``x_dense`` (or None): the points of the last stage, the solution's
+    information and covariance.
     ``dense_rows``
     (optional): the row of ``x_dense`` of each row of ``x`` (-1: none); ``start``
     (optional): the first stage's first prediction (:func:`_coarse_to_fine`).
@@ -1039,17 +1076,21 @@ def _register(smap, x, x_dense, T0, *, noise, known_std, c_robust, loss, max_ite
     F = np.zeros((6, 0)) if not degenerate else np.stack([d.vector for d in degenerate], 1)
     P = np.eye(6) - F @ F.T
     size = _cluster_size(info, cluster_size, min_clusters)
-    cons = _cluster_consistency(info, P, size)
+    # the residuals the solution minimised, with their weights
+    cons = _cluster_consistency(dict(info, m=info["m_fit"], w=info["w_fit"]), P, size)
+    model = _map_error_covariance(info, P, share_cell)
     D = info["D"]
-    cov = cons["jackknife"] * D[:, None] * D[None, :]
-    cov = 0.5 * (cov + cov.T)
-    sandwich = cons["sandwich"] * D[:, None] * D[None, :]
+    Ds = D[:, None] * D[None, :]
+    cov = _cov_max(cons["jackknife"], model, P) * Ds
     n_cl = cons["n_clusters"]
     use = info["w"] > 0
+    std = lambda C: np.sqrt(np.clip(np.diag(C * Ds), 0, None)).tolist()  # noqa: E731
     history.append({"covariance_clusters": int(n_cl), "cluster_size_m": float(size),
                     "largest_cluster_statistics": cons["summary"]["largest"],
-                    "sandwich_std": np.sqrt(np.clip(np.diag(sandwich), 0, None)).tolist(),
-                    "jackknife_std": np.sqrt(np.clip(np.diag(cov), 0, None)).tolist()})
+                    "sandwich_std": std(cons["sandwich"]),
+                    "jackknife_std": std(cons["jackknife"]),
+                    "map_error_std": std(model),
+                    "covariance_std": np.sqrt(np.clip(np.diag(cov), 0, None)).tolist()})
     return _Fit(T, info["H"], cov, info["pivot"], info["lever"], tuple(degenerate), it,
                 converged, int(use.sum()), info["scale"], history,
                 last if x_dense is not None else None)
@@ -1477,3 +1518,60 @@ def _nothing_known(src, known_std, best) -> CheckError:
         f"No point of {src} lies where the map knows the surface (std < {known_std} m; the "
         f"smallest std is {best:.3g} m); the scan is outside the mapped area or in another "
         "frame: give the scan-to-map transform with --init.")
+
+
+def _map_error_covariance(info, P, cell):
+    """Covariance of the registration's ``xi`` (scaled space, rotations times the lever)
+    under the error model its weights assume: at each point the residual is the map's
+    error, shared by all the points of its ``cell`` (the ``share_cell``, m), plus the
+    scan's noise, independent from point to point. With ``s_i^2`` the map's variance
+    at the point (times its cell factor, :func:`_weights`), ``w_i`` the weights the
+    solution used and ``J_i`` the Jacobian, the solution's first-order error is
+    ``H^+ sum_i w_i J_i e_i`` (``H = sum w_i J_i^T J_i``) and its covariance the sandwich::
+
+        H^+ ( sum_cells a_c a_c^T + noise^2 sum_i w_i^2 J_i^T J_i ) H^+,
+        a_c = sum_{i in c} w_i s_i J_i       (the cell's error common to its points)
+
+    Unlike the per-point inverse ``H^-1`` (N independent constraints from N points) it
+    counts the map's error once per cell: the map's errors are correlated over the GP's
+    length scale, so dense points do not average them out. Unlike the jackknife over the
+    residuals (:func:`_cluster_consistency`) it sees an error that the residuals cannot
+    show: where the scan is the map's own data (KITTI 000000 onto its own map) the
+    residuals are the data's scatter about itself and say nothing of the map's error.
+    Within a cell the errors are taken as fully correlated, with the same sign for all
+    faces: an upper bound of the cell's share for cells of one surface."""
+    y, J, D, w = info["y"], info["J"], info["D"], info["w_fit"]
+    var, factor, noise2 = info["var"], info.get("factor"), info["noise2"]
+    use = w > 0
+    Js = J[use] * D[None, :]
+    ws = w[use]
+    var_map = var[use] if factor is None else (var[use] + noise2) * factor[use] - noise2
+    s = np.sqrt(np.maximum(var_map, 0.0))
+    _, inv = _cells(y[use], cell, return_inverse=True)
+    inv = inv.reshape(-1)
+    G = int(inv.max()) + 1
+    a = np.stack([np.bincount(inv, weights=Js[:, k] * ws * s, minlength=G)
+                  for k in range(6)], 1) @ P
+    meat = a.T @ a + P @ ((Js * (ws * ws * noise2)[:, None]).T @ Js) @ P
+    H = P @ ((Js * ws[:, None]).T @ Js) @ P
+    lam, V = np.linalg.eigh(0.5 * (H + H.T))
+    good = lam > 1e-9 * max(lam[-1], 1e-300)
+    Hi = (V[:, good] / lam[good]) @ V[:, good].T
+    C = Hi @ meat @ Hi
+    return 0.5 * (C + C.T)
+
+
+def _cov_max(A, B, P):
+    """The covariance whose ellipsoid is the smallest of the family
+    ``A^1/2 U diag(max(lambda, 1)) U^T A^1/2`` containing both ``A``'s and ``B``'s
+    (``A^-1/2 B A^-1/2 = U diag(lambda) U^T``), on the range of ``P``."""
+    lam, V = np.linalg.eigh(P)
+    Q = V[:, lam > 0.5]
+    Ar, Br = Q.T @ A @ Q, Q.T @ B @ Q
+    la, Va = np.linalg.eigh(0.5 * (Ar + Ar.T))
+    la = np.maximum(la, 1e-30 * max(la[-1], 1e-300))
+    Ah = (Va * np.sqrt(la)) @ Va.T
+    Aih = (Va / np.sqrt(la)) @ Va.T
+    lb, U = np.linalg.eigh(Aih @ Br @ Aih)
+    C = Ah @ (U * np.maximum(lb, 1.0)) @ U.T @ Ah
+    return Q @ (0.5 * (C + C.T)) @ Q.T

@@ -9,6 +9,9 @@ Pairs:
               by 0.3 m and 2 deg (random directions, seeded). Truth only for scan 0
               (identity); otherwise the methods are compared with each other and with
               the pose file (itself a GICP estimate, not ground truth).
+  kitti half  KITTI 000000's odd points against the map of its even points, from scan
+              000000's guess: real data with exact truth (the identity); --no-half
+              leaves it out.
 
 Methods on each pair, from the same initial guess: ``gmmgp`` (check_scan(align=True):
 robust Gauss-Newton on the map's distances), Open3D point-to-plane ICP (Tukey loss)
@@ -84,6 +87,17 @@ def _diff(Ta, Tb):
     return float(ang), float(np.linalg.norm(D[:3, 3]))
 
 
+def _mahal2(T_ref, res):
+    """Mahalanobis^2 of ``T_ref`` in check_scan's covariance: ``xi`` with ``T_ref =
+    exp(xi) T`` about the reported pivot."""
+    from scipy.spatial.transform import Rotation
+
+    D = T_ref @ np.linalg.inv(res.transform)
+    xi = np.r_[D[:3, :3] @ res.pivot + D[:3, 3] - res.pivot,
+               Rotation.from_matrix(D[:3, :3]).as_rotvec()]
+    return float(xi @ np.linalg.pinv(res.covariance) @ xi)
+
+
 def _o3d_clouds(target_pts, source_pts):
     import open3d as o3d
 
@@ -152,12 +166,13 @@ def _pair(name, smap, scan_pts, init, truth, *, noise, max_dist, target_pts, rep
     })
     if truth is not None:
         row["error_vs_truth"] = {k: dict(zip(("deg", "m"), _diff(truth, v))) for k, v in T.items()}
-        from scipy.spatial.transform import Rotation
-
-        D = truth @ np.linalg.inv(res.transform)
-        xi = np.r_[D[:3, :3] @ res.pivot + D[:3, 3] - res.pivot,
-                   Rotation.from_matrix(D[:3, :3]).as_rotvec()]
-        row["gmmgp_truth_mahalanobis2"] = float(xi @ np.linalg.pinv(res.covariance) @ xi)
+        row["gmmgp_truth_mahalanobis2"] = _mahal2(truth, res)
+    # where the others' transforms lie in gmmgp's reported covariance (chi^2_6 3-sigma:
+    # 20.06); the pose file is a GICP estimate, not the truth
+    row["mahalanobis2_in_gmmgp_covariance"] = {k: _mahal2(np.asarray(v), res)
+                                               for k, v in T.items() if k != "gmmgp"}
+    if pose is not None:
+        row["mahalanobis2_in_gmmgp_covariance"]["pose file"] = _mahal2(pose, res)
     keys = list(T)
     row["pairwise"] = {f"{a}-{b}": dict(zip(("deg", "m"), _diff(T[a], T[b])))
                        for i, a in enumerate(keys) for b in keys[i + 1:]}
@@ -222,7 +237,30 @@ def kitti(args):
         row["init_vs_pose_file"] = dict(zip(("deg", "m"), _diff(P, init)))
         rows.append(row)
         print(f"  {row['pair']}: done", file=sys.stderr, flush=True)
+        if i == 0 and args.half:
+            rows.append(_kitti_half(scan, init, args))
+            print(f"  {rows[-1]['pair']}: done", file=sys.stderr, flush=True)
     return rows
+
+
+def _kitti_half(scan, init, args):
+    """KITTI 000000's odd points (file order: every other point of a laser's sweep)
+    checked against the map of its even points, from scan 000000's perturbed guess:
+    real data with exact truth (the identity), the map's noise independent of the
+    scan's."""
+    import gmmgp_app as gm
+    from gmmgp_app.types import Scan
+
+    pts = scan.points
+    even = Scan(pts[0::2], origins=None if scan.origins is None else scan.origins[0::2],
+                offset=scan.offset)
+    t = time.perf_counter()
+    smap = gm.build_map(even)
+    build = time.perf_counter() - t
+    row, _ = _pair("kitti 000000 odd onto even", smap, pts[1::2], init, np.eye(4),
+                   noise=0.02, max_dist=1.0, target_pts=pts[0::2], repeat=args.repeat)
+    row["map_build_seconds"] = build
+    return row
 
 
 def markdown(rows) -> str:
@@ -240,6 +278,19 @@ def markdown(rows) -> str:
             chk = f"{r['seconds_check_only']:.2f}" if k == "gmmgp" else ""
             out.append(f"| {r['pair']} | {r['points']:,} | {k} | {err[0]} | {err[1]} | "
                        f"{r['seconds_align'][k]:.2f} | {chk} |")
+    out += ["", "gmmgp's reported sigmas (translation mm, rotation mdeg; x y z) and where the "
+            "truth, the ICPs' and the pose file's transforms lie in its covariance "
+            "(Mahalanobis^2; 3 sigma: 20.06):", "",
+            "| pair | sigma t (mm) | sigma r (mdeg) | truth | p2plane | gicp | pose file |",
+            "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        mm = r["mahalanobis2_in_gmmgp_covariance"]
+        g = lambda k: f"{mm[k]:.1f}" if k in mm else "-"  # noqa: E731
+        tr = r.get("gmmgp_truth_mahalanobis2")
+        out.append(f"| {r['pair']} | {' / '.join(f'{1e3 * v:.2f}' for v in r['gmmgp_std_m'])} | "
+                   f"{' / '.join(f'{1e3 * v:.1f}' for v in r['gmmgp_std_deg'])} | "
+                   f"{'-' if tr is None else f'{tr:.2f}'} | {g('p2plane')} | {g('gicp')} | "
+                   f"{g('pose file')} |")
     out += ["", "| pair | gmmgp-p2plane (deg / mm) | gmmgp-gicp (deg / mm) | "
             "p2plane-gicp (deg / mm) | gmmgp predict (s, calls) | gmmgp align first run (s) "
             "| load avg | degenerate |",
@@ -265,6 +316,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-kitti", action="store_true")
     ap.add_argument("--no-synthetic", action="store_true")
+    ap.add_argument("--no-half", dest="half", action="store_false",
+                    help="without the pair 'KITTI 000000 odd points onto the map of its even "
+                         "points'")
     args = ap.parse_args(argv)
     rows = []
     if not args.no_synthetic:
