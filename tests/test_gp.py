@@ -369,3 +369,19 @@ def test_blocks_are_made_on_demand_from_the_flat_arrays(sphere_scene):
     assert isinstance(loaded.blocks, FlatBlocks)
     for k, v in field.to_arrays().items():
         np.testing.assert_array_equal(v, loaded.to_arrays()[k])
+
+
+def test_block_grid_from_points_hashed_equals_unique(monkeypatch):
+    """BlockGrid.from_points through the hashed distinct cells gives the keys of the
+    np.unique path (its fallback): negative coordinates, points on block borders."""
+    from gmmgp_app.stages import _distinct
+
+    rng = np.random.default_rng(9)
+    pts = rng.uniform(-6, 6, size=(20000, 3)) * [3, 1, 0.2] + [-30.0, 12.0, 0.0]
+    pts[:50] = np.round(pts[:50] / 0.7) * 0.7
+    a = BlockGrid.from_points(pts, 0.7, 0.5)
+    monkeypatch.setattr(_distinct, "cell_first", lambda p, s: None)
+    b = BlockGrid.from_points(pts, 0.7, 0.5)
+    np.testing.assert_array_equal(a.keys, b.keys)
+    np.testing.assert_array_equal(a._packed, b._packed)
+    assert a.n_blocks > 500
