@@ -59,6 +59,9 @@ def main(argv=None) -> int:
         return out
 
     hgmm.fit_gmm = timed
+    import numba
+
+    threads = int(numba.get_num_threads())
     totals = []
     for _ in range(args.repeat):
         fits.clear()
@@ -85,13 +88,13 @@ def main(argv=None) -> int:
               f"{b.get('cpu_thread', float('nan')):.3f})")
     print("fit_hgmm wall / CPU s: " + ", ".join(f"{t['wall']:.2f} / {t['cpu']:.2f}"
                                                  for t in totals)
-          + f"; load {os.getloadavg()[0]:.2f}; numba threads "
-          f"{hgmm._numba_threads()}; leaves {h.leaves.n_components}")
+          + f"; load {os.getloadavg()[0]:.2f}; numba threads {threads}; "
+          f"leaves {h.leaves.n_components}")
     if args.json:
         Path(args.json).write_text(json.dumps(dict(
             scan=str(args.scan), totals=totals, levels=per_level, fits=fits,
             leaves=int(h.leaves.n_components), load=os.getloadavg(),
-            numba_threads=hgmm._numba_threads(),
+            numba_threads=threads,
             leaf_means_sha256=__import__("hashlib").sha256(
                 np.ascontiguousarray(h.leaves.means).tobytes()).hexdigest()), indent=1))
     return 0
