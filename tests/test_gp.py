@@ -385,3 +385,25 @@ def test_block_grid_from_points_hashed_equals_unique(monkeypatch):
     np.testing.assert_array_equal(a.keys, b.keys)
     np.testing.assert_array_equal(a._packed, b._packed)
     assert a.n_blocks > 500
+
+
+def test_capped_selection_is_the_block_by_block_draw():
+    """The blocks' training points (capped blocks drawn in block order) are those of the
+    loop over every block that fit_local_gps ran before (the oracle here), in order."""
+    from gmmgp_app.stages.gp import _runs
+
+    pts, nrm = sphere(400, r=0.2)
+    cfg = concrete(GPConfig(max_block_points=25, block_size=0.15))
+    field = fit_local_gps(pts, nrm, ConstantPrior(0.0, 0.01), cfg,
+                          rng=np.random.default_rng(3))
+    grid = BlockGrid.from_points(pts, cfg.block_size, cfg.block_overlap)
+    pi, bi = grid.cover(pts)
+    rng, sel = np.random.default_rng(3), []
+    for s, e in zip(*_runs(bi)):
+        idx = pi[s:e]
+        if len(idx) > cfg.max_block_points:
+            idx = np.sort(rng.choice(idx, cfg.max_block_points, replace=False))
+        sel.append(idx)
+    assert field.info["n_capped_blocks"] > 2
+    np.testing.assert_array_equal(field._flat()["X"], pts[np.concatenate(sel)])
+    np.testing.assert_array_equal(np.diff(field._flat()["ptr"]), [len(s) for s in sel])

@@ -687,24 +687,27 @@ def fit_local_gps(points, normals, prior, cfg, *, rng=None, executor=None,
     grid = BlockGrid.from_points(pts, cfg.block_size, cfg.block_overlap)
     pi, bi = grid.cover(pts)
     # Training points per block, capped by a draw in block order (the executor path
-    # gets exactly the same selection as the serial one).
-    sel, n_cand = [], []
-    for s, e in zip(*_runs(bi)):
-        idx = pi[s:e]
-        n_cand.append(len(idx))
-        if len(idx) > cfg.max_block_points:
-            idx = np.sort(rng.choice(idx, cfg.max_block_points, replace=False))
-        sel.append(idx)
-    n_cand = np.array(n_cand)
-    n_used = np.array([len(idx) for idx in sel])
+    # gets exactly the same selection as the serial one). Only the capped blocks draw
+    # (a loop over them, in block order: the draws of a loop over every block).
+    starts, ends = _runs(bi)
+    n_cand = ends - starts
+    cap = int(cfg.max_block_points)
+    n_used = np.minimum(n_cand, cap)
+    capped = np.flatnonzero(n_cand > cap)
+    cat, prev = [], 0
+    for b in capped:
+        cat.append(pi[prev:starts[b]])
+        cat.append(np.sort(rng.choice(pi[starts[b]:ends[b]], cap, replace=False)))
+        prev = ends[b]
+    cat = np.concatenate(cat + [pi[prev:]]) if len(capped) else pi
     from gmmgp_app.distributed import SerialExecutor
 
     if executor is None or type(executor) is SerialExecutor:  # in this process: no copies
-        cat = np.concatenate(sel) if sel else np.zeros(0, dtype=np.int64)
         blocks, flat = _fit_many(pts[cat], sigma_p[cat], targets[cat], n_used,
                                  cfg.length_scale, cfg.value_noise, cfg.gradient_noise,
                                  cfg.jitter, progress=progress)
     else:
+        sel = np.split(cat, np.cumsum(n_used)[:-1])
         blocks = _fit_blocks_on(executor, pts, sigma_p, targets, sel, n_used, cfg, progress,
                                 min_task_seconds)
         blocks, flat = _pack_blocks(blocks)
