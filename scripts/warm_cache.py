@@ -79,10 +79,18 @@ def warm(log=print) -> dict:
             load_map(smap.save(Path(tmp) / "map")).predict(q)
         build_map(scan, cfg, method="hgmm").predict(q)
         # scans beyond the training budget: the voxel subsample and its automatic voxel
-        from gmmgp_app.stages._distinct import voxel_count, voxel_first
+        from gmmgp_app.stages._distinct import cell_count, cell_first, voxel_count, voxel_first
 
         voxel_first(scan.points, 0.1, np.arange(len(scan.points)))
         voxel_count(scan.points, 0.1)
+        cell_first(scan.points, 0.1)      # the surface seeds' cells (also via build_map)
+        cell_count(scan.points, 0.1)
+        # the HGMM's parallel tied E-step (a first level of >= 8192 groups; the box's
+        # fits are smaller): same kernel as em_loop_groups(parallel=True) compiles
+        from gmmgp_app.stages.hgmm import fit_gmm
+
+        rows = np.random.default_rng(0).normal(size=(600, 4))
+        fit_gmm(rows, 2, group_ptr=np.arange(0, 601, 3), parallel=True, max_iter=3)
     out = {"seconds": time.perf_counter() - t0, "compile_seconds": clock.seconds,
            "compiles": clock.count}
     log(f"numba cache warm: {out['seconds']:.1f} s ({out['compiles']} compilations, "

@@ -332,3 +332,78 @@ def test_compiled_block_fitter_matches_numpy_and_lapack():
         assert np.all(np.triu(fit.L, 1) == 0)
         np.testing.assert_allclose(fit.alpha, cho_solve((L, True), t.reshape(-1)),
                                    rtol=1e-8, atol=1e-12)
+
+
+def test_blocks_are_made_on_demand_from_the_flat_arrays(sphere_scene):
+    """A fitted (and a loaded) field keeps its blocks as the flat arrays (FlatBlocks):
+    each BlockFit asked for is the views a list of BlockFits held (same arrays, jitter,
+    times raised), and the executor path's list of BlockFits gives the same blocks."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from gmmgp_app.stages.gp import FlatBlocks
+
+    pts, nrm, prior = sphere_scene
+    cfg = concrete(GPConfig(block_size=0.4))
+    field = fit_local_gps(pts[:300], nrm[:300], prior, cfg)
+    assert isinstance(field.blocks, FlatBlocks) and len(field.blocks) > 3
+    f = field._flat()
+    for i in (0, len(field.blocks) - 1, -1):
+        b = field.blocks[i]
+        j = i % len(field.blocks)
+        s, e = f["ptr"][j], f["ptr"][j + 1]
+        assert np.shares_memory(b.L_packed, f["L"]) and np.shares_memory(b.X, f["X"])
+        np.testing.assert_array_equal(b.X, f["X"][s:e])
+        np.testing.assert_array_equal(b.alpha, f["alpha"][4 * s:4 * e])
+    assert [b.jitter for b in field.blocks] == list(field.to_arrays()["gp_jitter"])
+    assert len(field.blocks[1:3]) == 2
+    with pytest.raises(IndexError):
+        field.blocks[len(field.blocks)]
+    with ThreadPoolExecutor(1) as ex:
+        other = fit_local_gps(pts[:300], nrm[:300], prior, cfg, executor=ex)
+    assert isinstance(other.blocks, list)
+    for a, b in zip(field.blocks, other.blocks):
+        for x, y in ((a.X, b.X), (a.L_packed, b.L_packed), (a.alpha, b.alpha)):
+            np.testing.assert_array_equal(x, y)
+        assert (a.jitter, a.jitter_raised) == (b.jitter, b.jitter_raised)
+    loaded = LocalGPField.from_arrays(field.to_arrays(), prior, cfg)
+    assert isinstance(loaded.blocks, FlatBlocks)
+    for k, v in field.to_arrays().items():
+        np.testing.assert_array_equal(v, loaded.to_arrays()[k])
+
+
+def test_block_grid_from_points_hashed_equals_unique(monkeypatch):
+    """BlockGrid.from_points through the hashed distinct cells gives the keys of the
+    np.unique path (its fallback): negative coordinates, points on block borders."""
+    from gmmgp_app.stages import _distinct
+
+    rng = np.random.default_rng(9)
+    pts = rng.uniform(-6, 6, size=(20000, 3)) * [3, 1, 0.2] + [-30.0, 12.0, 0.0]
+    pts[:50] = np.round(pts[:50] / 0.7) * 0.7
+    a = BlockGrid.from_points(pts, 0.7, 0.5)
+    monkeypatch.setattr(_distinct, "cell_first", lambda p, s: None)
+    b = BlockGrid.from_points(pts, 0.7, 0.5)
+    np.testing.assert_array_equal(a.keys, b.keys)
+    np.testing.assert_array_equal(a._packed, b._packed)
+    assert a.n_blocks > 500
+
+
+def test_capped_selection_is_the_block_by_block_draw():
+    """The blocks' training points (capped blocks drawn in block order) are those of the
+    loop over every block that fit_local_gps ran before (the oracle here), in order."""
+    from gmmgp_app.stages.gp import _runs
+
+    pts, nrm = sphere(400, r=0.2)
+    cfg = concrete(GPConfig(max_block_points=25, block_size=0.15))
+    field = fit_local_gps(pts, nrm, ConstantPrior(0.0, 0.01), cfg,
+                          rng=np.random.default_rng(3))
+    grid = BlockGrid.from_points(pts, cfg.block_size, cfg.block_overlap)
+    pi, bi = grid.cover(pts)
+    rng, sel = np.random.default_rng(3), []
+    for s, e in zip(*_runs(bi)):
+        idx = pi[s:e]
+        if len(idx) > cfg.max_block_points:
+            idx = np.sort(rng.choice(idx, cfg.max_block_points, replace=False))
+        sel.append(idx)
+    assert field.info["n_capped_blocks"] > 2
+    np.testing.assert_array_equal(field._flat()["X"], pts[np.concatenate(sel)])
+    np.testing.assert_array_equal(np.diff(field._flat()["ptr"]), [len(s) for s in sel])

@@ -570,3 +570,135 @@ def test_fit_cache_empties_on_other_rows_or_fit_settings():
         assert len(cache) == cache.misses - before > 0  # emptied, then filled again
     with pytest.raises(HGMMError, match="either rng= or cache="):
         fit_hgmm(rows, cfg, cache=cache, rng=np.random.default_rng(0))
+
+
+# ------------------------------------------- session 8: skipped exps, parallel tied E-step
+def _tied_e_step_loops(X, gptr, means, P, lc, logw):
+    """The tied E-step as the serial kernel computed it before exps were skipped:
+    every exp taken (also those that underflow), plain Python loops in the kernel's
+    order of operations; the oracle of the kernels' bits."""
+    import math
+
+    G, (K, D) = len(gptr) - 1, means.shape
+    nk, gk = np.zeros(K), np.zeros(K)
+    sx, sxx = np.zeros((K, D)), np.zeros((K, D, D))
+    ll, worst, worst_i = 0.0, np.inf, -1
+    for g in range(G):
+        a, b = int(gptr[g]), int(gptr[g + 1])
+        lp = [-(b - a - 1) * logw[k] for k in range(K)]
+        for n in range(a, b):
+            for k in range(K):
+                maha = 0.0
+                for i in range(D):
+                    y = 0.0
+                    for j in range(i + 1):
+                        y += P[k, i, j] * (X[n, j] - means[k, j])
+                    maha += y * y
+                lp[k] += lc[k] - 0.5 * maha
+        m = max(lp)
+        s = 0.0
+        for k in range(K):
+            s += math.exp(lp[k] - m)
+        lse = m + math.log(s)
+        ll += lse
+        if lse < worst:
+            worst, worst_i = lse, a
+        for k in range(K):
+            r = math.exp(lp[k] - lse)
+            if r < ek.RESP_FLOOR:
+                continue
+            gk[k] += r
+            nk[k] += r * (b - a)
+            for n in range(a, b):
+                diff = [X[n, i] - means[k, i] for i in range(D)]
+                for i in range(D):
+                    sx[k, i] += r * diff[i]
+                for i in range(D):
+                    ri = r * diff[i]
+                    for j in range(i + 1):
+                        sxx[k, i, j] += ri * diff[j]
+    return nk, gk, sx, sxx, ll, worst, worst_i
+
+
+def _separated_groups(rng, K, D, n=400):
+    """Rows of K separated, thin components cut into groups of 1-3 rows: log-
+    responsibilities below -746, between -746 and -28, and above."""
+    gm = random_mixture(rng, K=K, D=D)
+    spread = np.geomspace(0.2, 10.0, K)[:, None]        # near and far pairs of components
+    gm = GaussianMixture(gm.weights, rng.normal(size=(K, D)) * spread, gm.covariances * 0.05)
+    X, gptr = random_groups(rng, sample_mixture(gm, n, rng))
+    gw = rng.dirichlet(np.ones(K))
+    P, lc = terms(GaussianMixture(gw, gm.means, gm.covariances))
+    return X, gptr, gm.means, P, lc, np.log(gw)
+
+
+@pytest.mark.parametrize("D", [4, 3])
+def test_tied_e_step_skipping_exps_is_bit_for_bit(D):
+    """Skipping exp(t) for t < -28 (under RESP_FLOOR) and t < -746 (exactly 0) changes no
+    bit of the E-step: serial and parallel kernels against the loops taking every exp."""
+    rng = np.random.default_rng(20 + D)
+    args = _separated_groups(rng, K=5, D=D)
+    X, gptr, means, P, lc, logw = args
+    lp = np.stack([lc[k] - 0.5 * (np.einsum("ij,nj->ni", P[k], X - means[k]) ** 2).sum(1)
+                   for k in range(5)], 1)
+    t = lp - lp.max(1, keepdims=True)          # rows' t, a proxy of the groups'
+    assert (t < -746).sum() > 50 and ((t >= -746) & (t < -28)).sum() > 50 \
+        and ((t >= -28) & (t < 0)).sum() > 20       # both skips happen, and exps
+    ref = _tied_e_step_loops(*args)
+    G, K = len(gptr) - 1, len(means)
+    for got in (ek.accumulate_groups(*args),
+                ek.accumulate_groups_parallel(*args, np.empty((K, G)), np.empty(G))):
+        for x, y in zip(got[:4], ref[:4]):
+            np.testing.assert_array_equal(np.tril(x) if x.ndim == 3 else x,
+                                          np.tril(y) if y.ndim == 3 else y)
+        assert got[4:] == ref[4:]
+
+
+@pytest.mark.parametrize("D", [4, 2])
+def test_parallel_tied_em_equals_serial_bit_for_bit(D):
+    """em_loop_groups(parallel=True) (phase 1 on chunks of groups, phase 2 by statistic)
+    gives the serial fit exactly, D = 4 (the registers' path) and another D."""
+    rng = np.random.default_rng(30 + D)
+    gm = random_mixture(rng, K=4, D=D, scale=2.0)
+    X, gptr = random_groups(rng, sample_mixture(gm, 3 * ek.GROUP_CHUNK * 2 + 11, rng))
+    init = GaussianMixture(np.full(4, 0.25), gm.means + 0.3, gm.covariances)
+    out = []
+    for parallel in (False, True):
+        w, m, c = init.weights.copy(), init.means.copy(), init.covariances.copy()
+        res = ek.em_loop_groups(X, gptr, w, m, c, 25, 0.0, 1e-6, 1.0, parallel)
+        out.append((res, w, m, c))
+    assert out[0][0] == out[1][0] and out[0][0][0] == 25
+    for a, b in zip(out[0][1:], out[1][1:]):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_hierarchy_with_wide_fits_equals_pooled_fits(monkeypatch):
+    """Fits run wide (E-step on numba's threads, one at a time) or whole in the pool of
+    threads: the same hierarchy bit for bit."""
+    import gmmgp_app.stages.hgmm as hg
+
+    rows, groups = sphere_triplets(np.random.default_rng(2), n=1200)
+    cfg = HGMMConfig(split_threshold=0.01)
+    monkeypatch.setattr(hg, "_numba_threads", lambda: 2)
+    monkeypatch.setattr(hg, "_WIDE_GROUPS", 10 ** 9)
+    pooled = fit_hgmm(rows, cfg, groups=groups)
+    calls = []
+    real = hg.fit_gmm
+    monkeypatch.setattr(hg, "fit_gmm", lambda *a, **k: calls.append(k["parallel"])
+                        or real(*a, **k))
+    monkeypatch.setattr(hg, "_WIDE_GROUPS", 16)
+    default_rule = fit_hgmm(rows, cfg, groups=groups)
+    assert calls[0] and not any(calls[1:])   # the first level's fit; then similar sizes
+    calls.clear()
+    import itertools
+
+    flip = itertools.cycle([True, False])
+    monkeypatch.setattr(hg, "_wide", lambda n, level, threads: next(flip))
+    wide = fit_hgmm(rows, cfg, groups=groups)
+    assert 1 < sum(calls) < len(calls)          # wide and pooled fits mixed in levels
+    for h in (default_rule, wide):
+        for a, b in ((pooled.leaves.means, h.leaves.means),
+                     (pooled.leaves.covariances, h.leaves.covariances),
+                     (pooled.leaves.weights, h.leaves.weights),
+                     (pooled.info["leaf_group_weights"], h.info["leaf_group_weights"])):
+            np.testing.assert_array_equal(a, b)

@@ -20,7 +20,7 @@ from typing import Optional
 import numba as nb
 import numpy as np
 
-__all__ = ["voxel_first", "voxel_count"]
+__all__ = ["voxel_first", "voxel_count", "cell_first", "cell_count"]
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 
@@ -110,3 +110,77 @@ def voxel_count(points: np.ndarray, size: float) -> Optional[int]:
         return None
     order = np.arange(len(points), dtype=np.int64)
     return int(_voxel_first(g[0], order, g[1], float(size), g[2], False)[0])
+
+
+@nb.njit(cache=True, nogil=True)
+def _cell_first(points, size, qlo, dims, want_index):
+    """:func:`_voxel_first` for cells ``floor(p / size)`` anchored at 0 (the surface
+    seeds' cells), packed about ``qlo`` (the cell of the points' minimum)."""
+    n = points.shape[0]
+    slots = 16
+    bits = 4
+    while slots < 2 * n:
+        slots *= 2
+        bits += 1
+    mask = slots - 1
+    shift = np.uint64(64 - bits)
+    table = np.full(slots, -1, np.int64)
+    first = np.empty(n if want_index else 0, np.int64)
+    count = 0
+    for i in range(n):
+        q0 = np.int64(np.floor(points[i, 0] / size)) - qlo[0]
+        q1 = np.int64(np.floor(points[i, 1] / size)) - qlo[1]
+        q2 = np.int64(np.floor(points[i, 2] / size)) - qlo[2]
+        k = (q0 * dims[1] + q1) * dims[2] + q2
+        j = np.int64((np.uint64(k) * _GOLDEN) >> shift) & mask
+        while True:
+            t = table[j]
+            if t == k:
+                break
+            if t == -1:
+                table[j] = k
+                if want_index:
+                    first[count] = i
+                count += 1
+                break
+            j = (j + 1) & mask
+    return count, first[:count]
+
+
+def _cells(points: np.ndarray, size: float):
+    """``(points, qlo, dims)`` of the cells ``floor(p / size)``, or None when they span
+    2^62 cells or more, or a coordinate is not finite (the caller's sort handles it)."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    lo, hi = _bounds(points)
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+        return None
+    qlo = np.floor(lo / size)
+    dims = np.floor(hi / size) - qlo + 1          # floor is monotone: every cell within
+    if math.prod(float(d) for d in dims) >= 2.0 ** 62:
+        return None
+    return points, qlo.astype(np.int64), dims.astype(np.int64)
+
+
+def cell_first(points: np.ndarray, size: float) -> Optional[np.ndarray]:
+    """Indices of the first point of each cell ``floor(p / size)`` (cells anchored at 0,
+    as ``stages.surface.surface_seeds``), increasing: the set of
+    ``np.unique(np.floor(points / size).astype(np.int64), axis=0, return_index=True)[1]``.
+    None when the cells span 2^62 or more, or for a non-finite point: sort then."""
+    if len(points) == 0:
+        return np.zeros(0, np.int64)
+    g = _cells(points, size)
+    if g is None:
+        return None
+    first = _cell_first(g[0], float(size), g[1], g[2], True)[1]
+    return first          # met in row order: already increasing
+
+
+def cell_count(points: np.ndarray, size: float) -> Optional[int]:
+    """Number of distinct cells ``floor(p / size)`` holding a point (see
+    :func:`cell_first`); None where that returns None."""
+    if len(points) == 0:
+        return 0
+    g = _cells(points, size)
+    if g is None:
+        return None
+    return int(_cell_first(g[0], float(size), g[1], g[2], False)[0])

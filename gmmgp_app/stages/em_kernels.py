@@ -34,6 +34,7 @@ __all__ = [
     "group_log_likelihood",
     "assign_groups",
     "accumulate_groups",
+    "accumulate_groups_parallel",
     "em_loop_groups",
 ]
 
@@ -43,6 +44,16 @@ CHUNK = 2048
 # is below 1e-12 of one row's, far under float64 noise for the sums involved,
 # and skipping them halves the M-step work once components have separated.
 RESP_FLOOR = 1e-12
+# A responsibility exp(t) with t below this is under RESP_FLOOR (exp(-28) = 6.9e-13),
+# so it is skipped without calling exp: the same rows are accumulated, and no exp of
+# a very negative argument is taken (glibc's exp takes a slow error path, errno and
+# all, whenever its result underflows; on the street's tied EM half the (group,
+# component) pairs sit beyond -745 once the fit has separated them).
+LOG_RESP_SKIP = -28.0
+# exp(t) of t below this is exactly 0.0 in double precision (the smallest subnormal
+# is exp(-744.4); below -745.13 the result rounds to zero): log-sum-exp skips such
+# terms, which adds the same +0.0 they would have added.
+LOG_EXP_ZERO = -746.0
 EPS10 = 10.0 * np.finfo(np.float64).eps
 
 
@@ -122,7 +133,10 @@ def _lse(v):
         return m
     s = 0.0
     for k in range(v.shape[0]):
-        s += np.exp(v[k] - m)
+        t = v[k] - m
+        if t < LOG_EXP_ZERO:
+            continue        # exp(t) == 0.0 exactly (a NaN t still goes to exp)
+        s += np.exp(t)
     return m + np.log(s)
 
 
@@ -210,7 +224,10 @@ def _accumulate_range(X, start, end, means, pchol, logconst, nk, sx, sxx, lp):
             worst = lse
             worst_i = n
         for k in range(K):
-            r = np.exp(lp[k] - lse)
+            t = lp[k] - lse
+            if t < LOG_RESP_SKIP:
+                continue    # exp(t) < RESP_FLOOR (a NaN t still goes to exp)
+            r = np.exp(t)
             if r < RESP_FLOOR:
                 continue
             nk[k] += r
@@ -553,7 +570,10 @@ def accumulate_groups(X, gptr, means, pchol, logconst, logw):
             worst = lse
             worst_i = a
         for k in range(K):
-            r = np.exp(lp[k] - lse)
+            t = lp[k] - lse
+            if t < LOG_RESP_SKIP:
+                continue    # exp(t) < RESP_FLOOR (a NaN t still goes to exp)
+            r = np.exp(t)
             if r < RESP_FLOOR:
                 continue
             gk[k] += r
@@ -563,9 +583,213 @@ def accumulate_groups(X, gptr, means, pchol, logconst, logw):
     return nk, gk, sx, sxx, ll, worst, worst_i
 
 
+# Tied E-step on threads, bit for bit the serial one. The serial pass adds each
+# statistic (nk[k], gk[k], sx[k, i], sxx[k, i, j]) and the log-likelihood over the
+# groups in order; floating-point sums depend on that order, so the work is split
+# where no sum is: (1) the groups' log-densities, log-sum-exp and responsibilities,
+# independent per group, computed on threads by chunks of groups into RT (K, G) and
+# LSE (G,); (2) the sums, each still taken over the groups in order, by tasks that
+# own whole statistics: task (part, k) adds component k's nk, gk, sx and the first
+# rows of sxx (part 0) or the other rows of sxx (part 1), so the two halves of the
+# work are about equal whatever the components' sizes; (3) the log-likelihood and
+# the worst group, a serial pass over LSE.
+GROUP_CHUNK = 512
+
+
+@njit(cache=True, parallel=True)
+def _group_resp_parallel(X, gptr, means, pchol, logconst, logw, RT, LSE):
+    """Phase 1: ``LSE[g]`` (the group log-likelihood) and ``RT[k, g]`` (responsibility,
+    0.0 where skipped as below ``RESP_FLOOR``) of every group, on threads."""
+    G = gptr.shape[0] - 1
+    K = means.shape[0]
+    nch = (G + GROUP_CHUNK - 1) // GROUP_CHUNK
+    for c in prange(nch):
+        lp = np.empty(K)
+        tmp = np.empty(K)
+        for g in range(c * GROUP_CHUNK, min(G, (c + 1) * GROUP_CHUNK)):
+            _group_logprob(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp, tmp)
+            lse = _lse(lp)
+            LSE[g] = lse
+            for k in range(K):
+                t = lp[k] - lse
+                RT[k, g] = 0.0 if t < LOG_RESP_SKIP else np.exp(t)
+
+
 @njit(cache=True, nogil=True)
-def em_loop_groups(X, gptr, weights, means, covs, max_iter, tol, reg_covar, min_nk):
+def _group_stats_task(X, gptr, means, Rk, k, part, isplit, nk, gk, sx, sxx):
+    """One task of phase 2 (any D): component k's statistics of ``part``."""
+    G = gptr.shape[0] - 1
+    D = X.shape[1]
+    lo = 0 if part == 0 else isplit
+    hi = isplit if part == 0 else D
+    n_k = 0.0
+    g_k = 0.0
+    s1 = np.zeros(D)
+    s2 = np.zeros((D, D))
+    diff = np.empty(D)
+    for g in range(G):
+        r = Rk[g]
+        if r < RESP_FLOOR:
+            continue
+        a, b = gptr[g], gptr[g + 1]
+        if part == 0:
+            g_k += r
+            n_k += r * (b - a)
+        for n in range(a, b):
+            for i in range(D):
+                diff[i] = X[n, i] - means[k, i]
+            if part == 0:
+                for i in range(D):
+                    s1[i] += r * diff[i]
+            for i in range(lo, hi):
+                ri = r * diff[i]
+                for j in range(i + 1):
+                    s2[i, j] += ri * diff[j]
+    if part == 0:
+        nk[k] = n_k
+        gk[k] = g_k
+        for i in range(D):
+            sx[k, i] = s1[i]
+    for i in range(lo, hi):
+        for j in range(i + 1):
+            sxx[k, i, j] = s2[i, j]
+
+
+@njit(cache=True, nogil=True)
+def _group_stats_task4(X, gptr, means, Rk, k, part, nk, gk, sx, sxx):
+    """:func:`_group_stats_task` for D = 4 (the mapper's rows), the sums in registers:
+    part 0 nk, gk, sx and sxx rows 0-1, part 1 sxx rows 2-3. Same operations."""
+    G = gptr.shape[0] - 1
+    m0, m1, m2, m3 = means[k, 0], means[k, 1], means[k, 2], means[k, 3]
+    if part == 0:
+        n_k = 0.0
+        g_k = 0.0
+        s0 = 0.0
+        s1 = 0.0
+        s2 = 0.0
+        s3 = 0.0
+        q00 = 0.0
+        q10 = 0.0
+        q11 = 0.0
+        for g in range(G):
+            r = Rk[g]
+            if r < RESP_FLOOR:
+                continue
+            a, b = gptr[g], gptr[g + 1]
+            g_k += r
+            n_k += r * (b - a)
+            for n in range(a, b):
+                d0 = X[n, 0] - m0
+                d1 = X[n, 1] - m1
+                s0 += r * d0
+                s1 += r * d1
+                s2 += r * (X[n, 2] - m2)
+                s3 += r * (X[n, 3] - m3)
+                r0 = r * d0
+                q00 += r0 * d0
+                r1 = r * d1
+                q10 += r1 * d0
+                q11 += r1 * d1
+        nk[k] = n_k
+        gk[k] = g_k
+        sx[k, 0] = s0
+        sx[k, 1] = s1
+        sx[k, 2] = s2
+        sx[k, 3] = s3
+        sxx[k, 0, 0] = q00
+        sxx[k, 1, 0] = q10
+        sxx[k, 1, 1] = q11
+    else:
+        q20 = 0.0
+        q21 = 0.0
+        q22 = 0.0
+        q30 = 0.0
+        q31 = 0.0
+        q32 = 0.0
+        q33 = 0.0
+        for g in range(G):
+            r = Rk[g]
+            if r < RESP_FLOOR:
+                continue
+            for n in range(gptr[g], gptr[g + 1]):
+                d0 = X[n, 0] - m0
+                d1 = X[n, 1] - m1
+                d2 = X[n, 2] - m2
+                d3 = X[n, 3] - m3
+                r2 = r * d2
+                q20 += r2 * d0
+                q21 += r2 * d1
+                q22 += r2 * d2
+                r3 = r * d3
+                q30 += r3 * d0
+                q31 += r3 * d1
+                q32 += r3 * d2
+                q33 += r3 * d3
+        sxx[k, 2, 0] = q20
+        sxx[k, 2, 1] = q21
+        sxx[k, 2, 2] = q22
+        sxx[k, 3, 0] = q30
+        sxx[k, 3, 1] = q31
+        sxx[k, 3, 2] = q32
+        sxx[k, 3, 3] = q33
+
+
+@njit(cache=True, parallel=True)
+def _group_stats_parallel(X, gptr, means, RT, nk, gk, sx, sxx):
+    """Phase 2: the statistics of :func:`accumulate_groups` from ``RT`` (K, G), each
+    summed over the groups in order by the one task that owns it (see above)."""
+    K, D = means.shape
+    # rows [0, isplit) of sxx go with sx to part 0, the rest to part 1: about half
+    # of the D + D (D + 1) / 2 sums each (D = 4: 7 and 7)
+    isplit = 0
+    while isplit < D and 2 * (D + (isplit + 1) * (isplit + 2) // 2) <= D + D * (D + 1) // 2:
+        isplit += 1
+    # tasks 0..K-1 are part 0, K..2K-1 part 1: with two threads each takes one part
+    for task in prange(2 * K):
+        part = task // K
+        k = task % K
+        if D == 4:
+            _group_stats_task4(X, gptr, means, RT[k], k, part, nk, gk, sx, sxx)
+        else:
+            _group_stats_task(X, gptr, means, RT[k], k, part, isplit, nk, gk, sx, sxx)
+
+
+@njit(cache=True)
+def accumulate_groups_parallel(X, gptr, means, pchol, logconst, logw, RT, LSE):
+    """:func:`accumulate_groups` on numba's threads, the same result bit for bit.
+
+    ``RT`` (K, G) and ``LSE`` (G,) are scratch arrays (kept by the caller across EM
+    iterations). The sums are those of the serial kernel, in its order (see the
+    comment above :data:`GROUP_CHUNK`), so the fit does not depend on the number of
+    threads; worth it from a few thousand groups (two parallel regions per call).
+    """
+    G = gptr.shape[0] - 1
+    K, D = means.shape
+    _group_resp_parallel(X, gptr, means, pchol, logconst, logw, RT, LSE)
+    nk = np.zeros(K)
+    gk = np.zeros(K)
+    sx = np.zeros((K, D))
+    sxx = np.zeros((K, D, D))
+    _group_stats_parallel(X, gptr, means, RT, nk, gk, sx, sxx)
+    ll = 0.0
+    worst = np.inf
+    worst_i = -1
+    for g in range(G):
+        lse = LSE[g]
+        ll += lse
+        if lse < worst:
+            worst = lse
+            worst_i = gptr[g]
+    return nk, gk, sx, sxx, ll, worst, worst_i
+
+
+@njit(cache=True, nogil=True)
+def em_loop_groups(X, gptr, weights, means, covs, max_iter, tol, reg_covar, min_nk,
+                   parallel=False):
     """Tied EM in place; same contract as :func:`em_loop`.
+
+    ``parallel``: the E-step on numba's threads (:func:`accumulate_groups_parallel`,
+    the same fit bit for bit).
 
     ``weights`` are group fractions on entry and on return (the caller converts
     them to row fractions for the density over rows). ``lower_bound`` is the sum
@@ -580,14 +804,21 @@ def em_loop_groups(X, gptr, weights, means, covs, max_iter, tol, reg_covar, min_
     lb = -np.inf
     worst_i = -1
     row_w = np.empty(K)
+    G = gptr.shape[0] - 1
+    RT = np.empty((K, G if parallel else 0))
+    LSE = np.empty(G if parallel else 0)
     for it in range(max_iter):
         bad = component_terms(weights, covs, pchol, logconst)
         if bad >= 0:
             return it, False, 1, bad, lb, worst_i
         for k in range(K):
             logw[k] = np.log(weights[k])
-        nk, gk, sx, sxx, ll, worst, worst_i = accumulate_groups(X, gptr, means, pchol,
-                                                                logconst, logw)
+        if parallel:
+            nk, gk, sx, sxx, ll, worst, worst_i = accumulate_groups_parallel(
+                X, gptr, means, pchol, logconst, logw, RT, LSE)
+        else:
+            nk, gk, sx, sxx, ll, worst, worst_i = accumulate_groups(X, gptr, means, pchol,
+                                                                    logconst, logw)
         lb = ll / N
         if not np.isfinite(lb):
             return it, False, 1, -1, lb, worst_i

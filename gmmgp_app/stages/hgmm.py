@@ -188,8 +188,10 @@ def fit_gmm(
         "drop" removes it.
     min_component_rows : float
     parallel : bool
-        Run the E/M pass over rows with numba threads (worth it on an idle
-        machine with large N; off by default, see em_kernels.accumulate).
+        Run the E/M pass with numba threads. Free EM: by chunks of rows, whose
+        partial sums are added in chunk order (worth it on an idle machine with
+        large N; off by default, see em_kernels.accumulate). Tied EM: the same fit
+        bit for bit as the serial pass (em_kernels.accumulate_groups_parallel).
     group_ptr : (G + 1,) int64, optional
         Tied EM: rows ``group_ptr[g]:group_ptr[g + 1]`` share one latent component
         (a hit point and its virtual points, see ``em_kernels.em_loop_groups``).
@@ -259,7 +261,7 @@ def fit_gmm(
         else:
             n_iter, conv, status, bad_k, lb, worst_i = ek.em_loop_groups(
                 X, gptr, w, m, c, int(max_iter - it_done), float(tol), float(reg_covar),
-                float(min_component_rows))
+                float(min_component_rows), bool(parallel))
         it_done += n_iter
         info["lower_bound"] = float(lb)
         if status == 0:
@@ -487,11 +489,17 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
             return None
         return group_boundaries(gsorted if idx is None else gsorted[idx])
 
-    def fit(Xrows, gptr, k, u=None):
+    threads = _numba_threads()
+
+    def wide(gptr, level_groups: int) -> bool:
+        return gptr is not None and _wide(len(gptr) - 1, level_groups, threads)
+
+    def fit(Xrows, gptr, k, u=None, parallel=False):
         """EM with k components, then hard labels per row (per group when tied);
         ``u``: the k-means++ uniforms drawn beforehand (fits run in threads)."""
         g = fit_gmm(Xrows, k, rng=rng if u is None else _Drawn(u), on_empty="drop",
-                    min_component_rows=float(D), group_ptr=gptr, **em_kw)
+                    min_component_rows=float(D), group_ptr=gptr, parallel=parallel,
+                    **em_kw)
         if gptr is None:
             return g + (predict_labels(g[0], Xrows),)
         return g + (predict_group_labels(g[0], g[1]["group_weights"], Xrows, gptr),)
@@ -501,7 +509,9 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
 
     got0 = None if cache is None else cache._get((), None)
     if got0 is None:
-        got0 = fit(X, group_ptr(None), hcfg.initial_components)
+        gptr0 = group_ptr(None)
+        got0 = fit(X, gptr0, hcfg.initial_components,
+                   parallel=wide(gptr0, 0 if gptr0 is None else len(gptr0) - 1))
         if cache is not None:
             cache._put((), None, got0)
     gm0, info0, labels = got0
@@ -554,7 +564,13 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
             tasks.append((j, idx, Xj, gptr, k, _node_uniforms(node_seed, paths[j], k)))
         got = [None if cache is None else cache._get(paths[t[0]], t[1]) for t in tasks]
         todo = [t for t, g in zip(tasks, got) if g is None]
-        fitted = iter(_map_threads(lambda t: fit(t[2], t[3], t[4], t[5]), todo))
+        # a wide fit first on all threads, then the others in the pool
+        level_groups = sum(len(t[3]) - 1 for t in todo if t[3] is not None)
+        done = {i: fit(*t[2:6], parallel=True) for i, t in enumerate(todo)
+                if wide(t[3], level_groups)}
+        narrow = [i for i in range(len(todo)) if i not in done]
+        done.update(zip(narrow, _map_threads(lambda i: fit(*todo[i][2:6]), narrow)))
+        fitted = iter(done[i] for i in range(len(todo)))
         results = []
         for t, g in zip(tasks, got):
             if g is None:
@@ -713,6 +729,29 @@ class _Drawn:
         if n != len(self.u):
             raise HGMMError(f"Expected {len(self.u)} uniforms to be drawn, found {n}.")
         return self.u
+
+
+# A tied fit of at least this many groups that holds more than half of its level's
+# groups runs its E-step on numba's threads (fit_hgmm's ``wide``); below it two
+# parallel regions per EM iteration cost more than they share (street: the first
+# level's 107k groups; its next level's fits hold 29k-38k groups each, a third each).
+_WIDE_GROUPS = 8192
+
+
+def _wide(n_groups: int, level_groups: int, threads: int) -> bool:
+    """Whether a tied fit of ``n_groups`` runs its E-step on all numba threads rather
+    than whole in one thread of the pool (its parallel E-step gives the serial fit bit
+    for bit, em_kernels.accumulate_groups_parallel): when it has many groups and holds
+    more than half of the ``level_groups`` fitted at its level, so that the pool could
+    not keep the threads busy while it runs (the first level's single fit). Fits of
+    similar sizes share the threads better in the pool (no extra work)."""
+    return threads > 1 and n_groups >= _WIDE_GROUPS and 2 * n_groups > level_groups
+
+
+def _numba_threads() -> int:
+    import numba
+
+    return int(numba.get_num_threads())
 
 
 def _map_threads(fn, items):

@@ -15,6 +15,8 @@ import math
 import numpy as np
 from numba import njit
 
+from gmmgp_app.stages import _distinct
+
 __all__ = ["OctreeError", "BlockGrid", "new_space_fraction"]
 
 _BITS = 21
@@ -143,7 +145,12 @@ class BlockGrid:
         """The leaves occupied by ``points`` (P, 3)."""
         if not (block_size > 0 and math.isfinite(block_size)):
             raise OctreeError(f"Expected a positive block_size, found {block_size}.")
-        cells = np.floor(np.asarray(points, dtype=np.float64) / block_size).astype(np.int64)
+        points = np.asarray(points, dtype=np.float64)
+        first = _distinct.cell_first(points, block_size)    # hashed: no sort of P rows
+        if first is not None:        # distinct cells in point order; __init__ sorts them
+            return cls(np.floor(points[first] / block_size).astype(np.int64), block_size,
+                       overlap)
+        cells = np.floor(points / block_size).astype(np.int64)
         return cls(np.unique(cells, axis=0), block_size, overlap)
 
     @property

@@ -23,6 +23,7 @@ import numba as nb
 import numpy as np
 
 from .._atomic import atomic_path
+from . import _distinct
 from ..types import SurfaceMesh
 
 __all__ = ["extract_surface", "surface_seeds", "mesh_field", "project_vertices",
@@ -45,8 +46,10 @@ def estimate_grid_nodes(seeds: np.ndarray, voxel_size: float, dilate: int = 1) -
     Surface following grows a sheet of cells around each seed cell, so the bound
     is the seed cells times the area of a (2 dilate + 1)^2 patch, times 2 nodes.
     """
-    cells = _unique_rows(np.floor(np.asarray(seeds) / voxel_size).astype(np.int64))
-    return int(2 * len(cells) * (2 * dilate + 1) ** 2)
+    n_cells = _distinct.cell_count(np.asarray(seeds, dtype=np.float64), voxel_size)
+    if n_cells is None:
+        n_cells = len(_unique_rows(np.floor(np.asarray(seeds) / voxel_size).astype(np.int64)))
+    return int(2 * n_cells * (2 * dilate + 1) ** 2)
 
 
 def check_grid_size(seeds: np.ndarray, voxel_size: float, dilate: Optional[int] = None) -> int:
@@ -87,6 +90,9 @@ def surface_seeds(points: np.ndarray, cfg) -> np.ndarray:
         ``voxel_size`` (maps made before the extent cell).
     """
     cell = _extent_cell(cfg) / 2
+    first = _distinct.cell_first(points, cell)        # hashed: no sort (session 8)
+    if first is not None:
+        return points[first]
     keys = np.floor(points / cell).astype(np.int64)
     if len(keys) == 0:
         return points[:0]
