@@ -38,7 +38,9 @@ Examples::
 
 ``--train`` uses random scenes apart from the benchmark's (:data:`TRAIN_SCENES`: four
 mobile-mapping ``yard`` layouts and four terrestrial ``objects`` scenes of
-gmmgp_app.synth.training_scenes), so a fit on them leaves all six bench scenes held out;
+gmmgp_app.synth.training_scenes, and with ``--train-set 16``, the default, the eight
+of :data:`TRAIN_SCENES_NOISE` at chosen noise levels and spacings), so a fit on them
+leaves all six bench scenes held out;
 ``--score`` counts each scene's bins in target for candidate coefficients from the
 cached ingredients (the map's mean unchanged), as scripts/bench_bins.py counts them.
 """
@@ -76,6 +78,12 @@ TRAIN_SCENES_NOISE = ("train_yard_105_n3", "train_yard_106_n15_d0.15",
                       "train_yard_107_n4_d0.6", "train_yard_108_n20",
                       "train_objects_105_n1", "train_objects_106_n12_d0.5",
                       "train_objects_107_n3_d2", "train_objects_108_n6")
+
+
+def train_set(which="16"):
+    """The training scenes of ``--train``: ``"8"`` TRAIN_SCENES (session 7), ``"16"``
+    those and TRAIN_SCENES_NOISE."""
+    return list(TRAIN_SCENES) + (list(TRAIN_SCENES_NOISE) if which == "16" else [])
 
 
 def parse_training_name(name):
@@ -572,6 +580,10 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scenes", default=",".join(B.SCENES))
     p.add_argument("--fit", action="store_true", help="fit VARIANCE_COEF on the tuned scenes")
+    p.add_argument("--train-set", default="16", choices=("8", "16"),
+                   help="the training scenes of --train: 8 = TRAIN_SCENES (session 7), 16 = "
+                   "those and TRAIN_SCENES_NOISE (session 8: noise 1-20 mm, density "
+                   "0.15-2 x; default)")
     p.add_argument("--train", action="store_true",
                    help="with --fit: fit on the random training scenes (TRAIN_SCENES, "
                    "gmmgp_app.synth.training_scenes) instead, leaving all six bench scenes "
@@ -622,7 +634,7 @@ def main(argv=None) -> int:
     coef = F.VARIANCE_COEF if a.coef is None else tuple(float(x) for x in a.coef.split(","))
     fitted_coef = None
     if a.fit:
-        tuned = list(TRAIN_SCENES) if a.train else [n for n in B.SCENES if B.SCENES[n]["tuned"]]
+        tuned = train_set(a.train_set) if a.train else [n for n in B.SCENES if B.SCENES[n]["tuned"]]
         t = fitted_coef = fit([scene_case(n, a.seed, cache, a.set) for n in tuned], a.tau)
         text.append(f"VARIANCE_COEF = ({', '.join(f'{x:.4f}' for x in t)})  "
                     f"# tau {a.tau}, fitted on {', '.join(tuned)}")
@@ -657,7 +669,7 @@ def main(argv=None) -> int:
             coefs["fitted (--fit" + (" --train)" if a.train else ")")] = tuple(fitted_coef)
         text.append(score_coefs(names, coefs, cache, a.seed, a.score, a.set))
         if a.train:
-            text.append(score_coefs(list(TRAIN_SCENES), coefs, cache, a.seed, None, a.set))
+            text.append(score_coefs(train_set(a.train_set), coefs, cache, a.seed, None, a.set))
     out = "\n".join(text) + "\n"
     print(out)
     if a.out:

@@ -84,10 +84,22 @@ def columns(d, feats, c_floor=0.0):
     return np.stack(X, axis=1)
 
 
+def additive(d, feats):
+    """Additive variance terms (each with coefficient exp(t)): ``acurv`` r^2 disp (the
+    bias of a curved surface read through a kernel of width r)."""
+    return [d["r"] ** 2 * np.maximum(d["disp"], 0) for f in feats if f == "acurv"]
+
+
 def observed_var(d, feats, coef, c_floor=0.0):
-    X = columns(d, feats, c_floor)
+    lin = [f for f in feats if f != "acurv"]
+    add = additive(d, feats)
+    coef = np.asarray(coef)
+    X = columns(d, lin, c_floor)
     kap = d["kappa"] * np.exp(-(d["r"] / d["length_scale"]) ** 2) * d["d2"]
-    return d["h"] ** 2 * np.exp(X @ np.asarray(coef)) + kap
+    v = d["h"] ** 2 * np.exp(X @ coef[:X.shape[1]]) + kap
+    for j, a in enumerate(add):
+        v = v + np.exp(coef[X.shape[1] + j]) * a
+    return v
 
 
 def score(n, v_obs):
@@ -109,7 +121,8 @@ def score(n, v_obs):
     return dict(c1=c1, c2=c2, n1=n1, n2=n2, nll=sum(ok) if n in BASE else None)
 
 
-def fit(names, feats, c_floor=0.0, mask="obs", per_bin=400, tau=0.68, seed=0):
+def fit(names, feats, c_floor=0.0, mask="obs", per_bin=400, tau=0.68, seed=0,
+        exact=False):
     """Eq. variance_quantile_fit over up to ``per_bin`` queries per bin and scene."""
     rng = np.random.default_rng(seed)
     Xs, Ys = [], []
@@ -125,7 +138,29 @@ def fit(names, feats, c_floor=0.0, mask="obs", per_bin=400, tau=0.68, seed=0):
                 idx = rng.choice(idx, per_bin, replace=False)
             Xs.append(X[idx])
             Ys.append(y[idx])
-    return F.fit_variance_quantile(np.concatenate(Xs), np.concatenate(Ys), tau)
+    X, y = np.concatenate(Xs), np.concatenate(Ys)
+    if exact:
+        return F.fit_variance_quantile(X, y, tau)
+    return quantile_smooth(X, y, tau)
+
+
+def quantile_smooth(X, y, tau=0.68, eps=0.02):
+    """The pinball loss of eq. variance_quantile_fit smoothed on the scale ``eps`` (log
+    units): ``tau u + eps softplus(-u / eps)``, by L-BFGS from the least-squares fit
+    (for the sweep: seconds instead of minutes; the exact LP checks the chosen one)."""
+    from scipy.optimize import minimize
+
+    t0 = np.linalg.lstsq(X, y, rcond=None)[0]
+
+    def f(t):
+        u = y - X @ t
+        a = -u / eps
+        sp = np.logaddexp(0.0, a)
+        sg = np.exp(a - sp)  # sigmoid(-u / eps)
+        return np.mean(tau * u + eps * sp), -((tau - sg) @ X) / len(y)
+
+    return minimize(f, t0, jac=True, method="L-BFGS-B",
+                    options=dict(maxiter=5000, gtol=1e-12, ftol=1e-15)).x
 
 
 def summary(feats, coef, c_floor=0.0, groups=None, detail=False):
@@ -148,3 +183,55 @@ def summary(feats, coef, c_floor=0.0, groups=None, detail=False):
 
 if __name__ == "__main__":
     print("today:", summary([], F.VARIANCE_COEF, detail=True)[0])
+
+
+def _packs(names, feats, c_floor):
+    from scipy.special import ndtr  # noqa: F401
+
+    packs = []
+    for n in names:
+        d = case(n)
+        X = columns(d, [f for f in feats if f != "acurv"], c_floor)
+        kap = d["kappa"] * np.exp(-(d["r"] / d["length_scale"]) ** 2) * d["d2"]
+        add = additive(d, feats)
+        mix = UnseenMixture(d["mean"], np.ones(len(d["y"])), d["w_b"], d["w_e"], d["lam"])
+        w2 = np.zeros(len(d["y"])) + d["w_b"] ** 2 + d["w_e"] ** 2
+        e = np.abs(d["y"] - d["mean"])
+        bins = [np.flatnonzero(d["bin"] == i) for i in range(len(B.BINS) - 1)]
+        packs.append((X, kap, d["h"] ** 2, w2, mix.q, e, bins, add))
+    return packs
+
+
+def bin_objective(coef, packs, soft=0.02):
+    """Sum over training bins of log(1 + ((c1 - 0.68) / 0.05)^2) + log(1 + ((c2 - 0.95)
+    / 0.03)^2), coverages smoothed: per query u = P(|y - m| <= |e|) under eq.
+    unseen_mixture (closed form), covered at level L when u <= L."""
+    from scipy.special import ndtr, expit
+
+    tot = 0.0
+    for X, kap, h2, w2, q, e, bins, add in packs:
+        v = h2 * np.exp(X @ coef[:X.shape[1]]) + kap
+        for j, a in enumerate(add):
+            v = v + np.exp(coef[X.shape[1] + j]) * a
+        u = (1 - q) * (2 * ndtr(e / np.sqrt(v)) - 1) + q * (2 * ndtr(e / np.sqrt(v + w2 / 3)) - 1)
+        a1 = expit((0.6827 - u) / soft)
+        a2 = expit((0.9545 - u) / (soft / 3))
+        for b in bins:
+            if len(b):
+                tot += np.log1p(((a1[b].mean() - 0.68) / 0.05) ** 2) \
+                    + np.log1p(((a2[b].mean() - 0.95) / 0.03) ** 2)
+    return tot
+
+
+def fit_bins(names, feats, c_floor=0.0, start=None, maxiter=3000):
+    """Coefficients minimising :func:`bin_objective` on ``names`` (Powell from
+    ``start``, default the smoothed quantile fit)."""
+    from scipy.optimize import minimize
+
+    packs = _packs(names, feats, c_floor)
+    lin = [f for f in feats if f != "acurv"]
+    t0 = np.r_[fit(names, lin, c_floor), [-3.0] * (len(feats) - len(lin))] if start is None \
+        else np.asarray(start, float)
+    res = minimize(bin_objective, t0, args=(packs,), method="Powell",
+                   options=dict(maxiter=maxiter, xtol=1e-3, ftol=1e-4))
+    return res.x
