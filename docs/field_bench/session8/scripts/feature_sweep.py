@@ -186,8 +186,6 @@ if __name__ == "__main__":
 
 
 def _packs(names, feats, c_floor):
-    from scipy.special import ndtr  # noqa: F401
-
     packs = []
     for n in names:
         d = case(n)

@@ -1,3 +1,8 @@
+"""Session 8: the quantile fit (eq. variance_quantile_fit, smoothed pinball) of candidate
+variance models on the training sixteen, scored as bins_fit.py scores.
+
+    PYTHONPATH=$PWD python docs/field_bench/session8/scripts/run_sweep1.py FEATS:C[:MASK] ...
+"""
 import sys, time
 sys.path.insert(0, 'docs/field_bench/session8/scripts')
 import feature_sweep as S
