@@ -38,7 +38,9 @@ Examples::
 
 ``--train`` uses random scenes apart from the benchmark's (:data:`TRAIN_SCENES`: four
 mobile-mapping ``yard`` layouts and four terrestrial ``objects`` scenes of
-gmmgp_app.synth.training_scenes), so a fit on them leaves all six bench scenes held out;
+gmmgp_app.synth.training_scenes, and with ``--train-set 16``, the default, the eight
+of :data:`TRAIN_SCENES_NOISE` at chosen noise levels and spacings), so a fit on them
+leaves all six bench scenes held out;
 ``--score`` counts each scene's bins in target for candidate coefficients from the
 cached ingredients (the map's mean unchanged), as scripts/bench_bins.py counts them.
 """
@@ -68,16 +70,47 @@ CATEGORIES = ("near", "front", "front_ext", "beh_solid", "beh_thin")
 #: out (docs/field.md, "Session 7").
 TRAIN_SCENES = tuple(f"train_{k}_{s}" for k in ("yard", "objects") for s in (101, 102, 103, 104))
 
+#: Training scenes at chosen noise levels and spacings (session 8): new layouts
+#: (seeds 105-108), range noise ``_n<mm>`` from 1 to 20 mm and scan density ``_d<x>``
+#: from 0.15 to 2 x the default, so that a fit sees noise / spacing variation the bench
+#: (8 mm on every street-like scene) does not have (docs/field.md, "Session 8").
+TRAIN_SCENES_NOISE = ("train_yard_105_n3", "train_yard_106_n15_d0.15",
+                      "train_yard_107_n4_d0.6", "train_yard_108_n20",
+                      "train_objects_105_n1", "train_objects_106_n12_d0.5",
+                      "train_objects_107_n3_d2", "train_objects_108_n6")
+
+
+def train_set(which="16"):
+    """The training scenes of ``--train``: ``"8"`` TRAIN_SCENES (session 7), ``"16"``
+    those and TRAIN_SCENES_NOISE."""
+    return list(TRAIN_SCENES) + (list(TRAIN_SCENES_NOISE) if which == "16" else [])
+
+
+def parse_training_name(name):
+    """``train_<kind>_<seed>[_n<noise mm>][_d<density factor>]`` -> (kind, seed,
+    range noise in m or None, density factor)."""
+    parts = name.split("_")
+    kind, seed, noise, dens = parts[1], int(parts[2]), None, 1.0
+    for x in parts[3:]:
+        if x[0] == "n":
+            noise = float(x[1:]) / 1000.0
+        elif x[0] == "d":
+            dens = float(x[1:])
+        else:
+            raise ValueError(f"bad training scene name {name!r}")
+    return kind, seed, noise, dens
+
 
 def training_scan(name):
-    """(scan, scene, spec) of a training scene ``train_<kind>_<seed>``: yards at the
-    bench streets' density 0.3 and bins in metres; object scenes at density 1 with bins
-    x 0.3 x their random scale (the pipes' 0.2 at a 0.67 scale)."""
+    """(scan, scene, spec) of a training scene ``train_<kind>_<seed>[_n<mm>][_d<x>]``:
+    yards at the bench streets' density 0.3 (times x) and bins in metres; object scenes
+    at density 1 (times x) with bins x 0.3 x their random scale (the pipes' 0.2 at a
+    0.67 scale); ``_n<mm>``: the range noise in mm before the scene's scaling."""
     from gmmgp_app.synth.training_scenes import scan_training_scene
 
-    _, kind, s = name.split("_")
-    density = 0.3 if kind == "yard" else 1.0
-    scan, scene, k = scan_training_scene(kind, int(s), density=density)
+    kind, s, noise, dens = parse_training_name(name)
+    density = (0.3 if kind == "yard" else 1.0) * dens
+    scan, scene, k = scan_training_scene(kind, s, density=density, range_noise=noise)
     spec = dict(density=density, scale=1.0 if kind == "yard" else 0.3 * k, noise=None,
                 tuned=False)
     return scan, scene, spec
@@ -95,7 +128,7 @@ def scene_case(name, seed, cache: Path, overrides=()):
     the queries (``seed`` is ignored)."""
     tag = "".join(f"_{o.replace('=', '-')}" for o in overrides)
     path = cache / f"{name}_seed{seed}{tag}.npz"
-    if path.exists() and "v_far" in np.load(path).files:
+    if path.exists() and "spread2_p" in np.load(path).files:
         d = dict(np.load(path))
         return {k: (v.item() if v.ndim == 0 else v) for k, v in d.items()}
     if name in B.SCENES:
@@ -103,7 +136,7 @@ def scene_case(name, seed, cache: Path, overrides=()):
         _, _, handed, q, y, dist = B.scene_queries(name, spec, seed, 20000, 6000)
     else:
         scan, scene, spec = training_scan(name)
-        _, _, handed, q, y, dist = B.scene_queries(name, spec, int(name.split("_")[2]),
+        _, _, handed, q, y, dist = B.scene_queries(name, spec, parse_training_name(name)[1],
                                                    20000, 6000, made=(scan, scene))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -121,10 +154,27 @@ def scene_case(name, seed, cache: Path, overrides=()):
              disp=1.0 - np.linalg.norm(c["grad"], axis=1),  # the normals' dispersion
              length_scale=concrete(smap.config.gp).length_scale,
              kappa=f.disagreement_weight, lam=f.unseen_weight,
-             t_min=f.min_thickness * smap.far.rho0, gap=f.edge_gap * smap.far.rho0)
+             t_min=f.min_thickness * smap.far.rho0, gap=f.edge_gap * smap.far.rho0,
+             **local_ingredients(smap.far, q, c))
     cache.mkdir(parents=True, exist_ok=True)
     np.savez(path, **d)
     return d
+
+
+def local_ingredients(far, q, c):
+    """Per-query ingredients of the session-8 variance features (docs/field.md,
+    "Session 8"): the query (``q``), the far field's effective neighbour count
+    (``n_eff``) and, at the query's nearest hit point p (eq. imls at r = 0, kernel
+    rho_0): the spread of its neighbours' plane distances (``spread2_p``: the local
+    noise along the normals plus curvature at the data's scale), their normals'
+    dispersion (``disp_p`` = 1 - |weighted normal|) and the mean distance to its six
+    nearest hit points (``spacing_p``: the local spacing)."""
+    _, i = far.tree.query(q, workers=-1)
+    p = far.points[i]
+    cp = far.components(p, True)
+    dk = far.tree.query(p, k=7, workers=-1)[0][:, 1:]
+    return dict(q=q, n_eff=c["n_eff"], spread2_p=cp["spread2"],
+                disp_p=1.0 - np.linalg.norm(cp["grad"], axis=1), spacing_p=dk.mean(axis=1))
 
 
 def terms(d, coef=F.VARIANCE_COEF):
@@ -530,6 +580,10 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scenes", default=",".join(B.SCENES))
     p.add_argument("--fit", action="store_true", help="fit VARIANCE_COEF on the tuned scenes")
+    p.add_argument("--train-set", default="16", choices=("8", "16"),
+                   help="the training scenes of --train: 8 = TRAIN_SCENES (session 7), 16 = "
+                   "those and TRAIN_SCENES_NOISE (session 8: noise 1-20 mm, density "
+                   "0.15-2 x; default)")
     p.add_argument("--train", action="store_true",
                    help="with --fit: fit on the random training scenes (TRAIN_SCENES, "
                    "gmmgp_app.synth.training_scenes) instead, leaving all six bench scenes "
@@ -580,7 +634,7 @@ def main(argv=None) -> int:
     coef = F.VARIANCE_COEF if a.coef is None else tuple(float(x) for x in a.coef.split(","))
     fitted_coef = None
     if a.fit:
-        tuned = list(TRAIN_SCENES) if a.train else [n for n in B.SCENES if B.SCENES[n]["tuned"]]
+        tuned = train_set(a.train_set) if a.train else [n for n in B.SCENES if B.SCENES[n]["tuned"]]
         t = fitted_coef = fit([scene_case(n, a.seed, cache, a.set) for n in tuned], a.tau)
         text.append(f"VARIANCE_COEF = ({', '.join(f'{x:.4f}' for x in t)})  "
                     f"# tau {a.tau}, fitted on {', '.join(tuned)}")
@@ -615,7 +669,7 @@ def main(argv=None) -> int:
             coefs["fitted (--fit" + (" --train)" if a.train else ")")] = tuple(fitted_coef)
         text.append(score_coefs(names, coefs, cache, a.seed, a.score, a.set))
         if a.train:
-            text.append(score_coefs(list(TRAIN_SCENES), coefs, cache, a.seed, None, a.set))
+            text.append(score_coefs(train_set(a.train_set), coefs, cache, a.seed, None, a.set))
     out = "\n".join(text) + "\n"
     print(out)
     if a.out:

@@ -39,3 +39,20 @@ def test_training_scans_lie_on_the_exact_surface(kind, seed):
 def test_training_scene_unknown_kind():
     with pytest.raises(SynthError, match="Unknown training scene kind"):
         make_training_scene("street", 1)
+
+
+@pytest.mark.parametrize("kind", ["yard", "objects"])
+def test_training_scan_at_a_chosen_noise_level(kind):
+    """``range_noise`` replaces the random draw only: the same layout, stations and
+    scale, the scan's spread about the exact surface follows the given noise."""
+    lo, _, k_lo = scan_training_scene(kind, 6, density=0.05, range_noise=0.001)
+    hi, scene, k_hi = scan_training_scene(kind, 6, density=0.05, range_noise=0.016)
+    assert k_lo == k_hi
+    np.testing.assert_array_equal(lo.origins, hi.origins)
+    d_lo, d_hi = np.abs(scene.sdf(lo.points)), np.abs(scene.sdf(hi.points))
+    # the median |sdf| of a Gaussian range error is 0.67 sigma x the ray's incidence
+    # cosine (<= 1); the scene was scaled by k with its noise
+    assert np.median(d_lo) < 0.001 * k_lo and np.median(d_hi) < 0.016 * k_hi
+    assert np.median(d_hi) > 5 * np.median(d_lo)
+    with pytest.raises(SynthError, match="positive finite range noise"):
+        scan_training_scene(kind, 6, density=0.05, range_noise=-1.0)

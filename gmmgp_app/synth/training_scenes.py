@@ -138,13 +138,17 @@ def make_training_scene(kind: str, seed: int) -> SyntheticScene:
     raise SynthError(f"No closed {kind} layout in 50 draws from seed {seed}; try another seed.")
 
 
-def scan_training_scene(kind: str, seed: int, *, density: float = 0.3):
+def scan_training_scene(kind: str, seed: int, *, density: float = 0.3,
+                        range_noise: float | None = None):
     """Scan a training scene with a random scanner set-up drawn from ``seed``.
 
     ``yard``: the two-scanner mobile mapping system driven or walked along the lane
     (speed 1.5-5 m/s, mount 1.8-2.3 m, range noise 5-12 mm); ``objects``: three
     stations 2-4 m away at 0.1 deg / sqrt(density), range noise 2-8 mm; the scene
     and its scan are then scaled by a random factor 0.2-1.5 (the noise with it).
+    ``range_noise`` (m, before that scaling) replaces the random draw, every other
+    draw unchanged, so that one layout can be scanned at several noise levels (with
+    ``density``: several spacings; docs/field.md, "Session 8").
 
     Returns
     -------
@@ -161,16 +165,27 @@ def scan_training_scene(kind: str, seed: int, *, density: float = 0.3):
                             mount_height=float(rng.uniform(1.8, 2.3)), speed=speed,
                             line_rate=(25.0 if speed < 3 else 75.0) * root,
                             points_per_line=int(round(1800 * root)), min_range=0.5,
-                            range_noise=float(rng.uniform(0.005, 0.012)), seed=int(seed))
+                            range_noise=_noise(rng.uniform(0.005, 0.012), range_noise),
+                            seed=int(seed))
         return scan, scene, 1.0
     ang = rng.uniform(0, 2 * math.pi) + np.array([0.0, 2.1, 4.2]) + rng.uniform(-0.4, 0.4, 3)
     dist = rng.uniform(2.0, 4.0, 3)
     st = np.stack([dist * np.cos(ang), dist * np.sin(ang), rng.uniform(0.8, 1.8, 3)], axis=1)
     scan = simulate_static(scene, st, angular_step_deg=0.1 / root,
-                           range_noise=float(rng.uniform(0.002, 0.008)), seed=int(seed))
+                           range_noise=_noise(rng.uniform(0.002, 0.008), range_noise),
+                           seed=int(seed))
     k = float(np.exp(rng.uniform(math.log(0.2), math.log(1.5))))
     scene = SyntheticScene(name=scene.name, vertices=scene.vertices * k, faces=scene.faces,
                            face_labels=scene.face_labels, params={**scene.params, "scale": k})
     scan = type(scan)(points=scan.points * k, origins=scan.origins * k, labels=scan.labels,
                       source=scan.source + f", scaled x{k:.3f}")
     return scan, scene, k
+
+
+def _noise(drawn, given):
+    """The range noise: ``given`` when not None (checked positive), else the draw."""
+    if given is None:
+        return float(drawn)
+    if not (given > 0 and math.isfinite(given)):
+        raise SynthError(f"Expected a positive finite range noise, found {given!r}.")
+    return float(given)
