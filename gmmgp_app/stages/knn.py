@@ -449,15 +449,15 @@ def ball_lists(points, centres, radius: float):
     return ptr, idx
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, parallel=True)
 def _ball_pass(x, r, cell, lo, dims, tk, ts, te, pts, order, ptr, idx, fill):
     """Count (``fill`` False: counts per centre) or write (at ``ptr``) the points within
-    ``r`` of each centre."""
+    ``r`` of each centre; centres in parallel (each writes its own count and run)."""
     K = x.shape[0]
     counts = np.zeros(K + 1, np.int64)
     mask = len(tk) - 1
     r2 = r * r
-    for q in range(K):
+    for q in nb.prange(K):
         c0 = int(math.floor(x[q, 0] / cell)) - lo[0]
         c1 = int(math.floor(x[q, 1] / cell)) - lo[1]
         c2 = int(math.floor(x[q, 2] / cell)) - lo[2]
