@@ -1,5 +1,7 @@
 """Local GPs: exact dense GP oracle, variance bounds, accuracy on a sphere, persistence."""
 
+import math
+
 import numpy as np
 import pytest
 from sklearn.mixture import GaussianMixture as SkGMM
@@ -292,6 +294,86 @@ def test_value_path_equals_the_pair_predictor(sphere_scene):
     assert np.count_nonzero(m1 != prior.predict(q)[0]) > 500   # many queries in blocks
     np.testing.assert_allclose(m1, m2, rtol=1e-10, atol=1e-13)
     np.testing.assert_allclose(v1, v2, rtol=1e-10, atol=1e-13)
+
+
+def _value_blocks_query_by_query(x, sig, qi, bi, starts, ends, ptr, X, sp, L, Loff, alpha, a,
+                                 dm, red):
+    """The oracle of gp._value_blocks: its kernel before session 8, which filled the
+    cross-covariances query by query (the same arithmetic per entry)."""
+    for t in range(len(starts)):
+        s, e = starts[t], ends[t]
+        b = bi[s]
+        p0, p1 = ptr[b], ptr[b + 1]
+        n4 = 4 * (p1 - p0)
+        nq = e - s
+        V = np.empty((n4, nq))
+        for j in range(nq):
+            q = qi[s + j]
+            for i in range(p1 - p0):
+                d0 = x[q, 0] - X[p0 + i, 0]
+                d1 = x[q, 1] - X[p0 + i, 1]
+                d2 = x[q, 2] - X[p0 + i, 2]
+                r = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+                ex = math.exp(-a * r)
+                sc = sig[q] * sp[p0 + i]
+                a2e = sc * a * a * ex
+                V[4 * i, j] = sc * (1.0 + a * r) * ex
+                V[4 * i + 1, j] = a2e * d0
+                V[4 * i + 2, j] = a2e * d1
+                V[4 * i + 3, j] = a2e * d2
+        for j in range(nq):
+            mu = 0.0
+            for k in range(n4):
+                mu += V[k, j] * alpha[4 * p0 + k]
+            dm[s + j] = mu
+        base = Loff[b]
+        acc = np.zeros(nq)
+        for r_ in range(n4):
+            row = base + r_ * (r_ + 1) // 2
+            for c_ in range(r_):
+                l = L[row + c_]
+                for j in range(nq):
+                    V[r_, j] -= l * V[c_, j]
+            d = L[row + r_]
+            for j in range(nq):
+                V[r_, j] /= d
+                acc[j] += V[r_, j] * V[r_, j]
+        for j in range(nq):
+            red[s + j] = acc[j]
+
+
+def test_value_blocks_equal_the_query_by_query_kernel_bit_for_bit(sphere_scene):
+    """The block-wise value kernel (cross-covariances filled point by point over the
+    queries) gives the old query-by-query kernel's mean and variance reduction bit for
+    bit, with blocks of 1 to many points and 1 to many queries."""
+    from numba import njit
+
+    from gmmgp_app.stages.gp import _runs, _value_blocks
+
+    pts, nrm, prior = sphere_scene
+    field = fit_local_gps(pts[:400], nrm[:400], prior, concrete(GPConfig(block_size=0.3)))
+    rng = np.random.default_rng(8)
+    a = math.sqrt(3.0) / field.hyper["length_scale"]
+    f = field._flat()
+    for n_q in (2500, 7):
+        q = rng.uniform(-1.2, 1.2, size=(n_q, 3))
+        m, v = prior.predict(q)[:2]
+        qi, bi = field.grid.cover(q)
+        sig = np.sqrt(np.maximum(v, 0.0)) * rng.uniform(0.5, 2.0, len(q))
+        starts, ends = _runs(bi)
+        n_pts = np.diff(f["ptr"])[bi[starts]]
+        if n_q > 10:
+            assert n_pts.min() <= 3 and n_pts.max() >= 10 and (ends - starts).max() >= 50
+        else:
+            assert len(starts) and (ends - starts).min() == 1
+        args = (q, sig, qi, bi, starts, ends, f["ptr"], f["X"], f["sp"], f["L"], f["Loff"],
+                f["alpha"], a)
+        dm, red = np.empty(len(qi)), np.empty(len(qi))
+        _value_blocks(*args, dm, red)
+        dm0, red0 = np.empty(len(qi)), np.empty(len(qi))
+        njit(_value_blocks_query_by_query)(*args, dm0, red0)
+        np.testing.assert_array_equal(dm, dm0)
+        np.testing.assert_array_equal(red, red0)
 
 
 def test_gp_runs_blas_on_one_thread_and_restores_it():

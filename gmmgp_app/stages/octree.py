@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from gmmgp_app.stages import _distinct
 
@@ -64,13 +64,14 @@ def _lookup(packed, cells):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _cover_pairs(lo, hi, packed):
     """(point, block) pairs for per-point cell ranges [lo, hi], sorted by block, then
     by point.
 
-    One lookup pass (the blocks found per point kept in a scratch table), then a
-    counting sort by block: no second search and no comparison sort.
+    One lookup pass (the blocks found per point kept in a scratch table; points in
+    parallel, each writing its own row), then a counting sort by block: no second
+    search and no comparison sort.
     """
     n = lo.shape[0]
     nb = packed.shape[0]
@@ -81,7 +82,7 @@ def _cover_pairs(lo, hi, packed):
     found = np.empty((n, max(width, 1)), dtype=np.int64)
     nfound = np.zeros(n, dtype=np.int64)
     per_block = np.zeros(nb + 1, dtype=np.int64)
-    for i in range(n):
+    for i in prange(n):
         m = 0
         for a in range(lo[i, 0], hi[i, 0] + 1):
             for b in range(lo[i, 1], hi[i, 1] + 1):
@@ -90,8 +91,10 @@ def _cover_pairs(lo, hi, packed):
                     if j >= 0:
                         found[i, m] = j
                         m += 1
-                        per_block[j + 1] += 1
         nfound[i] = m
+    for i in range(n):
+        for t in range(nfound[i]):
+            per_block[found[i, t] + 1] += 1
     for j in range(nb):
         per_block[j + 1] += per_block[j]
     count = per_block[nb]

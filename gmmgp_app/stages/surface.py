@@ -238,7 +238,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     #    on as a "fin", which is not observed surface.
     from scipy.spatial import cKDTree
 
-    tree = cKDTree(seeds)
+    tree = cKDTree(seeds, balanced_tree=False)   # sliding midpoint: faster, same answers
     if reach is None:
         reach = surface_reach(seeds, h)
     elif not reach > 0:
@@ -260,7 +260,8 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     for _ in range(dilate):
         new = lattice.evaluate_corners(frontier, followed)
         if len(new):
-            near = tree.query((new + 0.5) * h, k=1, distance_upper_bound=reach)[0] < np.inf
+            near = tree.query((new + 0.5) * h, k=1, distance_upper_bound=reach,
+                              workers=-1)[0] < np.inf
             new = new[near]
         bar and bar.update(1)
         if len(new) == 0:
