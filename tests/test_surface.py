@@ -355,7 +355,7 @@ def test_seeds_follow_the_extent_cell_not_the_voxel():
 def _followed_nodes_by_sets(field, seeds, h, dilate, reach):
     """The surface following of extract_surface written with Python sets (the oracle):
     seed cells, then `dilate` times the neighbours across faces whose 4 corner values
-    change sign, kept when their centre is within `reach` of a seed; the nodes evaluated
+    change sign (0 counting as negative), kept when their centre is within `reach` of a seed; the nodes evaluated
     are the corners of every followed cell."""
     from scipy.spatial import cKDTree
 
@@ -370,7 +370,9 @@ def _followed_nodes_by_sets(field, seeds, h, dilate, reach):
             for a in range(3):
                 for side in (0, 1):
                     f = v[corners[:, a] == side]
-                    if f.min() < 0 < f.max():
+                    # a sign change, an exact 0 counting as negative
+                    # (surface.clear_of_level)
+                    if (f <= 0).any() and (f > 0).any():
                         n = list(c)
                         n[a] += 1 if side else -1
                         grown.add(tuple(n))
@@ -406,6 +408,7 @@ def test_surface_following_evaluates_each_followed_node_once():
 
 def test_lattice_tables_grow_and_find_every_node():
     # far more nodes than the tables' first size: they are rehashed several times
+    from gmmgp_app.stages import surface as S
     from gmmgp_app.stages.surface import _KeySet, _LatticeValues, _Packer
 
     rng = np.random.default_rng(3)
@@ -423,7 +426,11 @@ def test_lattice_tables_grow_and_find_every_node():
     corners = np.stack(np.meshgrid(*([0, 1],) * 3, indexing="ij"), -1).reshape(-1, 3)
     nodes = np.unique((cells[:, None, :] + corners).reshape(-1, 3), axis=0)
     assert sum(calls) == len(nodes) == lat.count
-    np.testing.assert_array_equal(lat(nodes), field(nodes * 0.5))
+    # held in voxels (0.5 m) and pushed off the level (exact zeros at nodes here)
+    want = field(nodes * 0.5) / 0.5
+    assert (want == 0).any()
+    want[want == 0] = -S.LEVEL_CLEARANCE
+    np.testing.assert_array_equal(lat(nodes), want)
     assert np.isnan(lat(np.array([[-61, -61, -61]]))).all()     # in the box, never evaluated
     s = _KeySet(4)
     keys = rng.integers(0, 10 ** 9, 50000)
@@ -483,3 +490,70 @@ def test_timings_record_every_phase():
     assert set(t) == {"setup", "follow", "block_nodes", "marching_cubes", "stitch",
                       "vertices", "final"}
     assert all(v >= 0 for v in t.values())
+
+
+# ------------------------------------------------------------ lattice values near the level
+def _edge_counts(faces):
+    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), 1)
+    return np.unique(e, axis=0, return_counts=True)[1]
+
+
+def test_clear_of_level_pushes_values_off_zero_keeping_sign_and_order():
+    from gmmgp_app.stages.surface import clear_of_level
+
+    v = np.array([0.0, 1e-5, -1e-5, 5e-4, -5e-4, 2e-3, -2e-3, np.nan, 1.0])
+    out = clear_of_level(v.copy(), 1e-3)
+    np.testing.assert_array_equal(
+        out, [-1e-3, 1e-5 + 1e-3, -1e-5 - 1e-3, 5e-4 + 1e-3, -5e-4 - 1e-3, 2e-3, -2e-3,
+              np.nan, 1.0])
+    fin = np.isfinite(out)
+    assert (np.abs(out[fin]) >= 1e-3).all()
+    assert out[2] < out[0] < out[1]        # -1e-5 - c < -c < 1e-5 + c: order kept
+
+
+def test_nodes_at_the_level_give_a_manifold_mesh():
+    # node values that are whole voxels or +-1e-6 voxel: vertices of several edges
+    # meet at such nodes; welded there they used to stack faces (edges shared by 3-4
+    # faces, face pairs of opposite winding: 3 and 2 here before clear_of_level)
+    rng = np.random.default_rng(1)
+    K = rng.normal(size=(6, 3)) * 4.0
+    ph = rng.uniform(0, 6.3, 6)
+    h = 0.05
+
+    def f(x):
+        r = np.round(1.5 * np.sin(x @ K.T + ph).sum(1))
+        tiny = 1e-6 * np.sign(np.sin(97.0 * x.sum(1)) + 1e-9)
+        return h * np.where(r == 0, tiny, r)
+
+    g = np.stack(np.meshgrid(*[np.linspace(0, 1, 30)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    seeds = g[np.abs(f(g)) <= h]
+    m = extract_surface(lambda x: (f(x), np.zeros(len(x))), seeds, voxel_size=h, dilate=3)
+    assert len(m.faces) > 5000
+    assert _edge_counts(m.faces).max() == 2
+    assert len(np.unique(np.sort(m.faces, 1), axis=0)) == len(m.faces)
+
+
+def test_mesh_topology_does_not_depend_on_the_units():
+    # the same scene in metres, centimetres and hectometres: values in voxels make
+    # marching cubes' ambiguous-face decisions (scikit-image's float32-epsilon tie)
+    # the same, so the faces are equal and the vertices scale (metres: 22,587 /
+    # 22,584 / 22,612 faces before)
+    rng = np.random.default_rng(0)
+    K = rng.normal(size=(12, 3)) * 6.0
+    ph = rng.uniform(0, 6.3, 12)
+
+    def f(x):
+        return np.sin(x @ K.T + ph).sum(1) * 0.05 + 0.02
+
+    g = np.stack(np.meshgrid(*[np.linspace(0, 1, 40)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    seeds = g[np.abs(f(g)) < 0.02]
+    ref = None
+    for s in (1.0, 0.01, 100.0):
+        m = extract_surface(lambda x: (f(x / s) * s, np.zeros(len(x))), seeds * s,
+                            voxel_size=0.02 * s, dilate=2)
+        if ref is None:
+            ref = m
+            assert len(m.faces) > 20000 and _edge_counts(m.faces).max() == 2
+            continue
+        np.testing.assert_array_equal(m.faces, ref.faces)
+        np.testing.assert_allclose(m.vertices / s, ref.vertices, rtol=0, atol=1e-9)

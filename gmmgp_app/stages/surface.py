@@ -35,6 +35,11 @@ MAX_GRID_NODES = 200_000_000
 # Surface following stays within this many median seed spacings (plus half a cell).
 REACH_SPACINGS = 1.0
 
+#: Lattice values (in voxels) closer to the level than this are pushed away from it by
+#: this much before following and marching cubes (their sign kept; an exact 0 goes
+#: negative): see :func:`clear_of_level`.
+LEVEL_CLEARANCE = 1e-3
+
 
 class GridTooLargeError(MemoryError):
     """The requested surface grid would not fit the machine; message has the estimate."""
@@ -346,6 +351,38 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     return SurfaceMesh(verts, faces, var)
 
 
+def clear_of_level(values: np.ndarray, clearance: float) -> np.ndarray:
+    """Push lattice values (in voxels) within ``clearance`` of the level 0 away from it
+    by ``clearance`` (``v + clearance sign(v)``), in place; NaN stays NaN. Shifting
+    rather than clamping keeps their order, so no new ties appear on a cube face. An
+    exact 0 goes to -``clearance``: the surface through a node then lies in the cell
+    above it, the cell ``floor(x / voxel)`` gives a seed on that node, so following
+    starts where the surface is.
+
+    Why: marching cubes puts a vertex at ``t = v0 / (v0 - v1)`` along each sign-changing
+    edge. A node value at (or within float32 rounding of) 0 puts vertices of several
+    edges onto that node; keyed by their edges they are then welded there
+    (:func:`_refine_on_edges`, 1e-4 voxel), which collapses some faces and stacks
+    others (edges shared by 3-4 faces, face pairs of opposite winding: the demo
+    street's ground plane meets lattice nodes at z = 0 exactly). With every value at
+    least ``clearance`` from 0 and a distance-like field (|v0 - v1| <~ one voxel), every
+    vertex lies about ``clearance`` or more along its edge, far from the weld tolerance.
+    The surface moves by at most 2 ``clearance`` voxels where a node was nearer the
+    level than that (1e-3 voxel by default).
+
+    The values are in voxels, not metres, for the same reason: scikit-image's Lewiner
+    marching cubes decides an ambiguous cube face by the sign of ``A C - B D`` (products
+    of the face's corner values) and calls anything within float32's epsilon (1.2e-7) of
+    0 a tie, which the two cubes sharing the face can break in opposite ways; with values
+    of a few mm in metres such products are ~1e-6 and near-flat saddles fall into that
+    tie (4 edges shared by 4 faces at the demo street's end, at z = 0 where two blocks
+    meet). In voxels the products are ~1e-2 - 1."""
+    near = np.abs(values) < clearance
+    v = values[near]
+    values[near] = v + np.where(v <= 0.0, -clearance, clearance)
+    return values
+
+
 class _Ticker:
     """CPU seconds of the process since the last call, added to ``out[name]`` (nothing
     when ``out`` is None)."""
@@ -588,7 +625,8 @@ def _fill_block(node_local, node_value, s0, s1, vol, finite):
 
 
 class _LatticeValues:
-    """Field values at lattice nodes, evaluated once each, in large batches; held in an
+    """Field values at lattice nodes, in voxels and pushed off the level
+    (:func:`clear_of_level`), evaluated once each, in large batches; held in an
     open-addressing hash table (``keys``: packed node keys, -1 for an empty slot;
     ``values``), so that looking up a cell's corners costs a probe, not a binary search
     of every node evaluated so far."""
@@ -621,7 +659,10 @@ class _LatticeValues:
             vals = np.empty(n)
             for b in range(0, n, self.batch):
                 vals[b:b + self.batch] = self.predict(nodes[b:b + self.batch] * self.h)
-            _set_values(self.keys, self.values, new, vals)
+            # in voxels and off the level (clear_of_level): what following and
+            # marching cubes see
+            _set_values(self.keys, self.values, new,
+                        clear_of_level(vals / self.h, LEVEL_CLEARANCE))
             if followed is not None:
                 followed.reserve(6 * len(c))
                 grown = np.empty((6 * len(c), 3), np.int64)
