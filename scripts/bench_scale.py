@@ -105,6 +105,12 @@ def tile_timeline(stats: list, t0: float, t1: float, workers: int) -> dict:
         wall_s=wall, before_first_tile_s=before, after_last_tile_s=after,
         workers=list(per.values()),
         tiles_cpu_s=sum(s["cpu_s"] for s in stats),
+        tiles_thread_cpu_s=sum(s["thread_cpu_s"] for s in stats),
+        threading_layer=sorted({s["threading_layer"] for s in stats}),
+        # a process with several numba threads: its calling thread's CPU (its share of
+        # each parallel loop and every serial part) stands for the wall on free cores
+        est_wall_free_cores_calling_thread_s=before + after + sum(s["thread_cpu_s"]
+                                                                  for s in stats),
         tiles_busy_s=sum(s["seconds"] for s in stats),
         parent_store_s=sum(s["store_s"] for s in stats),
         bytes_returned=sum(s["bytes_returned"] for s in stats),
@@ -112,20 +118,31 @@ def tile_timeline(stats: list, t0: float, t1: float, workers: int) -> dict:
             median=float(np.median([s["received"] - s["end"] for s in stats])),
             max=float(max(s["received"] - s["end"] for s in stats))),
         est_wall_free_cores_s=before + makespan + after,
-        est_makespan_free_cores_s=makespan)
+        est_makespan_free_cores_s=makespan,
+        tiles=[dict(key=s["key"], pid=s["pid"], n_points=s["n_points"],
+                    start=s["start"] - t0, seconds=s["seconds"], cpu_s=s["cpu_s"],
+                    thread_cpu_s=s["thread_cpu_s"],
+                    read_s=s["read_s"], save_s=s["save_s"]) for s in order])
 
 
 def run_map(laz: Path, work: Path, tile: float, overlap: float, workers: int,
             chunk: int, queries: Path, pred_out: Path, save: str = "",
-            numba_threads: int = 0) -> dict:
+            numba_threads: int = 0, return_maps: bool = False) -> dict:
     """Stream-map one file (child process) and report time, CPU, peak RSS, counts, the
     per-tile timeline (:func:`tile_timeline`); with ``save`` also save the tiled map
     there (for the mesh runs). ``numba_threads``: each Dask worker's numba threads
-    (0: ``open_executor``'s default, cores // workers)."""
+    (0: ``open_executor``'s default, cores // workers). ``return_maps``: the workers
+    send each tile map's files back and this process writes them (the path before
+    session 8), for comparison."""
     import gmmgp_app as gm
     from gmmgp_app.distributed import open_executor
     from gmmgp_app.tiling import TileSpec, build_tiled_map_from_las
 
+    if return_maps:
+        from gmmgp_app.tiling import las, tasks
+
+        las.map_tiles_to_store = lambda *a, **k: tasks.map_tiles_to_store(
+            *a, **dict(k, workers_write=False))
     rss0 = _rss_mb()
     cfg = gm.MappingConfig()
     spec = TileSpec(size=tile, overlap=overlap)
@@ -169,18 +186,50 @@ def run_map(laz: Path, work: Path, tile: float, overlap: float, workers: int,
                 skipped_tiles=len(tm.summary["skipped_tiles"]))
 
 
-def run_mesh(tiled: Path, mode: str, ply: Path) -> dict:
+def _rss_now_mb() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
+
+
+class _RegionTrace:
+    """A progress bar for write_tiled_surface_ply that records, after each region, the
+    current RSS, the peak so far and (with tracemalloc on) the traced numpy/Python
+    memory now and its peak since the previous region."""
+
+    def __init__(self, trace: list):
+        self.trace = trace
+
+    def __call__(self, total, label):
+        return self
+
+    def update(self, n=1):
+        import tracemalloc
+
+        rec = dict(region=len(self.trace), rss_mb=_rss_now_mb(), peak_rss_mb=_rss_mb())
+        if tracemalloc.is_tracing():
+            cur, peak = tracemalloc.get_traced_memory()
+            rec.update(traced_mb=cur / 2 ** 20, traced_peak_mb=peak / 2 ** 20)
+            tracemalloc.reset_peak()
+        self.trace.append(rec)
+
+    def close(self):
+        pass
+
+
+def run_mesh(tiled: Path, mode: str, ply: Path, trace: int = 0) -> dict:
     """Mesh a saved tiled map (child process) as ``gmmgp run --tile-size`` does after its
     build: ``memory``, the whole stitched lattice and mesh held at once
     (TiledMap.extract_surface + write_mesh_ply, the path before session 7), or
     ``streamed``, region by region into the PLY (tiling/mesh.py). Reports wall and CPU
-    seconds, peak RSS (the map opened as gmmgp run reopens it, without points)."""
+    seconds, peak RSS (the map opened as gmmgp run reopens it, without points); with
+    ``trace`` (streamed) the RSS after each region (1) and tracemalloc's figures (2)."""
     from gmmgp_app.pipeline import std_colour_max, write_mesh_ply
     from gmmgp_app.tiling import load_tiled_map
     from gmmgp_app.tiling.mesh import write_tiled_surface_ply
 
     rss0 = _rss_mb()
     tm = load_tiled_map(tiled, load_points=False)
+    rss_open = _rss_now_mb()
     t0, c0 = time.perf_counter(), time.process_time()
     if mode == "memory":
         mesh = tm.extract_surface()
@@ -188,7 +237,16 @@ def run_mesh(tiled: Path, mode: str, ply: Path) -> dict:
         info = dict(vertices=len(mesh.vertices), faces=len(mesh.faces))
         del mesh
     else:
-        info = write_tiled_surface_ply(tm, ply, offset=tm.offset)
+        rt: list = []
+        if trace >= 2:
+            import tracemalloc
+
+            tracemalloc.start()
+        info = write_tiled_surface_ply(tm, ply, offset=tm.offset,
+                                       progress=_RegionTrace(rt) if trace else None)
+        if trace:
+            info["region_trace"] = rt
+            info["rss_before_mesh_mb"] = rss_open
     return dict(info, mode=mode, seconds=time.perf_counter() - t0,
                 cpu_seconds=time.process_time() - c0, peak_rss_mb=_rss_mb(),
                 rss_after_imports_mb=rss0)
@@ -263,12 +321,16 @@ def main(argv=None) -> int:
                     "Dask worker (0: cores // workers)")
     ap.add_argument("--order", default="serial,dask", help="runs per size, in this order "
                     "(alternate with e.g. 'serial,dask,dask,serial')")
+    ap.add_argument("--return-maps", action="store_true", help="workers send the tile "
+                    "maps' files back to be written by the parent (before session 8)")
     ap.add_argument("--dask-sizes", default="", help="sizes also run on Dask (default: "
                     "the largest)")
     ap.add_argument("--repeat", type=int, default=3, help="runs per setting (median)")
     ap.add_argument("--mesh", default="", help="also mesh the serial run's saved map, in "
                     "a fresh process per mode: 'streamed', 'memory' or 'streamed,memory' "
                     "(the meshes compared)")
+    ap.add_argument("--trace-regions", type=int, default=0, help="streamed mesh: 1 records "
+                    "the RSS after each region, 2 also tracemalloc's (slower)")
     ap.add_argument("--out", default="out/bench/bench_scale.json")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     ap.add_argument("--child-args", help=argparse.SUPPRESS)
@@ -306,7 +368,8 @@ def main(argv=None) -> int:
                             tile=args.tile, overlap=args.overlap, workers=w,
                             chunk=args.chunk, queries=qf,
                             pred_out=cache / f"pred_{k}_{name}.npy", save=str(saved),
-                            numba_threads=args.numba_threads)
+                            numba_threads=args.numba_threads,
+                            return_maps=args.return_maps)
                 rr["load"] = os.getloadavg()[0]
                 allreps[name].append(rr)
                 print(f"  {k}x {name} run {r}: {rr['seconds']:.1f} s, est. free cores "
@@ -331,7 +394,9 @@ def main(argv=None) -> int:
                   f"{res['n_points']} points", flush=True)
         for mode in [m for m in args.mesh.split(",") if m]:
             ms = [_spawn("run_mesh", tiled=cache / f"map_{k}", mode=mode,
-                         ply=cache / f"mesh_{k}_{mode}.ply") for _ in range(args.repeat)]
+                         ply=cache / f"mesh_{k}_{mode}.ply",
+                         trace=args.trace_regions if mode == "streamed" else 0)
+                  for _ in range(args.repeat)]
             row[f"mesh_{mode}"] = dict(ms[0], seconds=float(np.median([m["seconds"] for m in ms])),
                                        cpu_seconds=float(np.median([m["cpu_seconds"]
                                                                     for m in ms])),
