@@ -415,16 +415,23 @@ def main(argv=None) -> int:
             row["mesh_compare"] = _spawn("compare_meshes", a=cache / f"mesh_{k}_memory.ply",
                                          b=cache / f"mesh_{k}_streamed.ply")
             print(f"{k}x meshes: {row['mesh_compare']}", flush=True)
-        if "dask" in preds:
+        if "dask" in preds and "serial" not in preds:
+            pf = cache / f"pred_{k}_serial.npy"   # an earlier serial run's, if any
+            if pf.exists():
+                preds["serial"] = np.load(pf)
+        if "dask" in preds and "serial" in preds:
             d = np.abs(preds["dask"] - preds["serial"])
             row["dask_vs_serial_max_abs_diff"] = dict(mean=float(d[:, 0].max()),
                                                       var=float(d[:, 1].max()))
+        if "dask" in row and "serial" in row:
             row["dask_speedup"] = row["serial"]["seconds"] / row["dask"]["seconds"]
             row["dask_speedup_est_free_cores"] = (row["serial"]["est_wall_free_cores_s"]
                                                   / row["dask"]["est_wall_free_cores_s"])
         rows.append(row)
     base = rows[0]
     for r in rows:
+        if "serial" not in r or "serial" not in base:   # --order without serial
+            continue
         ratio = r["multiple"] / base["multiple"]
         r["time_vs_linear"] = r["serial"]["seconds"] / (base["serial"]["seconds"] * ratio)
         r["rss_vs_1x"] = r["serial"]["peak_rss_mb"] / base["serial"]["peak_rss_mb"]
