@@ -196,8 +196,10 @@ class _RegionTrace:
     current RSS, the peak so far and (with tracemalloc on) the traced numpy/Python
     memory now and its peak since the previous region."""
 
-    def __init__(self, trace: list):
+    def __init__(self, trace: list, snapshot_at: int = -1):
         self.trace = trace
+        self.snapshot_at = snapshot_at
+        self.snapshot: list = []
 
     def __call__(self, total, label):
         return self
@@ -210,6 +212,10 @@ class _RegionTrace:
             cur, peak = tracemalloc.get_traced_memory()
             rec.update(traced_mb=cur / 2 ** 20, traced_peak_mb=peak / 2 ** 20)
             tracemalloc.reset_peak()
+            if len(self.trace) == self.snapshot_at:   # what the traced memory is, by line
+                top = tracemalloc.take_snapshot().statistics("lineno")[:15]
+                self.snapshot = [dict(where=str(st.traceback[0]), mb=st.size / 2 ** 20,
+                                      blocks=st.count) for st in top]
         self.trace.append(rec)
 
     def close(self):
@@ -242,10 +248,12 @@ def run_mesh(tiled: Path, mode: str, ply: Path, trace: int = 0) -> dict:
             import tracemalloc
 
             tracemalloc.start()
+        bar = _RegionTrace(rt, snapshot_at=10 if trace >= 3 else -1)
         info = write_tiled_surface_ply(tm, ply, offset=tm.offset,
-                                       progress=_RegionTrace(rt) if trace else None)
+                                       progress=bar if trace else None)
         if trace:
             info["region_trace"] = rt
+            info["traced_by_line_at_region_10"] = bar.snapshot
             info["rss_before_mesh_mb"] = rss_open
     return dict(info, mode=mode, seconds=time.perf_counter() - t0,
                 cpu_seconds=time.process_time() - c0, peak_rss_mb=_rss_mb(),
@@ -330,7 +338,8 @@ def main(argv=None) -> int:
                     "a fresh process per mode: 'streamed', 'memory' or 'streamed,memory' "
                     "(the meshes compared)")
     ap.add_argument("--trace-regions", type=int, default=0, help="streamed mesh: 1 records "
-                    "the RSS after each region, 2 also tracemalloc's (slower)")
+                    "the RSS after each region, 2 also tracemalloc's (slower), 3 also the "
+                    "traced memory by source line after region 10")
     ap.add_argument("--out", default="out/bench/bench_scale.json")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     ap.add_argument("--child-args", help=argparse.SUPPRESS)
