@@ -53,6 +53,9 @@ class SerialExecutor(Executor):
     loop. Exceptions are stored in the returned future, as other executors do.
     """
 
+    #: Tasks run on this machine: they may read and write the caller's files.
+    shared_filesystem = True
+
     def submit(self, fn, /, *args, **kwargs) -> Future:
         fut: Future = Future()
         try:
@@ -64,7 +67,8 @@ class SerialExecutor(Executor):
 
 @contextlib.contextmanager
 def open_executor(workers: Optional[int] = None, scheduler: Optional[str] = None,
-                  kind: str = "dask") -> Iterator[Executor]:
+                  kind: str = "dask", numba_threads: Optional[int] = None
+                  ) -> Iterator[Executor]:
     """An executor for the mapper, closed (with its cluster) on exit.
 
     Parameters
@@ -78,10 +82,20 @@ def open_executor(workers: Optional[int] = None, scheduler: Optional[str] = None
     kind : {"dask", "processes"}
         Local workers through a Dask ``LocalCluster`` (one thread per worker) or
         a :class:`concurrent.futures.ProcessPoolExecutor`.
+    numba_threads : int, optional
+        Threads of each local worker's numba kernels (``NUMBA_NUM_THREADS`` in the
+        worker's environment). Default: the machine's cores shared out,
+        ``max(1, cores // workers)``, so that workers do not oversubscribe the cores
+        (each worker's BLAS has one thread already). Not applied to a ``scheduler``'s
+        workers.
 
     Yields
     ------
     concurrent.futures.Executor
+        Local workers' executors carry ``shared_filesystem = True`` (tasks may read
+        and write the caller's files: :func:`gmmgp_app.tiling.tasks.map_tiles_to_store`
+        has them save tile maps into the tile store themselves); a ``scheduler``'s do
+        not say so.
     """
     if kind not in ("dask", "processes"):
         raise DistributedError(f"Expected kind 'dask' or 'processes', found {kind!r}.")
@@ -103,6 +117,13 @@ def open_executor(workers: Optional[int] = None, scheduler: Optional[str] = None
     if not workers:
         yield SerialExecutor()
         return
+    import os
+
+    if numba_threads is None:
+        numba_threads = max(1, (os.cpu_count() or 1) // int(workers))
+    if not (isinstance(numba_threads, (int, np.integer)) and numba_threads >= 1):
+        raise DistributedError(f"Expected numba_threads to be an integer >= 1, found "
+                               f"{numba_threads!r}.")
     if kind == "processes":
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
@@ -111,27 +132,37 @@ def open_executor(workers: Optional[int] = None, scheduler: Optional[str] = None
         # threads, and a child forked from such a process aborts ("fork() called from a
         # process already using GNU OpenMP")
         with ProcessPoolExecutor(max_workers=int(workers), initializer=_single_thread_blas,
+                                 initargs=(int(numba_threads),),
                                  mp_context=multiprocessing.get_context("spawn")) as ex:
+            ex.shared_filesystem = True
             yield ex
         return
     from distributed import Client, LocalCluster
 
     # one thread per worker: the work is numpy/numba bound and holds the GIL in places
+    # (the nanny gives each worker one BLAS/OpenMP thread; numba's pool is its own)
     cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
-                           dashboard_address=":0")
+                           dashboard_address=":0",
+                           env={"NUMBA_NUM_THREADS": str(int(numba_threads))})
     client = Client(cluster)
     try:
-        yield client.get_executor()
+        ex = client.get_executor()
+        ex.shared_filesystem = True
+        yield ex
     finally:
         client.close()
         cluster.close()
 
 
-def _single_thread_blas():
+def _single_thread_blas(numba_threads: Optional[int] = None):
     """Worker initialiser: one BLAS thread per worker process (as Dask's nanny does);
-    several multithreaded BLAS pools on few cores slow a Cholesky down 100x."""
+    several multithreaded BLAS pools on few cores slow a Cholesky down 100x. With
+    ``numba_threads``, numba's thread count too (read when numba is first imported:
+    a spawned worker has not imported it yet)."""
     import os
 
+    if numba_threads is not None:
+        os.environ["NUMBA_NUM_THREADS"] = str(int(numba_threads))
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"
     try:

@@ -1178,3 +1178,145 @@ def test_chunked_quantile_is_numpys_quantile_bit_for_bit():
     assert np.isnan(chunked_quantile(lambda: iter([np.array([1.0, np.nan])]), 0.98))
     with pytest.raises(ValueError, match="at least one value"):
         chunked_quantile(lambda: iter([]), 0.5)
+
+
+# ------------------------------------------------- session 8: workers write, largest first
+
+
+class _ProcessBoundary(SerialExecutor):
+    """Runs each task in this thread, but as a worker process would get and give it:
+    the task and the result pickled both ways; records the result sizes."""
+
+    def __init__(self, shared):
+        self.shared_filesystem = shared
+        self.result_bytes = []
+
+    def submit(self, fn, /, *args, **kwargs):
+        import pickle
+
+        args = pickle.loads(pickle.dumps(args))
+        fut = super().submit(fn, *args, **kwargs)
+        if fut.exception() is None:
+            blob = pickle.dumps(fut.result())
+            self.result_bytes.append(len(blob))
+            fut = super().submit(pickle.loads, blob)
+        return fut
+
+
+def test_workers_save_their_tiles_into_the_store_and_tiles_go_largest_first(street, tiled,
+                                                                            tmp_path,
+                                                                            monkeypatch):
+    """A streamed build on workers that share the filesystem: each worker reads its
+    tile's pieces and saves its map into the store itself, so a tile's result is a few
+    hundred bytes of numbers (the maps' files came back whole before), and the map
+    predicts bit for bit as when the maps come back as bytes and the caller writes
+    them; the tiles are handed out largest first; one timing record per tile."""
+    scan, _ = street
+    off = np.array([500000.0, 5400000.0, 100.0])
+    write_laz(tmp_path / "street.laz", scan, off)
+    from gmmgp_app.tiling import las, tasks
+
+    runs = {}
+    for shared in (True, False):
+        if not shared:  # the reference: the maps' files come back, the caller writes them
+            monkeypatch.setattr(las, "map_tiles_to_store", lambda *a, **k: tasks.
+                                map_tiles_to_store(*a, **dict(k, workers_write=False)))
+        ex, stats = _ProcessBoundary(False), []
+        tm = build_tiled_map_from_las(tmp_path / "street.laz", tiled.config, tiled.spec,
+                                      work_dir=tmp_path / f"work_{shared}", chunk_size=3000,
+                                      offset=off, executor=ex, tile_stats=stats)
+        runs[shared] = (tm, ex, stats)
+    (tw, ew, sw), (tb, eb, sb) = runs[True], runs[False]
+    n = len(tw.keys)
+    assert tw.keys == tb.keys == tiled.keys and len(sw) == len(sb) == n
+    # build_tiled_map_from_las passes workers_write=True: the pieces' paths already
+    # assume a shared filesystem, so even an executor that does not say so gets it
+    assert max(ew.result_bytes) < 2000 and all(s["bytes_returned"] == 0 for s in sw)
+    assert min(eb.result_bytes) > 10000 and all(s["bytes_returned"] > 0 for s in sb)
+    q = np.random.default_rng(6).uniform(scan.points.min(0), scan.points.max(0), (2000, 3))
+    for a, b in zip(tw.predict(q, return_grad=True), tb.predict(q, return_grad=True)):
+        assert np.array_equal(a, b)
+    sizes = [s["n_points"] for s in sorted(sw, key=lambda s: s["start"])]
+    assert sizes == sorted(sizes, reverse=True) and sizes[0] > sizes[-1]
+    for s in sw:
+        assert s["cpu_s"] > 0 and s["seconds"] >= s["read_s"] + s["map_s"] - 1e-9
+        assert s["numba_threads"] >= 1 and s["store_s"] >= 0
+
+
+def test_map_tiles_to_store_returns_bytes_unless_the_workers_share_the_files(street,
+                                                                             tiled, tmp_path):
+    """``map_tiles_to_store`` without ``workers_write``: an executor that does not say
+    it shares the filesystem (a remote cluster) gets the maps' files back as bytes and
+    the caller writes them; one that does (``shared_filesystem``, the serial and local
+    executors of ``open_executor``) has the task save into the store; both stores
+    predict bit for bit alike."""
+    from gmmgp_app.tiling.geometry import split_into_tiles
+    from gmmgp_app.tiling.store import TileStore
+    from gmmgp_app.tiling.tasks import map_tiles_to_store
+
+    scan, _ = street
+    tiles = split_into_tiles(scan, tiled.spec)
+    key = max(tiles, key=lambda k: len(tiles[k]))
+    task = (key, tiles[key].points, tiles[key].origins, tiled.config, tiled.method)
+    stores = {}
+    for shared in (False, True):
+        ex, stats = _ProcessBoundary(shared), []
+        store = TileStore(tmp_path / f"maps_{shared}", [])
+        assert map_tiles_to_store(ex, [task], store, stats=stats) == {}
+        assert list(store) == [key] and len(stats) == 1
+        assert (stats[0]["bytes_returned"] > 10000) == (not shared)
+        assert (ex.result_bytes[0] > 10000) == (not shared)
+        stores[shared] = store
+    q = np.random.default_rng(7).uniform(tiles[key].points.min(0),
+                                         tiles[key].points.max(0), (1000, 3))
+    for a, b in zip(stores[False][key].predict(q), stores[True][key].predict(q)):
+        assert np.array_equal(a, b)
+
+
+def test_largest_first_is_stable():
+    from gmmgp_app.tiling.tasks import largest_first
+
+    assert largest_first(list("abcde"), [3, 9, 3, 1, 9]) == list("beacd")
+    assert largest_first([], []) == []
+
+
+def _numba_in_worker():
+    import os
+
+    import numba
+
+    return numba.get_num_threads(), os.environ.get("NUMBA_NUM_THREADS")
+
+
+def test_local_workers_share_the_cores_among_their_numba_threads():
+    """``open_executor``'s local workers run numba on ``cores // workers`` threads (or
+    ``numba_threads``) and say they share the caller's filesystem."""
+    with open_executor(workers=1, kind="processes", numba_threads=1) as ex:
+        assert ex.shared_filesystem
+        assert ex.submit(_numba_in_worker).result() == (1, "1")
+    assert SerialExecutor.shared_filesystem
+    with pytest.raises(DistributedError, match="numba_threads"):
+        with open_executor(workers=2, numba_threads=0):
+            pass
+
+
+@pytest.mark.slow
+def test_dask_workers_save_tiles_and_match_serial_bit_for_bit(street, tiled, tmp_path):
+    """Two Dask workers map the streamed street with one numba thread each (on this
+    2-core machine), save the tiles themselves, and the map is the serial one bit for
+    bit."""
+    scan, _ = street
+    off = np.array([500000.0, 5400000.0, 100.0])
+    write_laz(tmp_path / "street.laz", scan, off)
+    ref = build_tiled_map_from_las(tmp_path / "street.laz", tiled.config, tiled.spec,
+                                   work_dir=tmp_path / "w0", chunk_size=3000, offset=off)
+    stats = []
+    with open_executor(workers=2, numba_threads=1) as ex:
+        tm = build_tiled_map_from_las(tmp_path / "street.laz", tiled.config, tiled.spec,
+                                      work_dir=tmp_path / "w2", chunk_size=3000, offset=off,
+                                      executor=ex, tile_stats=stats)
+    assert {s["numba_threads"] for s in stats} == {1}
+    assert all(s["bytes_returned"] == 0 for s in stats) and len(stats) == len(tm.keys)
+    q = np.random.default_rng(8).uniform(scan.points.min(0), scan.points.max(0), (2000, 3))
+    for a, b in zip(tm.predict(q), ref.predict(q)):
+        assert np.array_equal(a, b)

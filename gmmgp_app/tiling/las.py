@@ -10,7 +10,7 @@ import numpy as np
 from ..config import MappingConfig
 from .geometry import TileSpec, TilingError, members, owners_summary, tile_owners
 from .store import TileStore
-from .tasks import map_tiles_to_store
+from .tasks import largest_first, map_tiles_to_store
 from .tiled_map import TiledMap
 
 __all__ = ["spill_las_to_tiles", "build_tiled_map_from_las", "stream_plan", "stream_tiles",
@@ -177,7 +177,8 @@ def build_tiled_map_from_las(path, cfg: Optional[MappingConfig] = None,
                              spec: Optional[TileSpec] = None, method: str = "gmmgp", *,
                              work_dir, executor=None, chunk_size: int = 1_000_000,
                              progress: Optional[Callable[[int, int], None]] = None,
-                             cache_tiles: int = 4, offset=None) -> TiledMap:
+                             cache_tiles: int = 4, offset=None,
+                             tile_stats: Optional[list] = None) -> TiledMap:
     """Stream a LAS/LAZ file into tiles and map them, with memory bounded by a tile.
 
     The file is read chunk by chunk into per-tile pieces on disk
@@ -187,6 +188,13 @@ def build_tiled_map_from_las(path, cfg: Optional[MappingConfig] = None,
     Peak memory is therefore that of one chunk or one tile's mapping (per
     worker), not of the whole file. ``offset`` is the local-frame shift (default:
     see :func:`spill_las_to_tiles`); tiles are aligned in the local frame.
+
+    The tiles are handed out largest first, and the workers read their pieces and
+    save their maps in ``work_dir`` themselves (``executor.shared_filesystem``; the
+    pieces' paths already assume it), so only file names and a few numbers cross
+    between processes. ``tile_stats``: a list that receives one dict per tile
+    (seconds and CPU seconds of reading, mapping and saving, the worker's process id;
+    :func:`~.tasks.map_tiles_to_store`).
 
     Returns
     -------
@@ -201,14 +209,17 @@ def build_tiled_map_from_las(path, cfg: Optional[MappingConfig] = None,
     counts = {key: sum(int(np.load(f, mmap_mode="r").shape[0]) for f in pfiles)
               for key, (pfiles, _) in pieces.items()}
     owners = tile_owners(counts, spec.min_points)
-    tasks = []
+    tasks, sizes = [], []
     for key in sorted(pieces):
         if counts[key] >= spec.min_points:
+            mem = members(owners, key)
             files = [(pieces[m][0], pieces[m][1] if len(pieces[m][1]) == len(pieces[m][0])
-                      else []) for m in members(owners, key)]
+                      else []) for m in mem]
             tasks.append((key, files, None, cfg, method))
+            sizes.append(sum(counts[m] for m in mem))
     store = TileStore(work_dir / "maps", [], cache=cache_tiles)
-    skipped = map_tiles_to_store(executor, tasks, store, progress)
+    skipped = map_tiles_to_store(executor, largest_first(tasks, sizes), store, progress,
+                                 workers_write=True, stats=tile_stats)
     if not len(store):
         raise TilingError(f"Expected at least one tile with {spec.min_points} points in "
                           f"'{path}', found none that could be mapped.")

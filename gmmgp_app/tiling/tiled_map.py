@@ -15,7 +15,7 @@ from ..types import Scan, as_up_axis
 from .geometry import (TileSpec, TilingError, members, owners_summary, tile_dirname,
                        union_points, split_into_tiles, tile_owners, warn_if_not_z_up)
 from .store import TileStore
-from .tasks import map_tiles_to_store, run_tiles
+from .tasks import largest_first, map_tiles_to_store, run_tiles
 
 __all__ = ["TiledMap", "build_tiled_map", "load_tiled_map"]
 
@@ -506,7 +506,8 @@ def build_tiled_map(scan: Scan, cfg: Optional[MappingConfig] = None,
         maps, skipped = run_tiles(executor, tasks, progress)
     else:
         maps = TileStore(Path(work_dir) / "maps", [], cache=cache_tiles)
-        skipped = map_tiles_to_store(executor, tasks, maps, progress)
+        skipped = map_tiles_to_store(executor, largest_first(tasks, [len(t[1]) for t in tasks]),
+                                     maps, progress)
     if not len(maps):
         raise TilingError(f"Expected at least one tile to map, all {len(skipped)} failed; "
                           f"first: {next(iter(skipped.values()))}")
