@@ -25,17 +25,37 @@ __all__ = ["voxel_first", "voxel_count", "cell_first", "cell_count"]
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 
 
-@nb.njit(cache=True, nogil=True)
-def _voxel_first(points, order, lo, size, dims, want_index):
-    n = order.shape[0]
+@nb.njit(cache=True, inline="always")
+def _table(n):
+    """An empty open-addressing table for ``n`` keys (at least 2n slots, a power of
+    two): (slots (-1: empty), mask, Fibonacci shift)."""
     slots = 16
     bits = 4
     while slots < 2 * n:
         slots *= 2
         bits += 1
-    mask = slots - 1
-    shift = np.uint64(64 - bits)
-    table = np.full(slots, -1, np.int64)
+    return np.full(slots, -1, np.int64), slots - 1, np.uint64(64 - bits)
+
+
+@nb.njit(cache=True, inline="always")
+def _add(table, k, mask, shift) -> bool:
+    """Insert key ``k`` >= 0 (linear probing from its Fibonacci hash); True when it was
+    not in the table yet."""
+    j = np.int64((np.uint64(k) * _GOLDEN) >> shift) & mask
+    while True:
+        t = table[j]
+        if t == k:
+            return False
+        if t == -1:
+            table[j] = k
+            return True
+        j = (j + 1) & mask
+
+
+@nb.njit(cache=True, nogil=True)
+def _voxel_first(points, order, lo, size, dims, want_index):
+    n = order.shape[0]
+    table, mask, shift = _table(n)
     first = np.empty(n if want_index else 0, np.int64)
     count = 0
     for i in range(n):
@@ -43,19 +63,10 @@ def _voxel_first(points, order, lo, size, dims, want_index):
         q0 = np.int64(np.floor((points[r, 0] - lo[0]) / size))
         q1 = np.int64(np.floor((points[r, 1] - lo[1]) / size))
         q2 = np.int64(np.floor((points[r, 2] - lo[2]) / size))
-        k = (q0 * dims[1] + q1) * dims[2] + q2
-        j = np.int64((np.uint64(k) * _GOLDEN) >> shift) & mask
-        while True:
-            t = table[j]
-            if t == k:
-                break
-            if t == -1:
-                table[j] = k
-                if want_index:
-                    first[count] = i
-                count += 1
-                break
-            j = (j + 1) & mask
+        if _add(table, (q0 * dims[1] + q1) * dims[2] + q2, mask, shift):
+            if want_index:
+                first[count] = i
+            count += 1
     return count, first[:count]
 
 
@@ -117,33 +128,17 @@ def _cell_first(points, size, qlo, dims, want_index):
     """:func:`_voxel_first` for cells ``floor(p / size)`` anchored at 0 (the surface
     seeds' cells), packed about ``qlo`` (the cell of the points' minimum)."""
     n = points.shape[0]
-    slots = 16
-    bits = 4
-    while slots < 2 * n:
-        slots *= 2
-        bits += 1
-    mask = slots - 1
-    shift = np.uint64(64 - bits)
-    table = np.full(slots, -1, np.int64)
+    table, mask, shift = _table(n)
     first = np.empty(n if want_index else 0, np.int64)
     count = 0
     for i in range(n):
         q0 = np.int64(np.floor(points[i, 0] / size)) - qlo[0]
         q1 = np.int64(np.floor(points[i, 1] / size)) - qlo[1]
         q2 = np.int64(np.floor(points[i, 2] / size)) - qlo[2]
-        k = (q0 * dims[1] + q1) * dims[2] + q2
-        j = np.int64((np.uint64(k) * _GOLDEN) >> shift) & mask
-        while True:
-            t = table[j]
-            if t == k:
-                break
-            if t == -1:
-                table[j] = k
-                if want_index:
-                    first[count] = i
-                count += 1
-                break
-            j = (j + 1) & mask
+        if _add(table, (q0 * dims[1] + q1) * dims[2] + q2, mask, shift):
+            if want_index:
+                first[count] = i
+            count += 1
     return count, first[:count]
 
 
