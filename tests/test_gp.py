@@ -222,6 +222,48 @@ def test_octree_cover_matches_brute_force():
         BlockGrid(np.array([[5_000_000, 0, 0]]), 1.0, 0.5)
 
 
+def test_octree_cover_hashed_equals_binary_search():
+    """cover() looks the blocks up in a hash table: the same (point, block) pairs in
+    the same order as the binary search of the sorted keys (``lookup``) it replaced,
+    on blocks that share two of three coordinates (a hash of part of the key would
+    pile them up), negative cells, cells at the +-2^20 limit and queries beyond it."""
+    from gmmgp_app.stages.octree import _BIAS, _find, _hash_table, _hfind
+    rng = np.random.default_rng(3)
+    line = np.c_[np.arange(-300, 300), np.full(600, 7), np.full(600, -2)]     # c0 only
+    plane = np.stack(np.meshgrid(np.full(1, 4), np.arange(-20, 20), np.arange(-20, 20),
+                                 indexing="ij"), -1).reshape(-1, 3)
+    blob = rng.integers(-60, 60, size=(3000, 3))
+    edge = np.array([[_BIAS - 1, 0, 0], [-_BIAS, -_BIAS, -_BIAS], [0, _BIAS - 1, -_BIAS]])
+    keys = np.unique(np.concatenate([line, plane, blob, edge]), axis=0)
+    grid = BlockGrid(keys, 0.5, 0.5)
+    tk, tv = _hash_table(grid._packed)
+    probe = np.concatenate([keys, rng.integers(-70, 70, size=(4000, 3)),
+                            edge + 1, edge - 1, [[_BIAS, 0, 0], [0, -_BIAS - 1, 0]]])
+    for c in probe:
+        assert _hfind(tk, tv, *c) == _find(grid._packed, *c)
+    h = grid.block_size
+    q = np.concatenate([(keys[rng.integers(0, len(keys), 5000)] + rng.uniform(-0.3, 1.3, (5000, 3))) * h,
+                        (edge + 0.5) * h, [[(_BIAS + 3) * h, 0.0, 0.0]]])
+    qi, bi = grid.cover(q)
+    half = grid.half_extent
+    lo = np.ceil((q - half) / h - 0.5).astype(np.int64)
+    hi = np.floor((q + half) / h - 0.5).astype(np.int64)
+    pi_old, bi_old = [], []
+    for i in range(len(q)):
+        cells = np.stack(np.meshgrid(*[np.arange(lo[i, d], hi[i, d] + 1) for d in range(3)],
+                                     indexing="ij"), -1).reshape(-1, 3)
+        inside = np.all((cells >= -_BIAS) & (cells < _BIAS), axis=1)
+        j = np.full(len(cells), -1)
+        j[inside] = grid.lookup(cells[inside])
+        j = j[j >= 0]
+        pi_old.append(np.full(len(j), i))
+        bi_old.append(j)
+    pi_old, bi_old = np.concatenate(pi_old), np.concatenate(bi_old)
+    o = np.argsort(bi_old, kind="stable")          # by block, then by point
+    assert len(qi) > 5000
+    assert np.array_equal(qi, pi_old[o]) and np.array_equal(bi, bi_old[o])
+
+
 def test_bad_inputs(sphere_scene):
     pts, nrm, prior = sphere_scene
     cfg = concrete(GPConfig())

@@ -64,17 +64,65 @@ def _lookup(packed, cells):
     return out
 
 
+@njit(cache=True)
+def _hash_table(packed):
+    """Open-addressing table of the sorted packed keys: ``(tk, tv)`` of a power-of-two
+    size at least twice the number of keys, ``tk`` the key (-1 empty; packed keys are
+    non-negative), ``tv`` its index in ``packed`` (what :func:`_find` returns)."""
+    size = 16
+    while size < 2 * packed.shape[0]:
+        size *= 2
+    tk = np.full(size, -1, dtype=np.int64)
+    tv = np.full(size, -1, dtype=np.int64)
+    mask = size - 1
+    for j in range(packed.shape[0]):
+        s = _hslot(packed[j], mask)
+        while tk[s] != -1:
+            s = (s + 1) & mask
+        tk[s] = packed[j]
+        tv[s] = j
+    return tk, tv
+
+
+@njit(cache=True, inline="always")
+def _hslot(k, mask):
+    """Home slot of key ``k`` (xor-shift, multiply, xor-shift: every axis's bits reach
+    the low bits that ``mask`` keeps)."""
+    h = k ^ (k >> np.int64(33))
+    h = h * np.int64(-7046029254386353131)
+    h = h ^ (h >> np.int64(29))
+    return h & mask
+
+
+@njit(cache=True, inline="always")
+def _hfind(tk, tv, c0, c1, c2):
+    """:func:`_find` through the hash table of :func:`_hash_table` (the same index,
+    -1 if absent): one probe run instead of a binary search."""
+    if c0 < -_BIAS or c0 >= _BIAS or c1 < -_BIAS or c1 >= _BIAS or c2 < -_BIAS or c2 >= _BIAS:
+        return -1
+    k = _key(c0, c1, c2)
+    mask = tk.shape[0] - 1
+    s = _hslot(k, mask)
+    while True:
+        t = tk[s]
+        if t == k:
+            return tv[s]
+        if t == -1:
+            return -1
+        s = (s + 1) & mask
+
+
 @njit(cache=True, parallel=True)
-def _cover_pairs(lo, hi, packed):
+def _cover_pairs(lo, hi, nb, tk, tv):
     """(point, block) pairs for per-point cell ranges [lo, hi], sorted by block, then
-    by point.
+    by point; ``nb`` blocks, looked up in the hash table ``(tk, tv)`` of
+    :func:`_hash_table`.
 
     One lookup pass (the blocks found per point kept in a scratch table; points in
     parallel, each writing its own row), then a counting sort by block: no second
     search and no comparison sort.
     """
     n = lo.shape[0]
-    nb = packed.shape[0]
     width = 0
     for i in range(n):
         w = (hi[i, 0] - lo[i, 0] + 1) * (hi[i, 1] - lo[i, 1] + 1) * (hi[i, 2] - lo[i, 2] + 1)
@@ -87,7 +135,7 @@ def _cover_pairs(lo, hi, packed):
         for a in range(lo[i, 0], hi[i, 0] + 1):
             for b in range(lo[i, 1], hi[i, 1] + 1):
                 for c in range(lo[i, 2], hi[i, 2] + 1):
-                    j = _find(packed, a, b, c)
+                    j = _hfind(tk, tv, a, b, c)
                     if j >= 0:
                         found[i, m] = j
                         m += 1
@@ -140,6 +188,7 @@ class BlockGrid:
         self._packed = packed[order]
         if len(np.unique(self._packed)) != len(self._packed):
             raise OctreeError("Expected distinct block keys, found duplicates.")
+        self._table = None          # hash table of _packed, built by cover() when needed
         self.block_size = float(block_size)
         self.overlap = float(overlap)
 
@@ -196,7 +245,9 @@ class BlockGrid:
         hi = np.ascontiguousarray(np.floor((xyz + half) / h - 0.5).astype(np.int64))
         if len(xyz) == 0 or len(self._packed) == 0:
             return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-        return _cover_pairs(lo, hi, self._packed)  # by block, then by point
+        if self._table is None:
+            self._table = _hash_table(self._packed)
+        return _cover_pairs(lo, hi, len(self._packed), *self._table)  # by block, then point
 
 
 def new_space_fraction(old_points, new_points, voxel: float) -> float:
