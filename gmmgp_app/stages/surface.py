@@ -96,22 +96,11 @@ def surface_seeds(points: np.ndarray, cfg) -> np.ndarray:
     """
     cell = _extent_cell(cfg) / 2
     first = _distinct.cell_first(points, cell)        # hashed: no sort (session 8)
-    if first is not None:
-        return points[first]
-    keys = np.floor(points / cell).astype(np.int64)
-    if len(keys) == 0:
-        return points[:0]
-    lo = keys.min(0)
-    dims = keys.max(0) - lo + 1
-    if float(np.prod(dims.astype(np.float64))) < 2.0 ** 62:
-        # one int64 per cell, ordered as the rows: the same first indices as the row-wise
-        # unique (stable), about 30x faster on a 1.3M-point scan
-        keys -= lo
-        packed = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-        _, first = np.unique(packed, return_index=True)
-    else:
-        _, first = np.unique(keys, axis=0, return_index=True)
-    return points[np.sort(first)]
+    if first is None:
+        # cells spanning 2^62 or more (no int64 packing of them either): the rows' sort
+        keys = np.floor(points / cell).astype(np.int64)
+        first = np.sort(np.unique(keys, axis=0, return_index=True)[1])
+    return points[first]
 
 
 def _extent_cell(cfg) -> float:
