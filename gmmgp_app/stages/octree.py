@@ -68,7 +68,9 @@ def _lookup(packed, cells):
 def _hash_table(packed):
     """Open-addressing table of the sorted packed keys: ``(tk, tv)`` of a power-of-two
     size at least twice the number of keys, ``tk`` the key (-1 empty; packed keys are
-    non-negative), ``tv`` its index in ``packed`` (what :func:`_find` returns)."""
+    non-negative), ``tv`` its index in ``packed`` (what :func:`_find` returns). Written
+    here rather than shared with _distinct.py's or knn.py's tables: numba's on-disk
+    cache of this file's kernels would not see a change to another file's function."""
     size = 16
     while size < 2 * packed.shape[0]:
         size *= 2
