@@ -27,6 +27,7 @@ Mesh metrics, computed afterwards in this process (not timed):
     .venv/bin/python scripts/bench_peers.py --cases street10,kitti --repeats 3
     .venv/bin/python scripts/bench_peers.py --gmmgp-arg=--set --gmmgp-arg=gp.d_m=0.03
     .venv/bin/python scripts/bench_peers.py --repo /path/to/other/checkout   # map with its code
+    .venv/bin/python scripts/bench_peers.py --keep-runs     # keep every run's map and mesh
 
 The mapper runs the code of ``--repo`` (default: this script's own repository),
 whatever PYTHONPATH or the current folder hold; the JSON names it (``mapper``: the
@@ -303,6 +304,10 @@ def main(argv=None) -> int:
     ap.add_argument("--peers", default=str(ROOT / ".peers"), help="side environment folder")
     ap.add_argument("--out", default=str(ROOT / "out" / "bench"))
     ap.add_argument("--no-vdbfusion", action="store_true")
+    ap.add_argument("--keep-runs", action="store_true",
+                    help="keep each run's output folder (maps and meshes, 0.1-0.4 GB each) in "
+                         "OUT/peers_work; by default they are removed once measured (the "
+                         "generated input scans are kept and reused)")
     ap.add_argument("--repo", default=str(ROOT),
                     help="checkout whose gmmgp_app maps (default: this script's repository, "
                          f"{ROOT}); PYTHONPATH does not choose it")
@@ -394,6 +399,9 @@ def main(argv=None) -> int:
                 "peak_rss_mb": float(np.median([m["peak_rss_mb"] for m, _ in runs])),
                 "peak_rss_mb_runs": [m["peak_rss_mb"] for m, _ in runs],
                 "stages_s": m["stages"], "mesh": metrics}
+            if not args.keep_runs:
+                for _, d in runs:
+                    shutil.rmtree(d, ignore_errors=True)
         results["cases"][case] = res
     results["machine"]["load_avg_end"] = list(os.getloadavg())
     out.mkdir(parents=True, exist_ok=True)
