@@ -252,7 +252,8 @@ class SurfaceMap:
         if self.variance_coef is not None:
             return self.variance_coef
         return tuple(_farfield.variance_coef(self.config.far.blend,
-                                             self.config.far.project_points))
+                                             self.config.far.project_points,
+                                             self.config.far.vote))
 
     @property
     def signed(self) -> bool:
@@ -417,6 +418,9 @@ def load_map(directory) -> SurfaceMap:
     if isinstance(far_cfg, dict) and "blend" not in far_cfg:
         # saved before eq. blend_correlated: the map mixes its mean as it did (eq. blend)
         far_cfg["blend"] = "growth"
+    if isinstance(far_cfg, dict) and "vote" not in far_cfg:
+        # saved before eq. sphere_vote: its far field votes with tangent planes (eq. rimls)
+        far_cfg["vote"] = "plane"
     cfg = MappingConfig.from_dict(cfg_dict)
     with np.load(arr_path, allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files}
@@ -648,7 +652,7 @@ def far_field(data, cfg: MappingConfig):
                               max(g.value_noise, 1e-30) ** 0.5, k=f.neighbours,
                               growth=f.kernel_growth, spread_weight=f.spread_weight,
                               beta=f.growth, robust_scale=f.robust_scale,
-                              robust_iterations=f.robust_iterations)
+                              robust_iterations=f.robust_iterations, vote=f.vote)
 
 
 def _map_stage(ctx, scan, summary=None, prior=None, hgmm=None, gp=None, gp_points=None,
