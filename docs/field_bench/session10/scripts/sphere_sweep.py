@@ -62,18 +62,26 @@ def variance(d, coef, which):
     return v + d["kappa"] * np.exp(-(d["r"] / d["length_scale"]) ** 2) * d2
 
 
-def fit(cases, which, tau=0.68):
+def fit(cases, which, tau=0.68, per_scene=4000):
+    """Eq. variance_quantile_fit on the observed queries; at most ``per_scene`` of them
+    per scene (a fixed random draw) when more than two scenes are pooled (the exact LP
+    on every query of sixteen scenes takes ~25 min on this machine)."""
     X, Y = [], []
+    rng = np.random.default_rng(0)
     for d in cases:
         t = FV.terms(d)
         keep = (t["w_b"] == 0) & (t["w_e"] == 0)
+        if len(cases) > 2 and keep.sum() > per_scene:
+            idx = rng.choice(np.flatnonzero(keep), per_scene, replace=False)
+            keep = np.zeros_like(keep)
+            keep[idx] = True
         e2 = np.maximum((d["y"] - d["mean"]) ** 2, 1e-30)[keep]
         X.append(design(d, which)[keep])
         Y.append(np.log(e2 / d["h"] ** 2))
     return F.fit_variance_quantile(np.concatenate(X), np.concatenate(Y), tau)
 
 
-def score(d, coef, which, base):
+def score(d, coef, which, base=None):
     v0 = variance(d, coef, which)
     w_b = F.behind_width(d["mean"], d["t_min"])
     w_e = F.extent_width(d["mean"], d["r"], d["gap"])
@@ -90,22 +98,26 @@ def score(d, coef, which, base):
         c2.append(b)
         n1 += abs(round(a, 2) - 0.68) <= 0.05 + 1e-9
         n2 += abs(round(b, 2) - 0.95) <= 0.03 + 1e-9
-        nl += float(ll[s].mean()) > FV.best_baseline_ll(base, i)
         r = float(np.sqrt(np.mean((d["y"][s] - d["mean"][s]) ** 2)))
         rm.append(r)
-        nr += r < base["plane"]["rmse_sdf"][i]
+        if base is not None:
+            nl += float(ll[s].mean()) > FV.best_baseline_ll(base, i)
+            nr += r < base["plane"]["rmse_sdf"][i]
     return dict(c1=c1, c2=c2, n=(n1, n2, nl, nr), rmse=rm)
 
 
 def main():
     fit_on = (sys.argv[1] if len(sys.argv) > 1 else "street,sphere").split(",")
+    fit_on = [x for n in fit_on for x in (FV.train_set("16") if n == "train16" else
+                                         FV.train_set("8") if n == "train8" else [n])]
+    train = FV.train_set("16") if "--train" in sys.argv else []
     cands = (sys.argv[2] if len(sys.argv) > 2 else "plane:base5,sphere:base5,sphere:curv,"
              "sphere:delta,sphere:shrink,sphere:curv+delta").split(",")
     caches = {}
     for c in cands:
         tag, feats = c.split(":")
         which = [] if feats == "base5" else feats.split("+")
-        for n in SCENES:
+        for n in SCENES + fit_on + train:
             if (n, tag) not in caches:
                 caches[n, tag] = load(n, tag)
         if tag == "plane" and feats == "base5" and fit_on == ["street", "sphere"]:
@@ -124,7 +136,16 @@ def main():
                         + " | rmse mm " + " ".join(f"{1000 * x:.1f}" for x in r["rmse"])
                         + " (plane " + " ".join(f"{1000 * x:.1f}" for x in
                                                 BASE[n]["plane"]["rmse_sdf"]) + ")")
-        print(f"{c} fit on {'+'.join(fit_on)}: coef {np.round(coef, 4).tolist()}")
+        tr = np.zeros(2, int)
+        for n in train:
+            r = score(caches[n, tag], coef, which)
+            tr += r["n"][:2]
+            rows.append(f"  {n}: {r['n'][:2]} 1s " + " ".join(f"{x:.2f}" for x in r["c1"])
+                        + " | 2s " + " ".join(f"{x:.2f}" for x in r["c2"]))
+        label = "+".join(fit_on) if len(fit_on) < 4 else f"{len(fit_on)} scenes"
+        print(f"{c} fit on {label}: coef {np.round(coef, 4).tolist()}")
+        if train:
+            print(f"  training sixteen 1s/2s {tr.tolist()} of {7 * len(train)}")
         print(f"  bins 1s/2s/LL/RMSE all {tot.tolist()} held-out four {held.tolist()}")
         print("\n".join(rows), flush=True)
 
