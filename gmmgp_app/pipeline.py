@@ -140,8 +140,8 @@ class SurfaceMap:
         one loads with z.
     variance_coef : tuple of 5 floats or None
         Eq. calibrated_var's coefficients the map predicts with. None (a map just
-        built): the library's fit for the map's ``far.blend`` and
-        ``far.project_points`` (``stages.farfield.variance_coef``), resolved at each
+        built): the library's fit for the map's ``far.blend``,
+        ``far.project_points`` and ``far.vote`` (``stages.farfield.variance_coef``), resolved at each
         prediction. Saved with the map (map.json), so a later refit of the library's
         coefficients does not change a saved map's variance; a map saved before they
         were saved loads with the coefficients of that time
@@ -248,7 +248,7 @@ class SurfaceMap:
     def resolved_variance_coef(self) -> tuple:
         """Eq. calibrated_var's coefficients the map predicts with: its own
         (:attr:`variance_coef`, e.g. loaded with it) or the library's fit for its
-        ``far.blend`` and ``far.project_points``."""
+        ``far.blend``, ``far.project_points`` and ``far.vote``."""
         if self.variance_coef is not None:
             return self.variance_coef
         return tuple(_farfield.variance_coef(self.config.far.blend,

@@ -30,6 +30,30 @@ current estimate, a few passes from ``f^0`` = eq. imls (eq. rimls):
 with ``c_r`` = ``FarFieldConfig.robust_scale`` (1: residuals are measured against the
 kernel width, so near the data, where residuals are noise, nothing changes).
 
+**The sphere vote** (``far.vote = "sphere"``, opt-in; docs/field.md, "Session 10"). A
+tangent plane is biased by the curvature 0.1-2 m from a curved surface. With the final
+robust weights ``u_j`` of eq. rimls the neighbours fit an algebraic sphere
+(APSS, Guennebaud & Gross 2007) in coordinates centred on the query,
+``s(y) = u0 + u123 . y + u4 |y|^2``, its gradient to the normals and its value to the
+positions (the normal constraint dominant; ``~`` the u-weighted mean, ``p`` the points
+relative to the query):
+
+    u4 = (1/2) sum_j u~_j n_j . (p_j - p~) / sum_j u~_j |p_j - p~|^2,
+    u123 = n~ - 2 u4 p~,   u0 = -u123 . p~ - u4 |p|^2~                  (eq. sphere_vote)
+
+    var(u4) = s_n^2 sum_j u~_j^2 |p_j - p~|^2 / (4 (sum_j u~_j |p_j - p~|^2)^2)
+
+(``s_n^2`` the residual variance per normal component, corrected for the four fitted
+numbers), ``u4`` shrunk to ``u4 u4^2 / (u4^2 + var(u4))`` (a curvature the normals' noise
+explains is dropped), and the mean is the signed distance of the query from that sphere,
+``f = 2 u0 / (g + sqrt(g^2 - 4 u4 u0))``, ``g = |u123|`` (stable as u4 -> 0: then the
+plane through the weighted centroid with the mean normal). Fewer than four neighbours,
+neighbours at one point, an imaginary sphere or a query on the concave side beyond half
+the radius keep eq. rimls. The variance's ingredients stay the plane vote's; per query
+the kernel also reports the shrink factor, the distance's variance from var(u4) and the
+spread of the neighbours' plane distances about the ones the sphere predicts (eq.
+sphere_spread), which a variance model may use (none of them helped: "Session 10").
+
 Its own variance (eq. far_var) adds the sensor noise averaged over the effective
 number of neighbours, the weighted spread of the neighbours' plane distances
 (planes that disagree: edges, corners, two surfaces) and a term growing with the

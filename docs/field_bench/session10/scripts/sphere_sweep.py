@@ -44,6 +44,12 @@ def extra(d, which):
             cols.append(np.log((d["delta"] ** 2 + s2) / h2))
         elif w == "shrink":
             cols.append(d["shrink"])
+        elif w == "lnoise":  # session 8: the spread at the nearest hit point
+            cols.append(np.log((d["spread2_p"] + s2) / h2))
+        elif w == "neff":
+            cols.append(np.log(d["n_eff"]))
+        elif w == "rcurv":  # the sphere-vote distance's variance relative to the spread
+            cols.append(np.log((d["v_curv"] + s2) / (d["spread2"] + s2)))
         elif w == "kdelta":
             cols.append(np.log((d["shrink"] * d["delta"] ** 2 + s2) / h2))
     return np.stack(cols, axis=1) if cols else np.zeros((len(d["y"]), 0))
