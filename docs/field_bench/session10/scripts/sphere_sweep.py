@@ -50,6 +50,12 @@ def extra(d, which):
             cols.append(np.log(d["n_eff"]))
         elif w == "rcurv":  # the sphere-vote distance's variance relative to the spread
             cols.append(np.log((d["v_curv"] + s2) / (d["spread2"] + s2)))
+        elif w == "curv8":  # session 8's curv: r^2 x the normals' dispersion in the kernel
+            cols.append(np.log((d["r"] ** 2 * d["disp"] + h2) / h2))
+        elif w == "dispp":  # the normals' dispersion at the nearest hit point
+            cols.append(np.log(np.maximum(d["disp_p"], 1e-12)))
+        elif w == "ndisp":  # the normals' noise at the data scale times the distance
+            cols.append(np.log((d["r"] ** 2 * d["disp_p"] + s2) / h2))
         elif w == "kdelta":
             cols.append(np.log((d["shrink"] * d["delta"] ** 2 + s2) / h2))
     return np.stack(cols, axis=1) if cols else np.zeros((len(d["y"]), 0))
