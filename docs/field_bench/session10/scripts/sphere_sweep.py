@@ -10,7 +10,15 @@ regression (eq. variance_quantile_fit) on the observed queries of the FIT scenes
 scored with the map's predictive (eq. unseen_mixture) as bench_bins.py counts.
 
     PYTHONPATH=$PWD .venv/bin/python docs/field_bench/session10/scripts/sphere_sweep.py \
-        [FIT=street,sphere] [CANDIDATES=base5,curv,delta,shrink,curv+delta]
+        [FIT=street,sphere] [CANDIDATES] [--train]
+
+FIT: comma-separated scenes (``train16`` / ``train8``: fit_variance.py's training sets;
+more than two scenes: at most 4000 observed queries each). CANDIDATES: comma-separated
+``VOTE:FEATURES`` (VOTE plane or sphere; FEATURES ``base5`` or extra features joined by
+``+``: curv, delta, shrink, kdelta, ssph (the spread about the sphere in place of the
+plane spread), lnoise, neff, rcurv, curv8, dispp, ndisp; see :func:`extra`). ``plane:base5``
+fitted on street,sphere is VARIANCE_COEF itself. ``--train``: also score the training
+sixteen (1 / 2 sigma only).
 """
 import json
 import sys
