@@ -71,7 +71,7 @@ def test_synth_then_run_writes_map_meshes_and_summary(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert set(summary["seconds"]) >= {"read", "prepare", "hgmm", "gmr", "gp", "surface"}
     assert summary["counts"]["hgmm"]["leaves"] > 0
-    for name in ("mesh_gmmgp.ply", "config.toml", "map/map.json", "map/arrays.npz"):
+    for name in ("mesh_gmmgp.ply", "config.toml", "map/map.json", "map/arrays/gp_points.npy"):
         assert (out / name).is_file(), name
     assert not (out / "mesh_hgmm.ply").exists()  # the prior's mesh is opt-in (--prior-mesh)
     from gmmgp_app.stages.surface import read_mesh_ply
