@@ -81,6 +81,55 @@ def _run_command(args) -> int:
         return 1
 
 
+def console_main() -> None:
+    """The ``gmmgp`` console script (``[project.scripts]``): :func:`main` on ``sys.argv``,
+    then the process ends without the interpreter's teardown.
+
+    Tearing down a process that imported numba, scipy and NumPy (module by module,
+    every object freed) costs ~0.3-0.5 s after a run's work is done (docs/speed.md,
+    session 10). So, once :func:`main` returned its code: the threads Python would
+    wait for are joined and the ``atexit`` handlers run (logging, temporary folders,
+    Dask clients), ``sys.stdout`` and ``sys.stderr`` are flushed, and ``os._exit(code)``
+    ends the process: the same exit code and output, no teardown. Every file the
+    commands write is complete and closed before they return (atomic renames). An
+    exception that escapes :func:`main` (``--debug``) takes Python's normal path.
+    """
+    try:
+        code = main()
+    except SystemExit as exc:         # argparse: --help (0), bad arguments (2)
+        code = _exit_code(exc.code)
+    _exit_now(code)
+
+
+def _exit_code(code) -> int:
+    """What Python's own exit does with ``SystemExit(code)``: None is 0, an int is
+    itself, anything else is printed to stderr and exits 1."""
+    if code is None:
+        return EXIT_OK
+    if isinstance(code, int):
+        return code
+    print(code, file=sys.stderr)
+    return 1
+
+
+def _exit_now(code: int) -> None:
+    import atexit
+    import threading
+
+    shutdown = getattr(threading, "_shutdown", None)   # what Python's exit does first:
+    if shutdown is not None:                           # join non-daemon threads, stop
+        shutdown()                                     # idle executors' workers
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            if stream is not None:
+                stream.flush()
+        except (OSError, ValueError):     # a closed pipe or a full disk, as Python's exit
+            if stream is sys.stdout and code == EXIT_OK:
+                code = 120                # Python exits 120 when stdout cannot be flushed
+    os._exit(code)
+
+
 def _one_line(exc: BaseException) -> str:
     if isinstance(exc, OSError) and exc.strerror and exc.filename:
         msg = f"{exc.strerror}: '{exc.filename}'"
@@ -92,4 +141,4 @@ def _one_line(exc: BaseException) -> str:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    console_main()

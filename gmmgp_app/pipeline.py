@@ -29,8 +29,8 @@ from typing import TYPE_CHECKING, Any, Callable, Optional
 
 import numpy as np
 
-from ._atomic import atomic_dir
 from ._json import jsonable
+from .map_io import MAP_FORMAT_VERSION, MapFormatError, read_map_folder, write_map_folder  # noqa: F401
 from .config import METHODS, MappingConfig, is_auto
 from .stages import gmr as _gmr
 from .stages import farfield as _farfield
@@ -51,14 +51,9 @@ __all__ = ["build_map", "SurfaceMap", "load_map", "update_map", "run_stages", "S
            "STAGES", "RECIPES", "RunContext", "NullObserver", "FanoutObserver", "METHODS",
            "MapFormatError", "PipelineError", "StagePayload", "auto_reasons", "format_auto"]
 
-MAP_FORMAT_VERSION = 1
 #: The GPIS baseline's constant prior distance and standard deviation, in virtual
 #: spacings s: the paper's setup (distance 0.2 m, variance 0.2^2) at its s = 0.25 m.
 GPIS_PRIOR_SPACINGS = 0.8
-
-
-class MapFormatError(ValueError):
-    """A saved map folder is missing, incomplete or from an incompatible version."""
 
 
 class PipelineError(ValueError):
@@ -322,7 +317,8 @@ class SurfaceMap:
 
     # ------------------------------------------------------------------ save/load
     def to_arrays(self) -> dict:
-        """Every array of the map by name (what :meth:`save` writes to ``arrays.npz``)."""
+        """Every array of the map by name (what :meth:`save` writes, one ``.npy`` each
+        under ``arrays/``: :mod:`gmmgp_app.map_io`)."""
         arrays = {"offset": self.offset, "gp_points": self.gp_points,
                   "gp_normals": self.gp_normals, "seed_points": self.seed_points}
         if self.hgmm is not None:
@@ -334,7 +330,8 @@ class SurfaceMap:
         return arrays
 
     def save(self, directory) -> Path:
-        """Write the map to ``directory`` (npz + json, no pickle), atomically.
+        """Write the map to ``directory`` (``map.json`` + one ``.npy`` per array, no
+        pickle: :mod:`gmmgp_app.map_io`'s format 2), atomically.
 
         The folder is written under a temporary name beside the target and renamed
         when complete, so an interrupted save never leaves a half-written map.
@@ -357,9 +354,9 @@ class SurfaceMap:
             pool.shutdown(wait=False)    # the thread ends with its one task
 
     def _saved_contents(self) -> tuple:
-        """``(arrays, map.json text)`` of :meth:`save`."""
+        """``(arrays, map.json fields)`` of :meth:`save` (the format version and the
+        array names are added by :func:`~gmmgp_app.map_io.write_map_folder`)."""
         meta = {
-            "format_version": MAP_FORMAT_VERSION,
             "method": self.method,
             "prior": type(self.prior).__name__,
             "prior_params": getattr(self.prior, "params", lambda: {})(),
@@ -371,17 +368,15 @@ class SurfaceMap:
             "up": [float(v) for v in self.up],
             "summary": jsonable(self.summary),
         }
-        return self.to_arrays(), json.dumps(meta, indent=2)
+        # the summary as JSON now: a later change to self.summary is not saved
+        return self.to_arrays(), json.loads(json.dumps(meta))
 
 
-def _write_map(directory: Path, arrays: dict, meta_text: str) -> Path:
-    """Write a map's folder (:meth:`SurfaceMap.save`), atomically."""
-    with atomic_dir(directory) as tmp:
-        # uncompressed: the arrays are mostly float64 factors that zlib shrinks by a few
-        # per cent, at 16 s for the 1.3M-point street (docs/speed.md)
-        np.savez(tmp / "arrays.npz", **arrays)
-        (tmp / "map.json").write_text(meta_text)
-    return directory
+def _write_map(directory: Path, arrays: dict, meta: dict) -> Path:
+    """Write a map's folder (:meth:`SurfaceMap.save`), atomically. Uncompressed: the
+    arrays are mostly float64 factors that zlib shrinks by a few per cent, at 16 s for
+    the 1.3M-point street (docs/speed.md)."""
+    return write_map_folder(directory, arrays, meta)
 
 
 def load_map(directory) -> SurfaceMap:
@@ -389,24 +384,13 @@ def load_map(directory) -> SurfaceMap:
     import tomllib
 
     directory = Path(directory)
-    meta_path, arr_path = directory / "map.json", directory / "arrays.npz"
     if (directory / "tiled.json").is_file():
         raise MapFormatError(
             f"'{directory}' holds a tiled map (tiled.json), not a single map; open it with "
             "gmmgp_app.tiling.load_tiled_map ('gmmgp eval' and 'gmmgp view' read tiled "
             "runs)."
         )
-    if not meta_path.is_file() or not arr_path.is_file():
-        raise MapFormatError(
-            f"'{directory}' is not a saved map (expected map.json and arrays.npz); "
-            "create one with 'gmmgp run SCAN --out DIR'."
-        )
-    meta = json.loads(meta_path.read_text())
-    if meta.get("format_version") != MAP_FORMAT_VERSION:
-        raise MapFormatError(
-            f"Map format version {meta.get('format_version')} in '{directory}' is not "
-            f"supported (expected {MAP_FORMAT_VERSION}); rebuild the map with this version."
-        )
+    meta, arrays = read_map_folder(directory)    # format 2 (.npy files) or 1 (arrays.npz)
     cfg_dict = tomllib.loads(meta["config_toml"])
     far_cfg = cfg_dict.setdefault("far", {})
     if isinstance(far_cfg, dict) and "unseen_predictive" not in far_cfg:
@@ -422,8 +406,6 @@ def load_map(directory) -> SurfaceMap:
         # saved before eq. sphere_vote: its far field votes with tangent planes (eq. rimls)
         far_cfg["vote"] = "plane"
     cfg = MappingConfig.from_dict(cfg_dict)
-    with np.load(arr_path, allow_pickle=False) as z:
-        arrays = {k: z[k] for k in z.files}
     hgmm = _hgmm_from_arrays(arrays) if "hgmm/leaves/weights" in arrays else None
     gp_arrays = {k[3:]: v for k, v in arrays.items() if k.startswith("gp/")}
     if meta["method"] == "loggpis":

@@ -5,8 +5,10 @@ Usage:
     python scripts/hash_demo.py /tmp/demo_a            # one line per array / mesh file
     python scripts/hash_demo.py /tmp/demo_a /tmp/demo_b  # compare: exit 1 on any difference
 
-Each array of ``map/arrays.npz`` is hashed over its dtype, shape and bytes (so a reshaped
-or re-typed array with equal bytes still differs); each ``mesh_*.ply`` over its file bytes.
+Each array of the saved map (either format: ``map/arrays/*.npy`` or a format-1
+``map/arrays.npz``, labelled ``array:NAME`` in both so runs of either compare) is hashed
+over its dtype, shape and bytes (so a reshaped or re-typed array with equal bytes still
+differs); each ``mesh_*.ply`` over its file bytes.
 """
 from __future__ import annotations
 
@@ -17,18 +19,21 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from gmmgp_app.map_io import read_map_folder  # noqa: E402
+
 
 def hashes(out_dir: str | Path) -> dict[str, str]:
-    """{name: sha256 hex} for every array in out_dir/map/arrays.npz and every out_dir/mesh_*.ply."""
+    """{name: sha256 hex} for every array of out_dir/map and every out_dir/mesh_*.ply."""
     out = Path(out_dir)
     result: dict[str, str] = {}
-    with np.load(out / "map" / "arrays.npz", allow_pickle=False) as z:
-        for name in sorted(z.files):
-            a = np.ascontiguousarray(z[name])
-            h = hashlib.sha256()
-            h.update(f"{a.dtype.str}{a.shape}".encode())
-            h.update(a.tobytes())
-            result[f"arrays.npz:{name}"] = h.hexdigest()
+    arrays = read_map_folder(out / "map")[1]
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h = hashlib.sha256()
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+        result[f"array:{name}"] = h.hexdigest()
     for ply in sorted(out.glob("mesh_*.ply")):
         result[ply.name] = hashlib.sha256(ply.read_bytes()).hexdigest()
     return result

@@ -71,7 +71,7 @@ def test_synth_then_run_writes_map_meshes_and_summary(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert set(summary["seconds"]) >= {"read", "prepare", "hgmm", "gmr", "gp", "surface"}
     assert summary["counts"]["hgmm"]["leaves"] > 0
-    for name in ("mesh_gmmgp.ply", "config.toml", "map/map.json", "map/arrays.npz"):
+    for name in ("mesh_gmmgp.ply", "config.toml", "map/map.json", "map/arrays/gp_points.npy"):
         assert (out / name).is_file(), name
     assert not (out / "mesh_hgmm.ply").exists()  # the prior's mesh is opt-in (--prior-mesh)
     from gmmgp_app.stages.surface import read_mesh_ply
@@ -167,3 +167,49 @@ def test_run_reports_the_meshing_error_when_the_background_save_fails_too(tmp_pa
     assert code == 2, err
     assert "the meshing failed" in err and "the save failed" not in err, err
     assert not (out / "map").exists()
+
+
+def _console(argv, prelude="", cwd=None):
+    """The ``gmmgp`` console script's function (``console_main``, which ends the process
+    with os._exit) called directly, in a child process."""
+    code = (f"import sys\n{prelude}\nfrom gmmgp_app.cli import console_main\n"
+            f"sys.argv = ['gmmgp', *{[str(a) for a in argv]!r}]\nconsole_main()\n")
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          cwd=cwd, timeout=600)
+
+
+def test_console_script_is_console_main():
+    import tomllib
+
+    meta = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    assert meta["project"]["scripts"]["gmmgp"] == "gmmgp_app.cli:console_main"
+
+
+def test_console_main_keeps_exit_codes_and_output(tmp_path):
+    r = _console(["info", DEMO])
+    assert r.returncode == 0 and "origins   yes" in r.stdout, r.stderr
+    r = _console(["info", tmp_path / "missing.ply"])
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "does not exist" in r.stderr
+    r = _console(["run", "--help"])                   # argparse's SystemExit(0)
+    assert r.returncode == 0 and "examples:" in r.stdout
+    r = _console(["run", "--no-such-option"])         # argparse's SystemExit(2)
+    assert r.returncode == 2 and "--no-such-option" in r.stderr
+    assert _console([]).returncode == 2                # no command: help, exit 2
+    r = _run("info", tmp_path / "missing.ply")         # python -m gmmgp_app.cli: the same
+    assert r.returncode == 2 and "does not exist" in r.stderr
+
+
+def test_console_main_runs_exit_handlers_and_waits_for_threads(tmp_path):
+    """What Python's own exit would do before its teardown still happens: non-daemon
+    threads finish, atexit handlers run, buffered output is written."""
+    mark = tmp_path / "thread_done"
+    prelude = ("import atexit, threading, time\n"
+               "atexit.register(lambda: print('atexit ran', flush=False))\n"
+               f"threading.Thread(target=lambda: (time.sleep(0.5), "
+               f"open({str(mark)!r}, 'w').close())).start()\n"
+               "sys.stdout.write('buffered ' * 20000)\n")
+    r = _console(["info", DEMO], prelude)
+    assert r.returncode == 0, r.stderr
+    assert mark.is_file()
+    assert r.stdout.startswith("buffered " * 20000) and r.stdout.rstrip().endswith("atexit ran")
+    assert "origins   yes" in r.stdout

@@ -978,17 +978,17 @@ def test_interrupted_run_leaves_no_half_written_outputs(sig, tmp_path, medium):
 
 
 def test_interrupt_while_saving_the_map_leaves_no_map(tmp_path, capsys, monkeypatch, box):
-    """Ctrl-C inside the map save (simulated in the npz writer): exit 130, no map/ and no
-    temporary folder."""
+    """Ctrl-C inside the map save (simulated in the array writer, after its first array
+    file): exit 130, no map/ and no temporary folder."""
     calls = {"n": 0}
-    real = np.savez
+    real = np.save
 
     def interrupted(file, *a, **k):
         calls["n"] += 1
         real(file, *a, **k)
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(np, "savez", interrupted)
+    monkeypatch.setattr(np, "save", interrupted)
     out = tmp_path / "out"
     rc, _, err = _cli(capsys, "run", box["npz"], "--out", out, "-q", "--stage", "prepare")
     assert calls["n"] == 1
@@ -1044,7 +1044,7 @@ def test_full_disk_message_names_the_fix(tmp_path, capsys, monkeypatch, box):
     def no_space(*a, **k):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(np, "savez", no_space)
+    monkeypatch.setattr(np, "save", no_space)
     out = tmp_path / "out"
     rc, _, err = _cli(capsys, "run", box["npz"], "--out", out, "-q", "--stage", "prepare")
     assert_one_line_error(rc, err, "run",

@@ -85,20 +85,20 @@ class TileStore:
         self._cache.pop(key, None)
 
     def put_saved(self, key, files: dict) -> None:
-        """Store tile ``key`` from the files of its saved map folder (``{name: bytes}``,
-        :func:`gmmgp_app.tiling.tasks.map_to_bytes`): written as they are, atomically,
-        instead of loaded and saved again (the same files: a map's save of its load is
-        byte for byte its save). A read-only store keeps the loaded map in memory."""
+        """Store tile ``key`` from the files of its saved map folder (``{relative path:
+        bytes}``, :func:`gmmgp_app.tiling.tasks.map_to_bytes`): written as they are,
+        atomically, instead of loaded and saved again (the same files: a map's save of its
+        load is byte for byte its save). A read-only store keeps the loaded map in memory."""
         if self.read_only:
             from .tasks import map_from_bytes
 
             self[key] = map_from_bytes(files)
             return
         from .._atomic import atomic_dir
+        from ..map_io import write_files
 
         with atomic_dir(self._path(key)) as tmp:
-            for name, data in files.items():
-                (tmp / name).write_bytes(data)
+            write_files(tmp, files)
         self._stored(key)
 
     def items(self):

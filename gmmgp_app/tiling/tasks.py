@@ -88,25 +88,29 @@ def _numba_threads() -> int:
 
 
 def map_to_bytes(smap) -> dict:
-    """A SurfaceMap as ``{file name: bytes}`` of its saved folder (no pickle of internals:
-    the GMR field holds a lock, and the saved format is what crosses machines safely)."""
+    """A SurfaceMap as ``{relative path: bytes}`` of its saved folder (``map.json``,
+    ``arrays/gp/L.npy``, ...: :func:`gmmgp_app.map_io.folder_files`; no pickle of
+    internals: the GMR field holds a lock, and the saved format is what crosses machines
+    safely)."""
     import tempfile
     from pathlib import Path
 
+    from ..map_io import folder_files
+
     with tempfile.TemporaryDirectory() as d:
         smap.save(Path(d) / "m")
-        return {p.name: p.read_bytes() for p in (Path(d) / "m").iterdir()}
+        return folder_files(Path(d) / "m")
 
 
 def map_from_bytes(files: dict):
     import tempfile
     from pathlib import Path
 
+    from ..map_io import write_files
     from ..pipeline import load_map
 
     with tempfile.TemporaryDirectory() as d:
-        for name, data in files.items():
-            (Path(d) / name).write_bytes(data)
+        write_files(Path(d), files)
         return load_map(d)
 
 
