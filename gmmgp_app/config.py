@@ -330,6 +330,20 @@ class FarFieldConfig:
         "sigma 4 -> 6, 2 sigma 8 -> 11; but the held-out four lose 4 of 70 bins (bunny 1 "
         "sigma 5 -> 2, courtyard 2 sigma 6 -> 4, street2 0.1-0.2 m above the plane): not "
         "the default")
+    vote: str = _f(
+        "plane", "How each far-field neighbourhood votes for the distance: 'plane' (eq. "
+        "rimls in stages/farfield.py: the robust average of the neighbours' tangent-plane "
+        "distances); 'sphere' (eq. sphere_vote): the distance from the algebraic sphere "
+        "fitted to the same neighbours with their robust weights (APSS, Guennebaud & "
+        "Gross 2007), its curvature shrunk by its significance u4^2 / (u4^2 + var u4); "
+        "degenerate fits and queries beyond the sphere's reach keep the plane. Maps saved "
+        "before this field load with 'plane'.", choices=("plane", "sphere"),
+        source="measured (scripts/bench_accuracy.py, docs/field.md 'Session 10'): the "
+        "RMSE is below the tangent plane in 41 of the bench's 42 bins (plane vote 38; "
+        "e.g. sphere 1-2 m 22.2 -> 8.7 mm, street 1-2 m 188 -> 156 mm), but with eq. "
+        "calibrated_var refitted (VARIANCE_COEF_SPHERE) the coverage bins in target fall "
+        "from 26 / 32 to 18 / 28 (held-out four 22 / 24 -> 13 / 20; the bunny over-covered): "
+        "not the default")
     spread_weight: float = _f(
         1.0, "Weight a of the neighbours' plane disagreement in the far-field variance.",
         0.0, 100.0, symbol="a", source="chosen on the synthetic street")

@@ -135,8 +135,8 @@ class SurfaceMap:
         one loads with z.
     variance_coef : tuple of 5 floats or None
         Eq. calibrated_var's coefficients the map predicts with. None (a map just
-        built): the library's fit for the map's ``far.blend`` and
-        ``far.project_points`` (``stages.farfield.variance_coef``), resolved at each
+        built): the library's fit for the map's ``far.blend``,
+        ``far.project_points`` and ``far.vote`` (``stages.farfield.variance_coef``), resolved at each
         prediction. Saved with the map (map.json), so a later refit of the library's
         coefficients does not change a saved map's variance; a map saved before they
         were saved loads with the coefficients of that time
@@ -243,11 +243,12 @@ class SurfaceMap:
     def resolved_variance_coef(self) -> tuple:
         """Eq. calibrated_var's coefficients the map predicts with: its own
         (:attr:`variance_coef`, e.g. loaded with it) or the library's fit for its
-        ``far.blend`` and ``far.project_points``."""
+        ``far.blend``, ``far.project_points`` and ``far.vote``."""
         if self.variance_coef is not None:
             return self.variance_coef
         return tuple(_farfield.variance_coef(self.config.far.blend,
-                                             self.config.far.project_points))
+                                             self.config.far.project_points,
+                                             self.config.far.vote))
 
     @property
     def signed(self) -> bool:
@@ -401,6 +402,9 @@ def load_map(directory) -> SurfaceMap:
     if isinstance(far_cfg, dict) and "blend" not in far_cfg:
         # saved before eq. blend_correlated: the map mixes its mean as it did (eq. blend)
         far_cfg["blend"] = "growth"
+    if isinstance(far_cfg, dict) and "vote" not in far_cfg:
+        # saved before eq. sphere_vote: its far field votes with tangent planes (eq. rimls)
+        far_cfg["vote"] = "plane"
     cfg = MappingConfig.from_dict(cfg_dict)
     hgmm = _hgmm_from_arrays(arrays) if "hgmm/leaves/weights" in arrays else None
     gp_arrays = {k[3:]: v for k, v in arrays.items() if k.startswith("gp/")}
@@ -630,7 +634,7 @@ def far_field(data, cfg: MappingConfig):
                               max(g.value_noise, 1e-30) ** 0.5, k=f.neighbours,
                               growth=f.kernel_growth, spread_weight=f.spread_weight,
                               beta=f.growth, robust_scale=f.robust_scale,
-                              robust_iterations=f.robust_iterations)
+                              robust_iterations=f.robust_iterations, vote=f.vote)
 
 
 def _map_stage(ctx, scan, summary=None, prior=None, hgmm=None, gp=None, gp_points=None,

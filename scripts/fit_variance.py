@@ -128,8 +128,12 @@ def scene_case(name, seed, cache: Path, overrides=()):
     the queries (``seed`` is ignored)."""
     tag = "".join(f"_{o.replace('=', '-')}" for o in overrides)
     path = cache / f"{name}_seed{seed}{tag}.npz"
-    if path.exists() and "spread2_p" in np.load(path).files:
+    if path.exists() and "spread2_p" in np.load(path).files and (
+            "far.vote=sphere" not in overrides or "spread2_sphere" in np.load(path).files):
         d = dict(np.load(path))
+        for k in ("delta", "shrink", "v_curv"):  # cached before eq. sphere_vote: plane vote
+            d.setdefault(k, np.zeros(len(d["y"])))
+        d.setdefault("spread2_sphere", d["spread2"])
         return {k: (v.item() if v.ndim == 0 else v) for k, v in d.items()}
     if name in B.SCENES:
         spec = B.SCENES[name]
@@ -150,6 +154,8 @@ def scene_case(name, seed, cache: Path, overrides=()):
              scale=spec["scale"],
              mean=mean, var=var, m_gp=m_gp, v_gp=v_gp, m_far=c["mean"], v_far=c["var"],
              r=c["r"], gp_growth=f.gp_growth,
+             delta=c["delta"], shrink=c["shrink"], v_curv=c["v_curv"],  # eq. sphere_vote
+             spread2_sphere=c["spread2_sphere"],
              spread2=c["spread2"], h=smap.far.rho0, noise=smap.far.noise,
              disp=1.0 - np.linalg.norm(c["grad"], axis=1),  # the normals' dispersion
              length_scale=concrete(smap.config.gp).length_scale,

@@ -30,6 +30,30 @@ current estimate, a few passes from ``f^0`` = eq. imls (eq. rimls):
 with ``c_r`` = ``FarFieldConfig.robust_scale`` (1: residuals are measured against the
 kernel width, so near the data, where residuals are noise, nothing changes).
 
+**The sphere vote** (``far.vote = "sphere"``, opt-in; docs/field.md, "Session 10"). A
+tangent plane is biased by the curvature 0.1-2 m from a curved surface. With the final
+robust weights ``u_j`` of eq. rimls the neighbours fit an algebraic sphere
+(APSS, Guennebaud & Gross 2007) in coordinates centred on the query,
+``s(y) = u0 + u123 . y + u4 |y|^2``, its gradient to the normals and its value to the
+positions (the normal constraint dominant; ``~`` the u-weighted mean, ``p`` the points
+relative to the query):
+
+    u4 = (1/2) sum_j u~_j n_j . (p_j - p~) / sum_j u~_j |p_j - p~|^2,
+    u123 = n~ - 2 u4 p~,   u0 = -u123 . p~ - u4 |p|^2~                  (eq. sphere_vote)
+
+    var(u4) = s_n^2 sum_j u~_j^2 |p_j - p~|^2 / (4 (sum_j u~_j |p_j - p~|^2)^2)
+
+(``s_n^2`` the residual variance per normal component, corrected for the four fitted
+numbers), ``u4`` shrunk to ``u4 u4^2 / (u4^2 + var(u4))`` (a curvature the normals' noise
+explains is dropped), and the mean is the signed distance of the query from that sphere,
+``f = 2 u0 / (g + sqrt(g^2 - 4 u4 u0))``, ``g = |u123|`` (stable as u4 -> 0: then the
+plane through the weighted centroid with the mean normal). Fewer than four neighbours,
+neighbours at one point, an imaginary sphere or a query on the concave side beyond half
+the radius keep eq. rimls. The variance's ingredients stay the plane vote's; per query
+the kernel also reports the shrink factor, the distance's variance from var(u4) and the
+spread of the neighbours' plane distances about the ones the sphere predicts (eq.
+sphere_spread), which a variance model may use (none of them helped: "Session 10").
+
 Its own variance (eq. far_var) adds the sensor noise averaged over the effective
 number of neighbours, the weighted spread of the neighbours' plane distances
 (planes that disagree: edges, corners, two surfaces) and a term growing with the
@@ -153,11 +177,25 @@ VARIANCE_COEF_PROJECTED = (-0.5797, -0.1890, 1.0619, 0.1583, 0.0675)
 VARIANCE_COEF_CORRELATED = (0.8599, -0.9298, 0.9000, 0.2607, 0.5194)
 
 
-def variance_coef(blend: str = "growth", projected: bool = False):
+#: (t0, ..., t4) of eq. calibrated_var for the sphere vote (``far.vote = "sphere"``, eq.
+#: sphere_vote; growth blend, raw points): the same fit as VARIANCE_COEF with that mean
+#: (``python scripts/fit_variance.py --fit --set far.vote=sphere``). Curvature-aware
+#: extra features (the shrink factor, the curvature's variance, the sphere-plane
+#: difference, the spread about the sphere) and fits on the training scenes did not
+#: calibrate the held-out scenes better (docs/field.md, "Session 10").
+VARIANCE_COEF_SPHERE = (-0.7772, -0.3368, 0.9240, 0.1470, 0.1894)
+
+
+def variance_coef(blend: str = "growth", projected: bool = False, vote: str = "plane"):
     """The coefficients of eq. calibrated_var fitted with the map's mean: ``blend``
-    (``far.blend``) and whether the far field's points were projected (eq.
-    point_projection, ``far.project_points``). The correlated blend was fitted with raw
-    points only; with projected points it uses the same coefficients (not refitted)."""
+    (``far.blend``), whether the far field's points were projected (eq.
+    point_projection, ``far.project_points``) and how its neighbourhoods vote
+    (``far.vote``; the sphere vote's fit is :data:`VARIANCE_COEF_SPHERE`, for the growth
+    blend of raw points; its other combinations use the plane vote's coefficients, not
+    refitted). The correlated blend was fitted with raw points only; with projected
+    points it uses the same coefficients (not refitted)."""
+    if vote == "sphere" and blend == "growth" and not projected:
+        return VARIANCE_COEF_SPHERE
     if blend == "correlated":
         return VARIANCE_COEF_CORRELATED
     return VARIANCE_COEF_PROJECTED if projected else VARIANCE_COEF
@@ -221,11 +259,17 @@ class FarField:
         0 is the plain IMLS of eq. imls (what maps saved before it load as).
     robust_iterations : int
         Reweighting passes of eq. rimls.
+    vote : {"plane", "sphere"}
+        ``"plane"``: the mean is eq. rimls (each neighbour votes with its tangent plane;
+        what maps saved before the option load with); ``"sphere"``: eq. rimls plus the
+        curvature correction of eq. sphere_vote (an algebraic sphere fitted to the
+        neighbours, its curvature shrunk by its significance).
     """
 
     def __init__(self, points, normals, rho0: float, noise: float, *, k: int = 16,
                  growth: float = 1.0, spread_weight: float = 1.0, beta: float = 0.3,
-                 robust_scale: float = 0.0, robust_iterations: int = 3):
+                 robust_scale: float = 0.0, robust_iterations: int = 3,
+                 vote: str = "plane"):
         p = np.ascontiguousarray(np.asarray(points, dtype=np.float64))
         n = np.ascontiguousarray(np.asarray(normals, dtype=np.float64))
         if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0 or n.shape != p.shape:
@@ -243,6 +287,10 @@ class FarField:
             raise FarFieldError(f"Expected robust_scale >= 0 and robust_iterations >= 0, found "
                                 f"{robust_scale!r} and {robust_iterations!r}.")
         self.robust_scale, self.robust_iterations = float(robust_scale), int(robust_iterations)
+        if vote not in ("plane", "sphere"):
+            raise FarFieldError(f"Expected vote 'plane' or 'sphere', found {vote!r}; set "
+                                f"far.vote to one of them.")
+        self.vote = vote
         self.tree = cKDTree(p)
 
     @property
@@ -256,7 +304,8 @@ class FarField:
     def params(self) -> dict:
         return dict(rho0=self.rho0, noise=self.noise, k=self.k, growth=self.growth,
                     spread_weight=self.spread_weight, beta=self.beta,
-                    robust_scale=self.robust_scale, robust_iterations=self.robust_iterations)
+                    robust_scale=self.robust_scale, robust_iterations=self.robust_iterations,
+                    vote=self.vote)
 
     def predict(self, xyz, return_grad: bool = False):
         """IMLS mean (K,), variance (K,)[, gradient (K, 3): the weighted normal]."""
@@ -265,22 +314,27 @@ class FarField:
             (out["mean"], out["var"])
 
     def components(self, xyz, return_grad: bool = False) -> dict:
-        """Mean (eq. imls; eq. rimls when ``robust_scale > 0``), variance (eq. far_var)
-        and their ingredients: ``r`` the
-        distance to the nearest hit point, ``spread2`` the neighbours' weighted
-        variance of plane distances, ``n_eff``; ``grad`` when asked."""
+        """Mean (eq. imls; eq. rimls when ``robust_scale > 0``; plus eq. sphere_vote's
+        correction with ``vote="sphere"``), variance (eq. far_var) and their
+        ingredients: ``r`` the distance to the nearest hit point, ``spread2`` the
+        neighbours' weighted variance of plane distances, ``n_eff``; ``grad`` when
+        asked (the weighted normal of the plane vote); the sphere vote's ``delta``
+        (sphere minus plane distance), ``shrink`` (u4^2 / (u4^2 + var u4)) and
+        ``v_curv`` (the distance's variance from var u4), zeros for the plane vote."""
         x = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
         K = len(x)
         if K == 0:
             z = np.zeros(0)
-            return dict(mean=z, var=z, r=z, spread2=z, n_eff=z, grad=np.zeros((0, 3)))
+            return dict(mean=z, var=z, r=z, spread2=z, n_eff=z, grad=np.zeros((0, 3)),
+                        delta=z, shrink=z, v_curv=z, spread2_sphere=z)
         d, i = self.knn.query(x)
-        mean, var, spread2, n_eff, g = _imls(x, d, i, self.points, self.normals, self.rho0,
-                                             self.growth, self.noise, self.spread_weight,
-                                             self.beta, self.robust_scale,
-                                             self.robust_iterations, bool(return_grad))
+        mean, var, spread2, n_eff, g, delta, shrink, v_curv, spread2_s = _imls(
+            x, d, i, self.points, self.normals, self.rho0, self.growth, self.noise,
+            self.spread_weight, self.beta, self.robust_scale, self.robust_iterations,
+            bool(return_grad), self.vote == "sphere")
         return dict(mean=mean, var=var, r=np.ascontiguousarray(d[:, 0]), spread2=spread2,
-                    n_eff=n_eff, grad=g if return_grad else None)
+                    n_eff=n_eff, grad=g if return_grad else None, delta=delta,
+                    shrink=shrink, v_curv=v_curv, spread2_sphere=spread2_s)
 
     def distance_to_data(self, xyz) -> np.ndarray:
         """(K,) distance of each query to the nearest hit point."""
@@ -290,15 +344,22 @@ class FarField:
 
 @nb.njit(parallel=True, cache=True)
 def _imls(x, d, nbr, points, normals, rho0, growth, noise, spread_weight, beta, robust_scale,
-          robust_iterations, with_grad):
+          robust_iterations, with_grad, sphere):
     """Eqs. imls, rimls and far_var per query from its ``k`` nearest hit points (distances
     ``d`` ascending, indices ``nbr``): mean, variance, weighted plane-distance spread,
     effective neighbour count and (``with_grad``) the weighted normal; one pass per query,
     no (K, k, 3) temporaries. Weights are relative to the nearest neighbour (shifted by
     ``r^2``) so far queries do not underflow. The spread is taken with the kernel weights
     around the (robust) mean, so neighbours the robust weights leave out still count as
-    disagreement."""
+    disagreement. With ``sphere`` the mean gains the curvature correction of eq.
+    sphere_vote (:func:`_sphere_vote`, from the final robust weights); ``delta``, ``shrink``
+    and ``v_curv`` are its per-query outputs (0 for the plane vote or where it falls back).
+    The spread, n_eff, variance and gradient are the plane vote's in both cases."""
     K, k = d.shape
+    spread2_s = np.empty(K)
+    delta = np.zeros(K)
+    shrink = np.zeros(K)
+    v_curv = np.zeros(K)
     mean = np.empty(K)
     var = np.empty(K)
     spread2 = np.empty(K)
@@ -351,7 +412,17 @@ def _imls(x, d, nbr, points, normals, rho0, growth, noise, spread_weight, beta, 
             s2 += w[j] * (a[j] - m) ** 2
         s2 /= wsum
         ne = usum * usum / u2sum
-        mean[q] = m
+        if sphere:
+            dq, sq, vq, ssq, ok = _sphere_vote(x[q], nbr[q], points, normals, u, w, a, k)
+            shrink[q] = sq
+            v_curv[q] = vq
+            spread2_s[q] = s2
+            if ok:
+                delta[q] = dq - m
+                spread2_s[q] = ssq
+        else:
+            spread2_s[q] = s2
+        mean[q] = m + delta[q]
         spread2[q] = s2
         n_eff[q] = ne
         var[q] = noise * noise / ne + spread_weight * s2 + (beta * r) ** 2
@@ -361,7 +432,121 @@ def _imls(x, d, nbr, points, normals, rho0, growth, noise, spread_weight, beta, 
                 for j in range(k):
                     gc += u[j] * normals[nbr[q, j], c]
                 grad[q, c] = gc / usum
-    return mean, var, spread2, n_eff, grad
+    return mean, var, spread2, n_eff, grad, delta, shrink, v_curv, spread2_s
+
+
+@nb.njit(cache=True, nogil=True)
+def _sphere_vote(xq, nbr_row, points, normals, u, w, dist, k):
+    """Eq. sphere_vote at one query from its neighbours' final (robust) weights ``u``:
+    the algebraic sphere ``s(y) = u0 + u123 . y + u4 |y|^2`` of Guennebaud & Gross
+    (2007) in coordinates centred on the query, its gradient fitted to the normals and
+    its value to the positions (the normal constraint dominant), the curvature ``u4``
+    shrunk by its significance. Returns (delta, shrink, v_curv, ok): the signed
+    distance from the shrunk sphere minus the same from the flat fit (u4 = 0), the
+    factor ``u4^2 / (u4^2 + var(u4))``, the variance of that distance from ``var(u4)``
+    (linearised), the spread of the neighbours' plane distances ``dist`` about the ones
+    the fitted sphere predicts (kernel weights ``w``; eq. sphere_spread; -1 when not
+    usable) and whether the fit was usable (False: degenerate, imaginary sphere or
+    beyond its reach; the plane vote stands)."""
+    usum = 0.0
+    for j in range(k):
+        usum += u[j]
+    if k < 4 or not usum > 0:
+        return 0.0, 0.0, 0.0, -1.0, False
+    pb = np.zeros(3)
+    nb_ = np.zeros(3)
+    qb = 0.0
+    u2 = 0.0
+    for j in range(k):
+        wj = u[j] / usum
+        p = nbr_row[j]
+        u2 += wj * wj
+        for c in range(3):
+            y = points[p, c] - xq[c]
+            pb[c] += wj * y
+            nb_[c] += wj * normals[p, c]
+            qb += wj * y * y
+    # eq. sphere_vote, u4: weighted least squares of 2 u4 (p - pb) + (u123 + 2 u4 pb) = n
+    num = 0.0
+    den = 0.0
+    den2 = 0.0
+    for j in range(k):
+        wj = u[j] / usum
+        p = nbr_row[j]
+        a = 0.0
+        b = 0.0
+        for c in range(3):
+            dp = points[p, c] - xq[c] - pb[c]
+            a += (normals[p, c] - nb_[c]) * dp
+            b += dp * dp
+        num += wj * a
+        den += wj * b
+        den2 += wj * wj * b
+    if not den > 1e-10 * qb:  # neighbours at one point (relative to their distance)
+        return 0.0, 0.0, 0.0, -1.0, False
+    u4 = 0.5 * num / den
+    # residual variance per normal component, corrected for the 4 fitted numbers
+    res = 0.0
+    for j in range(k):
+        wj = u[j] / usum
+        p = nbr_row[j]
+        for c in range(3):
+            dp = points[p, c] - xq[c] - pb[c]
+            e = normals[p, c] - nb_[c] - 2.0 * u4 * dp
+            res += wj * e * e
+    n_eff = 1.0 / u2
+    s2 = res / 3.0 * n_eff / max(n_eff - 4.0, 1.0)
+    var_u4 = s2 * den2 / (4.0 * den * den)
+    shrink = u4 * u4 / (u4 * u4 + var_u4) if u4 != 0.0 else 0.0
+    u4s = u4 * shrink
+    pp = pb[0] * pb[0] + pb[1] * pb[1] + pb[2] * pb[2]
+    dsdu = 2.0 * pp - qb  # ds(0)/du4 at the query
+    # value and gradient norm at the query (the origin) of the flat and the shrunk fit
+    s0 = -(nb_[0] * pb[0] + nb_[1] * pb[1] + nb_[2] * pb[2])
+    g0 = math.sqrt(nb_[0] * nb_[0] + nb_[1] * nb_[1] + nb_[2] * nb_[2])
+    if not g0 > 1e-6:
+        return 0.0, shrink, 0.0, -1.0, False
+    d0 = s0 / g0
+    s = s0 + u4s * dsdu
+    gx = nb_[0] - 2.0 * u4s * pb[0]
+    gy = nb_[1] - 2.0 * u4s * pb[1]
+    gz = nb_[2] - 2.0 * u4s * pb[2]
+    g = math.sqrt(gx * gx + gy * gy + gz * gz)
+    disc = g * g - 4.0 * u4s * s
+    v_curv = var_u4 * (dsdu / g0) ** 2
+    if not disc > 0 or not g > 1e-6:
+        return 0.0, shrink, v_curv, -1.0, False
+    d = 2.0 * s / (g + math.sqrt(disc))
+    # reach: on the concave side (towards the centre) the distance from a sphere of
+    # radius R = g_surface / (2 |u4|) ~ 1 / (2 |u4|) holds up to R / 2
+    if d * u4s < 0 and abs(d) * 4.0 * abs(u4s) > 1.0:
+        return 0.0, shrink, v_curv, -1.0, False
+    # eq. sphere_spread: each neighbour's plane distance a_j against the fitted field's
+    # first-order distance from the same point, (s(y_j) - grad s(y_j) . y_j) / |grad s(y_j)|
+    wsum = 0.0
+    rs = 0.0
+    rs2 = 0.0
+    for j in range(k):
+        p = nbr_row[j]
+        y0 = points[p, 0] - xq[0]
+        y1 = points[p, 1] - xq[1]
+        y2 = points[p, 2] - xq[2]
+        yy = y0 * y0 + y1 * y1 + y2 * y2
+        sj = s + gx * y0 + gy * y1 + gz * y2 + u4s * yy
+        h0 = gx + 2.0 * u4s * y0
+        h1 = gy + 2.0 * u4s * y1
+        h2 = gz + 2.0 * u4s * y2
+        hn = math.sqrt(h0 * h0 + h1 * h1 + h2 * h2)
+        if not hn > 1e-12:
+            continue
+        rj = dist[j] - (sj - (h0 * y0 + h1 * y1 + h2 * y2)) / hn
+        wsum += w[j]
+        rs += w[j] * rj
+        rs2 += w[j] * rj * rj
+    if not wsum > 0:
+        return 0.0, shrink, v_curv, -1.0, False
+    rs /= wsum
+    return d, shrink, v_curv, max(rs2 / wsum - rs * rs, 0.0), True
 
 
 def project_to_local_planes(points, normals, rho0: float, k: int = 16,
