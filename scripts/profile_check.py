@@ -166,7 +166,19 @@ def main(argv=None) -> int:
     ap.add_argument("--no-synthetic", action="store_true")
     ap.add_argument("--tag", default="")
     ap.add_argument("--json", default=None, help="append the rows (JSON lines) to this file")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="set a module constant of gmmgp_app.check first (a Python literal), "
+                         "e.g. --set REUSE_NEIGHBOURS=False")
     args = ap.parse_args(argv)
+    import ast
+
+    import gmmgp_app.check as check
+
+    for item in args.set:
+        name, _, value = item.partition("=")
+        if not hasattr(check, name):
+            ap.error(f"gmmgp_app.check has no constant {name!r}")
+        setattr(check, name, ast.literal_eval(value))
     rows = []
     if args.scans:
         smap, pairs, points = _kitti(args.cache)
