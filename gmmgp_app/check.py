@@ -694,7 +694,8 @@ PRUNE_STD = 2.0
 def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, share_cell,
                   max_iter, cell_factors=False, frame=None, tol_t=5e-5, tol_r=5e-6,
                   max_step_t=0.5, max_step_r=0.05, refactor_tol=None,
-                  accelerate=True, prune=False, inner=0, correct=False, known=None):
+                  accelerate=True, prune=False, inner=0, correct=False, known=None,
+                  knn=None):
     """Robust Gauss-Newton from ``T0``, never stepping along the ``frozen`` directions.
 
     ``frozen`` holds unit vectors of the scaled space (rotation times the lever of
@@ -715,6 +716,9 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
     ``known``: ``(rows, m, var, g)``, the map's prediction at ``T0`` of the rows
     ``rows`` of ``x`` when the caller has it (the previous stage's last prediction at
     the points both stages share): the first iteration predicts the other rows only.
+    ``knn``: a previous run's far-field neighbour lists of ``x`` (its ``last["knn"]``),
+    which the surface correction takes instead of searching again
+    (:func:`_surface_correction`); ``last["knn"]`` is then that one.
     """
     T = T0.copy()
     corr, knn_kept = None, None
@@ -743,8 +747,8 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
                 x, y, m, var, g = x[keep], y[keep], m[keep], var[keep], g[keep]
                 n_share, cell, index = n_share[keep], cell[keep], index[keep]
         if correct and it == 1:
-            knn_kept = {} if REUSE_NEIGHBOURS else None
-            corr = _surface_correction(smap, y, m, var, g, keep=knn_kept)
+            knn_kept = knn if knn is not None else ({} if REUSE_NEIGHBOURS else None)
+            corr = _surface_correction(smap, y, m, var, g, keep=knn_kept, rows=index)
         if prune and _REUSE_DENSE_VAR:  # study (docs/check.md, Session 8): off
             if it == 1:
                 var_first = var
@@ -877,6 +881,10 @@ REUSE_NEIGHBOURS = True
 NEIGHBOUR_EXTRA = 4
 #: Tolerance of the dense stage's last Gauss-Newton step (m, rad).
 DENSE_TOL = (1e-4, 1e-5)
+#: The dense stage runs again this many times from its solution (:func:`_coarse_to_fine`).
+DENSE_RESTARTS = 0
+#: Its tolerance (m, rad).
+DENSE_RESTART_TOL = DENSE_TOL
 #: IRLS solves on the residuals linearised at each map prediction, at most, in every
 #: stage (:func:`_linear_irls`; 0 or 1: one Gauss-Newton step per prediction). KITTI
 #: 000002 / 000004: 16 / 19 map predictions (0.71M / 0.84M points) instead of 27 / 28
@@ -939,7 +947,20 @@ def _coarse_to_fine(smap, x, x_dense, T0, frozen, frame, max_iter, kw,
                                                 tol_r=DENSE_TOL[1], prune=True,
                                                 inner=INNER_IRLS, correct=correct,
                                                 known=known, **kw)
-    return T, it + it2 + it3, converged, history + [dict(h, stage="dense") for h in h3], last
+    history += [dict(h, stage="dense") for h in h3]
+    for again in range(DENSE_RESTARTS):
+        if last is None:
+            break
+        # the stage again from its solution: its surface correction, share counts,
+        # cells and cell factors measured there, not where the stage started
+        T, it4, converged, h4, last = _gauss_newton(
+            smap, x_dense, T, frozen, max_iter=max_iter, frame=frame,
+            tol_t=DENSE_RESTART_TOL[0], tol_r=DENSE_RESTART_TOL[1], prune=True, inner=INNER_IRLS, correct=correct,
+            known=(last["index"], last["m"], last["var"], last["g"]), knn=last.get("knn"),
+            **kw)
+        it3 += it4
+        history += [dict(h, stage=f"dense again {again + 1}") for h in h4]
+    return T, it + it2 + it3, converged, history, last
 
 
 def _known_rows(last, rows):
@@ -1353,7 +1374,8 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
     y = x @ T_loc[:3, :3].T + T_loc[:3, 3]
     # the registration's last prediction (GP field, dense points) is at these points
     near = None if fit is None or dense is not x else _near_field_at(smap, fit.last, y)
-    nbrs = None if near is None else _moved_neighbours(smap, fit.last, y)
+    nbrs = None if near is None or fit.last is None else \
+        _moved_neighbours(smap, fit.last.get("knn"), y, np.arange(len(y)))
     m, var, g = _predict(smap, far=True, y=y, near=near,  # faster than without grad
                          neighbours=nbrs)
     s = np.sqrt(var)
@@ -1489,7 +1511,7 @@ def _predict(smap, y, far: bool = False, near=None, neighbours=None):
         return smap.predict(y, return_grad=True)
 
 
-def _surface_correction(smap, y, m, var, g, keep=None):
+def _surface_correction(smap, y, m, var, g, keep=None, rows=None):
     """Per point, the blended field's mean minus the GP field's at ``y`` (``m, var, g``:
     the GP field there, ``predict(far=False)``) where the blended field's variance is
     the smaller, 0 elsewhere; None when that is 0 everywhere (a map without a far
@@ -1527,14 +1549,20 @@ def _surface_correction(smap, y, m, var, g, keep=None):
     more predictions of the GP field and the far field).
 
     ``keep`` (a dict, optional): filled with the far field's ``k + NEIGHBOUR_EXTRA``
-    nearest hit points of ``y`` (``y``, ``d``, ``i``, ``k``; the search the correction
-    makes anyway, a few neighbours longer) for the check after the registration (:func:`_moved_neighbours`)."""
+    nearest hit points of ``y`` (``y``, ``d``, ``i``, ``k``, and ``rows``: the rows of
+    the stage's points ``y`` are; the search the correction makes anyway, a few
+    neighbours longer) for the check after the registration (:func:`_moved_neighbours`);
+    when it holds them already (a stage run again from its solution), the correction's
+    neighbours are found from them instead."""
     nbrs = None
-    if keep is not None:
+    if keep is not None and keep:
+        nbrs = _moved_neighbours(smap, keep, y, rows)
+    elif keep is not None:
         found = _far_neighbours(smap, y, extra=NEIGHBOUR_EXTRA)
         if found is not None:
             k = found[0].shape[1] - NEIGHBOUR_EXTRA
-            keep.update(y=y.copy(), d=found[0], i=found[1], k=k)
+            keep.update(y=y.copy(), d=found[0], i=found[1], k=k,
+                        rows=np.arange(len(y)) if rows is None else np.asarray(rows))
             nbrs = (np.ascontiguousarray(found[0][:, :k]), np.ascontiguousarray(found[1][:, :k]))
     blended, var_b = _predict(smap, y, far=True, near=(m, var, g), neighbours=nbrs)[:2]
     # only where the map says its blended field knows better than its GP field
@@ -1560,31 +1588,36 @@ def _far_neighbours(smap, y, extra: int = 1):
     return knn.query(y)
 
 
-def _moved_neighbours(smap, last, y):
-    """The far field's ``k`` nearest hit points ``(d, i)`` of every row of ``y`` (the
-    solution's points) from the surface correction's ``k + e`` at the same rows before
-    the last stage's moves (``last["knn"]``, at ``y[last["index"]]`` then), exact.
+def _moved_neighbours(smap, kept, y, rows):
+    """The far field's ``k`` nearest hit points ``(d, i)`` of the points ``y`` (the
+    stage's rows ``rows``, moved) from the surface correction's ``k + e`` of the same
+    rows before the moves (``kept``: its ``keep``, see :func:`_surface_correction`),
+    exact.
 
     Any hit point outside a query's ``k + e`` found lay at least the ``(k+e)``-th
     distance ``D`` from it; after the query moved by ``delta`` it lies at least ``D -
     delta`` away. Where the ``k``-th nearest of the ``k + e`` candidates (distances
     recomputed at the new position) is nearer than that, those are the query's ``k``
     nearest (:func:`_update_knn`); the other rows (and the rows the stage pruned) are
-    searched again. None when ``last`` holds no lists."""
-    kept = None if last is None else last.get("knn")
+    searched again. None when ``kept`` holds no lists."""
     far = _far_of(smap)
     if not kept or far is None:
         return None
-    idx = last["index"]
+    rows = np.asarray(rows)
     k = kept["k"]
+    pos = np.full(max(int(rows.max(initial=-1)), int(kept["rows"].max(initial=-1))) + 1, -1)
+    pos[kept["rows"]] = np.arange(len(kept["rows"]))
+    at = pos[rows]  # each point's row in kept, -1: none
+    have = np.flatnonzero(at >= 0)
     d = np.empty((len(y), k))
     i = np.empty((len(y), k), np.int64)
     ok = np.zeros(len(y), np.bool_)
-    ds, is_ = np.empty((len(idx), k)), np.empty((len(idx), k), np.int64)
-    oks = np.zeros(len(idx), np.bool_)
-    _update_knn(np.ascontiguousarray(y[idx]), kept["y"], kept["d"], kept["i"], far.points,
-                ds, is_, oks)
-    d[idx], i[idx], ok[idx] = ds, is_, oks
+    ds, is_ = np.empty((len(have), k)), np.empty((len(have), k), np.int64)
+    oks = np.zeros(len(have), np.bool_)
+    src = at[have]
+    _update_knn(np.ascontiguousarray(y[have]), src, kept["y"], kept["d"], kept["i"],
+                far.points, ds, is_, oks)
+    d[have], i[have], ok[have] = ds, is_, oks
     rest = np.flatnonzero(~ok)
     if len(rest):
         d[rest], i[rest] = far.knn.query(y[rest])
@@ -1592,20 +1625,22 @@ def _moved_neighbours(smap, last, y):
 
 
 @nb.njit(cache=True, parallel=True)
-def _update_knn(y, y0, d0, i0, points, d, i, ok):
-    """Per query ``q``: its ``k + e`` candidates ``i0[q]`` (the exact nearest hit
-    points of ``y0[q]``, distances ``d0[q]`` ascending; ``k = d.shape[1]``) re-sorted by
-    their distance to ``y[q]`` (the arithmetic of :mod:`.stages.knn`); the first ``k``
-    are the exact ``k`` nearest of ``y[q]`` when the ``k``-th is nearer than
-    ``d0[q, k + e - 1] - |y[q] - y0[q]|`` (every other hit point is at least that far):
-    written to ``d[q]``, ``i[q]``, ``ok[q] = True``; else ``ok[q]`` stays False."""
-    K, kk = d0.shape
+def _update_knn(y, src, y0, d0, i0, points, d, i, ok):
+    """Per query ``q`` (row ``r = src[q]`` of the earlier search): its ``k + e``
+    candidates ``i0[r]`` (the exact nearest hit points of ``y0[r]``, distances ``d0[r]``
+    ascending; ``k = d.shape[1]``) re-sorted by their distance to ``y[q]`` (the
+    arithmetic of :mod:`.stages.knn`); the first ``k`` are the exact ``k`` nearest of
+    ``y[q]`` when the ``k``-th is nearer than ``d0[r, k + e - 1] - |y[q] - y0[r]|``
+    (every other hit point is at least that far): written to ``d[q]``, ``i[q]``,
+    ``ok[q] = True``; else ``ok[q]`` stays False."""
+    kk = d0.shape[1]
     k = d.shape[1]
-    for q in nb.prange(K):
+    for q in nb.prange(len(src)):
+        r = src[q]
         bd = np.empty(kk)
         bi = np.empty(kk, np.int64)
         for j in range(kk):
-            p = i0[q, j]
+            p = i0[r, j]
             e0 = y[q, 0] - points[p, 0]
             e1 = y[q, 1] - points[p, 1]
             e2 = y[q, 2] - points[p, 2]
@@ -1617,12 +1652,12 @@ def _update_knn(y, y0, d0, i0, points, d, i, ok):
                 m -= 1
             bd[m] = dd
             bi[m] = p
-        s0 = y[q, 0] - y0[q, 0]
-        s1 = y[q, 1] - y0[q, 1]
-        s2 = y[q, 2] - y0[q, 2]
+        s0 = y[q, 0] - y0[r, 0]
+        s1 = y[q, 1] - y0[r, 1]
+        s2 = y[q, 2] - y0[r, 2]
         delta = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
         dk = math.sqrt(bd[k - 1])
-        if dk * (1.0 + 1e-9) + 1e-12 < d0[q, kk - 1] - delta:
+        if dk * (1.0 + 1e-9) + 1e-12 < d0[r, kk - 1] - delta:
             ok[q] = True
             for j in range(k):
                 d[q, j] = math.sqrt(bd[j])
