@@ -749,6 +749,8 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
         if correct and it == 1:
             knn_kept = knn if knn is not None else ({} if REUSE_NEIGHBOURS else None)
             corr = _surface_correction(smap, y, m, var, g, keep=knn_kept, rows=index)
+        elif correct and CORRECTION_EVERY_ITERATION:
+            corr = _surface_correction(smap, y, m, var, g, keep=knn_kept, rows=index)
         if prune and _REUSE_DENSE_VAR:  # study (docs/check.md, Session 8): off
             if it == 1:
                 var_first = var
@@ -885,6 +887,10 @@ DENSE_TOL = (1e-4, 1e-5)
 DENSE_RESTARTS = 0
 #: Its tolerance (m, rad).
 DENSE_RESTART_TOL = DENSE_TOL
+#: Study (off): the surface correction measured again at every iteration of the stage
+#: (with the GP field just predicted and the first iteration's neighbour lists moved:
+#: one far-field evaluation per iteration, no k-NN search).
+CORRECTION_EVERY_ITERATION = False
 #: IRLS solves on the residuals linearised at each map prediction, at most, in every
 #: stage (:func:`_linear_irls`; 0 or 1: one Gauss-Newton step per prediction). KITTI
 #: 000002 / 000004: 16 / 19 map predictions (0.71M / 0.84M points) instead of 27 / 28
