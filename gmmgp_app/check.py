@@ -153,11 +153,13 @@ both work.
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from dataclasses import dataclass, field
 from typing import Optional
 
+import numba as nb
 import numpy as np
 
 from .types import as_up_axis
@@ -692,7 +694,8 @@ PRUNE_STD = 2.0
 def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, share_cell,
                   max_iter, cell_factors=False, frame=None, tol_t=5e-5, tol_r=5e-6,
                   max_step_t=0.5, max_step_r=0.05, refactor_tol=None,
-                  accelerate=True, prune=False, inner=0, correct=False, known=None):
+                  accelerate=True, prune=False, inner=0, correct=False, known=None,
+                  knn=None):
     """Robust Gauss-Newton from ``T0``, never stepping along the ``frozen`` directions.
 
     ``frozen`` holds unit vectors of the scaled space (rotation times the lever of
@@ -713,9 +716,12 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
     ``known``: ``(rows, m, var, g)``, the map's prediction at ``T0`` of the rows
     ``rows`` of ``x`` when the caller has it (the previous stage's last prediction at
     the points both stages share): the first iteration predicts the other rows only.
+    ``knn``: a previous run's far-field neighbour lists of ``x`` (its ``last["knn"]``),
+    which the surface correction takes instead of searching again
+    (:func:`_surface_correction`); ``last["knn"]`` is then that one.
     """
     T = T0.copy()
-    corr = None
+    corr, knn_kept = None, None
     last = None
     history, converged, it = [], False, 0
     pivot, D = (None, None) if frame is None else frame
@@ -741,7 +747,10 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
                 x, y, m, var, g = x[keep], y[keep], m[keep], var[keep], g[keep]
                 n_share, cell, index = n_share[keep], cell[keep], index[keep]
         if correct and it == 1:
-            corr = _surface_correction(smap, y, m, var, g)
+            knn_kept = knn if knn is not None else ({} if REUSE_NEIGHBOURS else None)
+            corr = _surface_correction(smap, y, m, var, g, keep=knn_kept, rows=index)
+        elif correct and CORRECTION_EVERY_ITERATION:
+            corr = _surface_correction(smap, y, m, var, g, keep=knn_kept, rows=index)
         if prune and _REUSE_DENSE_VAR:  # study (docs/check.md, Session 8): off
             if it == 1:
                 var_first = var
@@ -771,7 +780,8 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
                             "extrapolation": 1.0,
                             "converged": "Gauss-Newton step below the tolerance, not applied"})
             converged, last = True, dict(y=y, m=m_field, var=var, g=g, factor=factor,
-                                         n_share=n_share, index=index, corr=corr)
+                                         n_share=n_share, index=index, corr=corr,
+                                         knn=knn_kept or None)
             break
         n_inner = 1
         if inner > 1:
@@ -864,8 +874,23 @@ _COARSE_POINTS = 5000
 _REUSE_DENSE_VAR = False
 #: The registration's last stage fits the blended field's mean (:func:`_surface_correction`).
 SURFACE_CORRECTION = True
+#: The check after the registration takes the far field's nearest hit points from the
+#: surface correction's search (made with one neighbour more) wherever they provably
+#: hold the k nearest at the solution (:func:`_moved_neighbours`); the same neighbours,
+#: so the same check, without its second k-NN search of the dense points.
+REUSE_NEIGHBOURS = True
+#: Neighbours searched beyond the far field's ``k`` for that reuse.
+NEIGHBOUR_EXTRA = 4
 #: Tolerance of the dense stage's last Gauss-Newton step (m, rad).
 DENSE_TOL = (1e-4, 1e-5)
+#: The dense stage runs again this many times from its solution (:func:`_coarse_to_fine`).
+DENSE_RESTARTS = 0
+#: Its tolerance (m, rad).
+DENSE_RESTART_TOL = DENSE_TOL
+#: Study (off): the surface correction measured again at every iteration of the stage
+#: (with the GP field just predicted and the first iteration's neighbour lists moved:
+#: one far-field evaluation per iteration, no k-NN search).
+CORRECTION_EVERY_ITERATION = False
 #: IRLS solves on the residuals linearised at each map prediction, at most, in every
 #: stage (:func:`_linear_irls`; 0 or 1: one Gauss-Newton step per prediction). KITTI
 #: 000002 / 000004: 16 / 19 map predictions (0.71M / 0.84M points) instead of 27 / 28
@@ -928,7 +953,20 @@ def _coarse_to_fine(smap, x, x_dense, T0, frozen, frame, max_iter, kw,
                                                 tol_r=DENSE_TOL[1], prune=True,
                                                 inner=INNER_IRLS, correct=correct,
                                                 known=known, **kw)
-    return T, it + it2 + it3, converged, history + [dict(h, stage="dense") for h in h3], last
+    history += [dict(h, stage="dense") for h in h3]
+    for again in range(DENSE_RESTARTS):
+        if last is None:
+            break
+        # the stage again from its solution: its surface correction, share counts,
+        # cells and cell factors measured there, not where the stage started
+        T, it4, converged, h4, last = _gauss_newton(
+            smap, x_dense, T, frozen, max_iter=max_iter, frame=frame,
+            tol_t=DENSE_RESTART_TOL[0], tol_r=DENSE_RESTART_TOL[1], prune=True, inner=INNER_IRLS, correct=correct,
+            known=(last["index"], last["m"], last["var"], last["g"]), knn=last.get("knn"),
+            **kw)
+        it3 += it4
+        history += [dict(h, stage=f"dense again {again + 1}") for h in h4]
+    return T, it + it2 + it3, converged, history, last
 
 
 def _known_rows(last, rows):
@@ -1342,7 +1380,10 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
     y = x @ T_loc[:3, :3].T + T_loc[:3, 3]
     # the registration's last prediction (GP field, dense points) is at these points
     near = None if fit is None or dense is not x else _near_field_at(smap, fit.last, y)
-    m, var, g = _predict(smap, far=True, y=y, near=near)  # faster than without grad
+    nbrs = None if near is None or fit.last is None else \
+        _moved_neighbours(smap, fit.last.get("knn"), y, np.arange(len(y)))
+    m, var, g = _predict(smap, far=True, y=y, near=near,  # faster than without grad
+                         neighbours=nbrs)
     s = np.sqrt(var)
     s_ref = _surface_std(smap, y, m, s, g, known_std)
     kn = s_ref < known_std
@@ -1454,15 +1495,20 @@ def _near_field_at(smap, last, y):
     return m, var, g
 
 
-def _predict(smap, y, far: bool = False, near=None):
+def _predict(smap, y, far: bool = False, near=None, neighbours=None):
     """The map's mean, variance and gradient at ``y``, by default without its far field
     (registration, see the module docstring; the known/changed decision uses the
     blended field); maps whose ``predict`` has no ``far`` keyword as they are.
     ``near``: the field without the far field at ``y`` (:func:`_near_field_at`), for
-    maps whose ``predict`` takes it (a SurfaceMap; others compute it again)."""
-    if near is not None:
+    maps whose ``predict`` takes it (a SurfaceMap; others compute it again);
+    ``neighbours``: the far field's k-NN lists of ``y`` (:func:`_moved_neighbours`),
+    likewise."""
+    for extra in (dict(near=near, neighbours=neighbours), dict(near=near)):
+        extra = {k: v for k, v in extra.items() if v is not None}
+        if not extra:
+            continue
         try:
-            return smap.predict(y, return_grad=True, far=far, near=near)
+            return smap.predict(y, return_grad=True, far=far, **extra)
         except TypeError:
             pass
     try:
@@ -1471,7 +1517,7 @@ def _predict(smap, y, far: bool = False, near=None):
         return smap.predict(y, return_grad=True)
 
 
-def _surface_correction(smap, y, m, var, g):
+def _surface_correction(smap, y, m, var, g, keep=None, rows=None):
     """Per point, the blended field's mean minus the GP field's at ``y`` (``m, var, g``:
     the GP field there, ``predict(far=False)``) where the blended field's variance is
     the smaller, 0 elsewhere; None when that is 0 everywhere (a map without a far
@@ -1506,11 +1552,122 @@ def _surface_correction(smap, y, m, var, g):
     and across it by the two fields' gradient difference (a few per cent), so over the
     stage's moves it changes by tens of microns; measuring it once costs one far-field
     evaluation of the stage's points (predicting the blend at every iteration cost 2-3
-    more predictions of the GP field and the far field)."""
-    blended, var_b = _predict(smap, y, far=True, near=(m, var, g))[:2]
+    more predictions of the GP field and the far field).
+
+    ``keep`` (a dict, optional): filled with the far field's ``k + NEIGHBOUR_EXTRA``
+    nearest hit points of ``y`` (``y``, ``d``, ``i``, ``k``, and ``rows``: the rows of
+    the stage's points ``y`` are; the search the correction makes anyway, a few
+    neighbours longer) for the check after the registration (:func:`_moved_neighbours`);
+    when it holds them already (a stage run again from its solution), the correction's
+    neighbours are found from them instead."""
+    nbrs = None
+    if keep is not None and keep:
+        nbrs = _moved_neighbours(smap, keep, y, rows)
+    elif keep is not None:
+        found = _far_neighbours(smap, y, extra=NEIGHBOUR_EXTRA)
+        if found is not None:
+            k = found[0].shape[1] - NEIGHBOUR_EXTRA
+            keep.update(y=y.copy(), d=found[0], i=found[1], k=k,
+                        rows=np.arange(len(y)) if rows is None else np.asarray(rows))
+            nbrs = (np.ascontiguousarray(found[0][:, :k]), np.ascontiguousarray(found[1][:, :k]))
+    blended, var_b = _predict(smap, y, far=True, near=(m, var, g), neighbours=nbrs)[:2]
     # only where the map says its blended field knows better than its GP field
     corr = np.where(var_b < var, blended - m, 0.0)
     return corr if np.any(corr != 0) else None
+
+
+def _far_of(smap):
+    """The map's far field (a :class:`~.stages.farfield.FarField`) or None."""
+    far = getattr(smap, "far", None)
+    return far if far is not None and hasattr(far, "knn") and hasattr(far, "points") else None
+
+
+def _far_neighbours(smap, y, extra: int = 1):
+    """The ``k + extra`` nearest hit points ``(d, i)`` of the map's far field to each
+    row of ``y`` (its own exact search with ``extra`` more neighbours; None without a
+    far field or with fewer hit points than that)."""
+    far = _far_of(smap)
+    if far is None or far.k + extra > len(far.points):
+        return None
+    knn = copy.copy(far.knn)  # the same cell table, a longer list per query
+    knn.k = far.k + extra
+    return knn.query(y)
+
+
+def _moved_neighbours(smap, kept, y, rows):
+    """The far field's ``k`` nearest hit points ``(d, i)`` of the points ``y`` (the
+    stage's rows ``rows``, moved) from the surface correction's ``k + e`` of the same
+    rows before the moves (``kept``: its ``keep``, see :func:`_surface_correction`),
+    exact.
+
+    Any hit point outside a query's ``k + e`` found lay at least the ``(k+e)``-th
+    distance ``D`` from it; after the query moved by ``delta`` it lies at least ``D -
+    delta`` away. Where the ``k``-th nearest of the ``k + e`` candidates (distances
+    recomputed at the new position) is nearer than that, those are the query's ``k``
+    nearest (:func:`_update_knn`); the other rows (and the rows the stage pruned) are
+    searched again. None when ``kept`` holds no lists."""
+    far = _far_of(smap)
+    if not kept or far is None:
+        return None
+    rows = np.asarray(rows)
+    k = kept["k"]
+    pos = np.full(max(int(rows.max(initial=-1)), int(kept["rows"].max(initial=-1))) + 1, -1)
+    pos[kept["rows"]] = np.arange(len(kept["rows"]))
+    at = pos[rows]  # each point's row in kept, -1: none
+    have = np.flatnonzero(at >= 0)
+    d = np.empty((len(y), k))
+    i = np.empty((len(y), k), np.int64)
+    ok = np.zeros(len(y), np.bool_)
+    ds, is_ = np.empty((len(have), k)), np.empty((len(have), k), np.int64)
+    oks = np.zeros(len(have), np.bool_)
+    src = at[have]
+    _update_knn(np.ascontiguousarray(y[have]), src, kept["y"], kept["d"], kept["i"],
+                far.points, ds, is_, oks)
+    d[have], i[have], ok[have] = ds, is_, oks
+    rest = np.flatnonzero(~ok)
+    if len(rest):
+        d[rest], i[rest] = far.knn.query(y[rest])
+    return d, i
+
+
+@nb.njit(cache=True, parallel=True)
+def _update_knn(y, src, y0, d0, i0, points, d, i, ok):
+    """Per query ``q`` (row ``r = src[q]`` of the earlier search): its ``k + e``
+    candidates ``i0[r]`` (the exact nearest hit points of ``y0[r]``, distances ``d0[r]``
+    ascending; ``k = d.shape[1]``) re-sorted by their distance to ``y[q]`` (the
+    arithmetic of :mod:`.stages.knn`); the first ``k`` are the exact ``k`` nearest of
+    ``y[q]`` when the ``k``-th is nearer than ``d0[r, k + e - 1] - |y[q] - y0[r]|``
+    (every other hit point is at least that far): written to ``d[q]``, ``i[q]``,
+    ``ok[q] = True``; else ``ok[q]`` stays False."""
+    kk = d0.shape[1]
+    k = d.shape[1]
+    for q in nb.prange(len(src)):
+        r = src[q]
+        bd = np.empty(kk)
+        bi = np.empty(kk, np.int64)
+        for j in range(kk):
+            p = i0[r, j]
+            e0 = y[q, 0] - points[p, 0]
+            e1 = y[q, 1] - points[p, 1]
+            e2 = y[q, 2] - points[p, 2]
+            dd = e0 * e0 + e1 * e1 + e2 * e2
+            m = j
+            while m > 0 and bd[m - 1] > dd:
+                bd[m] = bd[m - 1]
+                bi[m] = bi[m - 1]
+                m -= 1
+            bd[m] = dd
+            bi[m] = p
+        s0 = y[q, 0] - y0[r, 0]
+        s1 = y[q, 1] - y0[r, 1]
+        s2 = y[q, 2] - y0[r, 2]
+        delta = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+        dk = math.sqrt(bd[k - 1])
+        if dk * (1.0 + 1e-9) + 1e-12 < d0[r, kk - 1] - delta:
+            ok[q] = True
+            for j in range(k):
+                d[q, j] = math.sqrt(bd[j])
+                i[q, j] = bi[j]
 
 
 def _nothing_known(src, known_std, best) -> CheckError:

@@ -162,7 +162,8 @@ class SurfaceMap:
         self.summary = dict(summary or {})
 
     # ------------------------------------------------------------------ predict
-    def predict(self, xyz, return_grad: bool = False, far: bool = True, near=None):
+    def predict(self, xyz, return_grad: bool = False, far: bool = True, near=None,
+                neighbours=None):
         """Signed distance mean and variance at query points.
 
         Parameters
@@ -180,6 +181,10 @@ class SurfaceMap:
             has it (the scan check after its registration): the blend uses it instead
             of computing the near field again; with ``far=False`` (or a map without a
             far field) it is returned as it is.
+        neighbours : tuple, optional
+            The far field's ``k`` nearest hit points ``(d, i)`` of the queries when the
+            caller has them (the scan check, from its earlier search); ignored without
+            the far field.
 
         Returns
         -------
@@ -197,6 +202,9 @@ class SurfaceMap:
             if near is not None:
                 return tuple(near)
             return self._near_field.predict(xyz, return_grad=return_grad)
+        if neighbours is not None:
+            return self._blended().predict(xyz, return_grad=return_grad, base_out=near,
+                                           neighbours=neighbours)
         return self._blended().predict(xyz, return_grad=return_grad, base_out=near)
 
     def distribution(self, xyz):

@@ -49,6 +49,7 @@ class _TimedMap:
         self.smap, self.seconds, self.points, self.calls = smap, 0.0, 0, 0
         self.offset = smap.offset
         self.seed_points = getattr(smap, "seed_points", None)
+        self.far = getattr(smap, "far", None)  # check.py reuses its neighbour lists
 
     def predict(self, xyz, return_grad=False, **kw):
         t = time.perf_counter()

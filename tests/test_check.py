@@ -799,3 +799,81 @@ def test_registration_residual_derivative_matches_finite_differences(corridor_ma
     err = np.array(err)
     assert np.all(np.median(err, 1) < 1e-3), np.median(err, 1)
     assert np.all(np.percentile(err, 90, 1) < 1e-2), np.percentile(err, 90, 1)
+
+
+def test_moved_neighbours_are_the_exact_k_nearest():
+    """The far field's neighbour lists of moved queries taken from an earlier search
+    with a few more neighbours (check._moved_neighbours): the same distances and hit
+    points as a new search, bit for bit, whether a row was taken from the earlier lists
+    (small moves) or searched again (moves beyond the earlier lists' reach)."""
+    from types import SimpleNamespace
+
+    from gmmgp_app import check
+    from gmmgp_app.stages.farfield import FarField
+
+    rng = np.random.default_rng(3)
+    pts = _box_surface(20000, rng)
+    normals = rng.normal(size=pts.shape)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    far = FarField(pts, normals, rho0=0.05, noise=0.005)
+    smap = SimpleNamespace(far=far)
+    y0 = _box_surface(5000, rng) + rng.normal(0, 0.02, (5000, 3))
+    keep = {}
+    found = check._far_neighbours(smap, y0, extra=check.NEIGHBOUR_EXTRA)
+    keep.update(y=y0, d=found[0], i=found[1], k=far.k, rows=np.arange(len(y0)) + 7)
+    # small moves for most rows, large ones (10 cm) for a tenth of them
+    step = np.where(rng.random(len(y0))[:, None] < 0.1, 0.1, 0.002)
+    y = y0 + step * rng.normal(size=y0.shape)
+    rows = np.arange(len(y0)) + 7
+    calls = []
+    orig = check._update_knn
+
+    def spy(yq, src, *a):
+        orig(yq, src, *a)
+        calls.append(a[-1].copy())
+    check._update_knn = spy
+    try:
+        d, i = check._moved_neighbours(smap, keep, y, rows)
+    finally:
+        check._update_knn = orig
+    d_ref, i_ref = far.knn.query(y)
+    assert np.array_equal(d, d_ref) and np.array_equal(i, i_ref)
+    ok = calls[0]
+    assert 0.5 < ok.mean() < 0.99, ok.mean()  # both paths taken
+    assert ok[step[:, 0] < 0.01].mean() > ok[step[:, 0] > 0.01].mean()
+    # the blended prediction with the lists given is the one without them
+    a = far.components(y, True, neighbours=(d, i))
+    b = far.components(y, True)
+    for key in ("mean", "var", "grad"):
+        assert np.array_equal(a[key], b[key]), key
+
+
+def test_check_after_alignment_reuses_the_far_fields_neighbours(corridor_map, monkeypatch):
+    """With ``REUSE_NEIGHBOURS`` the check after the registration takes the far field's
+    neighbour lists from the surface correction's search (the blended prediction of every
+    point is given them): the same check as without, bit for bit."""
+    from gmmgp_app import check
+
+    scan = _corridor(20000, np.random.default_rng(1))
+    T = _truth(rot_deg=0.3, axis=(0.2, 0.1, 0.3), t=(0.05, 0.02, -0.01))
+    moved = _move(scan.points, T)
+    given = []
+
+    class Spy:
+        offset, seed_points, far = corridor_map.offset, corridor_map.seed_points, \
+            corridor_map.far
+
+        def predict(self, xyz, return_grad=False, far=True, near=None, neighbours=None):
+            given.append((len(xyz), neighbours is not None))
+            return corridor_map.predict(xyz, return_grad=return_grad, far=far, near=near,
+                                        neighbours=neighbours)
+
+    res = check_scan(moved, Spy(), align=True)
+    assert (len(moved), True) == given[-1], given[-3:]
+    monkeypatch.setattr(check, "REUSE_NEIGHBOURS", False)
+    given.clear()
+    ref = check_scan(moved, Spy(), align=True)
+    assert not any(g[1] for g in given)
+    for name in ("transform", "covariance", "distance", "std", "std_surface", "z", "known",
+                 "changed"):
+        assert np.array_equal(getattr(res, name), getattr(ref, name), equal_nan=True), name

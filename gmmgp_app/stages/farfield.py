@@ -313,21 +313,29 @@ class FarField:
         return (out["mean"], out["var"], out["grad"]) if return_grad else \
             (out["mean"], out["var"])
 
-    def components(self, xyz, return_grad: bool = False) -> dict:
+    def components(self, xyz, return_grad: bool = False, neighbours=None) -> dict:
         """Mean (eq. imls; eq. rimls when ``robust_scale > 0``; plus eq. sphere_vote's
         correction with ``vote="sphere"``), variance (eq. far_var) and their
         ingredients: ``r`` the distance to the nearest hit point, ``spread2`` the
         neighbours' weighted variance of plane distances, ``n_eff``; ``grad`` when
         asked (the weighted normal of the plane vote); the sphere vote's ``delta``
         (sphere minus plane distance), ``shrink`` (u4^2 / (u4^2 + var u4)) and
-        ``v_curv`` (the distance's variance from var u4), zeros for the plane vote."""
+        ``v_curv`` (the distance's variance from var u4), zeros for the plane vote.
+        ``neighbours``: the queries' ``k`` nearest hit points ``(d, i)`` as :attr:`knn`
+        returns them, when the caller has them (the scan check reuses its earlier search)."""
         x = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
         K = len(x)
         if K == 0:
             z = np.zeros(0)
             return dict(mean=z, var=z, r=z, spread2=z, n_eff=z, grad=np.zeros((0, 3)),
                         delta=z, shrink=z, v_curv=z, spread2_sphere=z)
-        d, i = self.knn.query(x)
+        if neighbours is not None:
+            d, i = (np.ascontiguousarray(a) for a in neighbours)
+            if d.shape != (K, self.k) or i.shape != (K, self.k):
+                raise FarFieldError(f"Expected neighbours (d, i) of shape {(K, self.k)}, "
+                                    f"found {d.shape} and {i.shape}.")
+        else:
+            d, i = self.knn.query(x)
         mean, var, spread2, n_eff, g, delta, shrink, v_curv, spread2_s = _imls(
             x, d, i, self.points, self.normals, self.rho0, self.growth, self.noise,
             self.spread_weight, self.beta, self.robust_scale, self.robust_iterations,
@@ -1004,14 +1012,16 @@ class BlendedField:
         # the GP's length scale l (auto rule 1.75 h_t when not given)
         self.length_scale = float(length_scale) if length_scale else 1.75 * far.rho0
 
-    def predict(self, xyz, return_grad: bool = False, mean_only: bool = False, base_out=None):
+    def predict(self, xyz, return_grad: bool = False, mean_only: bool = False, base_out=None,
+                neighbours=None):
         """Mean, variance[, gradient]; ``mean_only``: the mean alone (the same values;
         the variance model, which the mean does not use, is skipped). With
         ``unseen_predictive="mixture"`` the variance is the square of the central
         68.27 % half-width of eq. unseen_mixture (:meth:`distribution`). ``base_out``:
         the base field's ``predict(xyz, return_grad)`` when the caller has it (not
-        computed again)."""
-        res, dist = self._predict(xyz, return_grad, mean_only, base_out)
+        computed again); ``neighbours``: the far field's k-NN lists of the queries
+        (:meth:`FarField.components`)."""
+        res, dist = self._predict(xyz, return_grad, mean_only, base_out, neighbours)
         return res
 
     def distribution(self, xyz):
@@ -1020,12 +1030,13 @@ class BlendedField:
         when ``unseen_predictive="gaussian"`` or the field is not calibrated)."""
         return self._predict(xyz, False, False)[1]
 
-    def _predict(self, xyz, return_grad, mean_only, base_out=None):
+    def _predict(self, xyz, return_grad, mean_only, base_out=None, neighbours=None):
         from .unseen import UnseenMixture
 
         out = self.base.predict(xyz, return_grad=return_grad) if base_out is None \
             else tuple(base_out)
-        c = self.far.components(xyz, return_grad)
+        c = self.far.components(xyz, return_grad) if neighbours is None \
+            else self.far.components(xyz, return_grad, neighbours=neighbours)
         grads = (out[2], c["grad"]) if return_grad else ()
         d2 = (out[0] - c["mean"]) ** 2
         h, sigma = self.far.rho0, self.far.noise
