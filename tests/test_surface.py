@@ -557,3 +557,91 @@ def test_mesh_topology_does_not_depend_on_the_units():
             continue
         np.testing.assert_array_equal(m.faces, ref.faces)
         np.testing.assert_allclose(m.vertices / s, ref.vertices, rtol=0, atol=1e-9)
+
+
+def _worker_calls(field):
+    """``field`` recording whether each call came from another thread than the caller's
+    (the overlap's worker)."""
+    import threading
+
+    main = threading.get_ident()
+    calls = []
+
+    def run(x, *a, **k):
+        calls.append(threading.get_ident() != main)
+        return field(x, *a, **k)
+    return run, calls
+
+
+def _assert_same_mesh(a, b):
+    assert np.array_equal(a.vertices, b.vertices)
+    assert np.array_equal(a.faces, b.faces)
+    assert np.array_equal(a.vertex_variance, b.vertex_variance)
+
+
+def test_overlap_gives_the_serial_mesh_bit_for_bit():
+    # Random node values (inner vertices of ambiguous cubes, negative keys, in many
+    # layers of 4-cell blocks) with a variance that varies from point to point, and small
+    # batches: the worker thread's vertex pass, handed each finished layer's stitched
+    # vertices, gives the serial path's mesh exactly; so does the projection's.
+    h = 0.1
+    noise = _noise_field(h)
+
+    def field(x):
+        return noise(x)[0], 1e-4 * (1.5 + np.sin(7 * x[:, 0]) * np.cos(3 * x[:, 1] + x[:, 2]))
+
+    g = np.stack(np.meshgrid(*(np.arange(-8, 8) * h + h / 2,) * 3, indexing="ij"),
+                 -1).reshape(-1, 3)
+    kw = dict(voxel_size=h, block_cells=4, dilate=2, batch=97)
+    serial = extract_surface(field, g, overlap=False, **kw)
+    counted, calls = _worker_calls(field)
+    over = extract_surface(counted, g, overlap=True, **kw)
+    assert sum(calls) > 20 and len(np.unique(serial.vertex_variance)) > 1000
+    frac = np.abs(serial.vertices / h - np.round(serial.vertices / h)) > 1e-6
+    assert np.sum(frac.sum(1) >= 2) > 10, "the case must have inner vertices"
+    _assert_same_mesh(serial, over)
+    # a field that gives a point alone other values than in a batch (as the map's
+    # variance does in its last bits): the serial pass's lone last vertex (batch chosen
+    # so) keeps its value, the worker's runs of one point do not take it
+    lone = lambda x: (field(x)[0], field(x)[1] + (1e-9 if len(x) == 1 else 0.0))  # noqa
+    n = len(serial.vertices)
+    for b in (n - 1, 97):
+        kw["batch"] = b
+        serial = extract_surface(lone, g, overlap=False, **kw)
+        _assert_same_mesh(serial, extract_surface(lone, g, overlap=True, **kw))
+        assert np.sum(serial.vertex_variance != field(serial.vertices)[1]) == (b == n - 1)
+    # with the projection (an ellipsoid, Newton steps in the worker) and a std cut
+    seeds = _ellipsoid_seeds(5000)
+    kw = dict(voxel_size=0.1, block_cells=4, batch=101, project_steps=2,
+              predict_mean=lambda x: _ellipsoid(x)[0] - 0.02, max_std=0.0101)
+
+    def ell(x):
+        m, _, grad = _ellipsoid(x)
+        return m, 1e-4 * (1 + x[:, 0] ** 2), grad
+
+    serial = extract_surface(lambda x: ell(x)[:2], seeds, project=ell, overlap=False, **kw)
+    counted, calls = _worker_calls(ell)
+    over = extract_surface(lambda x: ell(x)[:2], seeds, project=counted, overlap=True, **kw)
+    assert sum(calls) > 5 and 0 < len(serial.faces)
+    _assert_same_mesh(serial, over)
+
+
+def test_overlap_gives_the_serial_mesh_of_a_map_bit_for_bit(box_scene):
+    # A map's own fields (GP, far field, prior, blends) give each point the same values
+    # in any batch: the overlapped mesh is the serial one, with and without projection.
+    import gmmgp_app as gm
+    from gmmgp_app.stages import surface as S
+
+    _, scan = box_scene
+    smap = gm.build_map(scan, gm.MappingConfig())
+    h = smap.config.surface.voxel_size
+    kw = dict(voxel_size=h, block_cells=8, batch=1000, reach=smap.surface_reach(),
+              predict_mean=smap.lattice_mean)
+    for project in (None, smap._predict_with_grad):
+        serial = S.extract_surface(smap.predict, smap.seed_points, project=project,
+                                   overlap=False, **kw)
+        counted, calls = _worker_calls(smap.predict)
+        over = S.extract_surface(counted, smap.seed_points, project=project, overlap=True,
+                                 **kw)
+        assert len(serial.faces) > 1000 and (sum(calls) > 3 or project is not None)
+        _assert_same_mesh(serial, over)

@@ -158,7 +158,8 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
                     progress=None, reach: Optional[float] = None,
                     predict_mean: Optional[Callable] = None,
                     project: Optional[Callable] = None, project_steps: int = 1,
-                    project_clamp: float = 0.5, timings: Optional[dict] = None) -> SurfaceMesh:
+                    project_clamp: float = 0.5, timings: Optional[dict] = None,
+                    overlap: bool = True) -> SurfaceMesh:
     """Zero level set of a field as a triangle mesh with per-vertex variance.
 
     The lattice is evaluated only where the surface is: starting from the cells
@@ -209,8 +210,17 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     timings : dict, optional
         Filled with the process's CPU seconds per phase ("setup", "follow" (the lattice
         field included), "block_nodes", "marching_cubes", "stitch", "vertices" (the
-        variance pass or the projection), "final"): what scripts/profile_surface.py
-        reports.
+        variance pass or the projection; with ``overlap``, the wait for the worker
+        thread's last vertices), "final"): what scripts/profile_surface.py reports.
+    overlap : bool
+        Run serial parts side by side on two threads (default): the seeds' k-d tree is
+        built in a worker thread while the first lattice nodes are evaluated, and the
+        vertex pass (variance, or projection) runs in it on the stitched vertices of
+        each finished layer of blocks while scikit-image's marching cubes (which holds
+        the GIL) meshes the next ones (:class:`_VertexStream`). The mesh is the same
+        bit for bit as with ``overlap=False`` (everything in the calling thread, in
+        order) provided ``predict`` and ``project`` give each point the same values
+        whatever batch it is in (the map's fields do: tests/test_surface.py).
 
     Returns
     -------
@@ -232,7 +242,30 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     #    on as a "fin", which is not observed surface.
     from scipy.spatial import cKDTree
 
-    tree = cKDTree(seeds, balanced_tree=False)   # sliding midpoint: faster, same answers
+    pool = None
+    if overlap:
+        from concurrent.futures import ThreadPoolExecutor
+
+        pool = ThreadPoolExecutor(1, thread_name_prefix="gmmgp-surface")
+    try:
+        return _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress,
+                        reach, predict_mean, project, project_steps, project_clamp, tick,
+                        pool, cKDTree, marching_cubes)
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, reach,
+             predict_mean, project, project_steps, project_clamp, tick, pool, cKDTree,
+             marching_cubes) -> SurfaceMesh:
+    """:func:`extract_surface` after its checks; ``pool`` (one worker thread, or None
+    for the serial path) runs the seeds' tree and the vertex pass beside the rest."""
+    if pool is not None:          # sliding midpoint: faster, same answers
+        tree_job = pool.submit(cKDTree, seeds, balanced_tree=False)
+        tree = None
+    else:
+        tree = cKDTree(seeds, balanced_tree=False)
     if reach is None:
         reach = surface_reach(seeds, h)
     elif not reach > 0:
@@ -254,6 +287,8 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     for _ in range(dilate):
         new = lattice.evaluate_corners(frontier, followed)
         if len(new):
+            if tree is None:
+                tree = tree_job.result()
             near = tree.query((new + 0.5) * h, k=1, distance_upper_bound=reach,
                               workers=-1)[0] < np.inf
             new = new[near]
@@ -267,6 +302,8 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     cells = np.concatenate(cells)
     node_keys, values = lattice.keys, lattice.values    # hash table: key -1 = empty slot
     # memory: only the node values go on
+    if tree is None:
+        tree_job.result()         # let the worker finish before it meshes
     del tree, followed, frontier, lattice
     new = None
 
@@ -281,8 +318,16 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     bptr, node_local, node_value = _block_nodes(node_keys, values, pack, blocks, block_cells)
     del node_keys, values
     tick("block_nodes")
+    stream = None
+    if pool is not None:
+        def vertex_pass(x):
+            return _vertex_values(predict, project, x, project_steps, project_clamp * h,
+                                  batch)
+        stream = _VertexStream(pool, vertex_pass, pack, block_cells, h, batch)
     for b, s0, s1 in zip(blocks, bptr[:-1], bptr[1:]):
         bar and bar.update(1)
+        if stream is not None:
+            stream.layer(int(b[0]))
         if s1 - s0 < 8:
             continue
         # the block's nodes, unevaluated ones masked (value 1.0: a placeholder, faces
@@ -302,6 +347,8 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
             continue
         keys_all.append(k)
         verts_all.append(v)                             # lattice coordinates
+        if stream is not None:
+            stream.add(k, v)
         faces_all.append((f + n_verts).astype(np.int32 if n_verts + len(v) < 2**31
                                               else np.int64))
         n_verts += len(v)
@@ -311,10 +358,12 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     if not verts_all:
         return SurfaceMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros(0))
     del bptr, node_local, node_value
+    if stream is not None:
+        stream.finish()           # the last layers' vertices to the worker
     keys = np.concatenate(keys_all)  # packed (lower lattice node, axis) of each vertex's edge
     del keys_all
     # Stitch: one vertex per lattice-edge key.
-    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    ukeys, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
     del keys
     verts = np.concatenate(verts_all)[first] * h
     del verts_all, first
@@ -322,15 +371,37 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     del faces_all, inverse
     faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
                   & (faces[:, 0] != faces[:, 2])]
-    verts, faces, _ = _drop_unused(verts, faces, np.zeros(len(verts)))
-    tick("stitch")
-    if project is not None:
-        verts, _, var = project_vertices(project, verts, project_steps, project_clamp * h,
-                                         batch, predict)
+    if stream is None:
+        del ukeys
+        verts, faces, _ = _drop_unused(verts, faces, np.zeros(len(verts)))
+        tick("stitch")
+        if project is not None:
+            verts, _, var = project_vertices(project, verts, project_steps, project_clamp * h,
+                                             batch, predict)
+        else:
+            var = _variance(predict, verts, batch)
     else:
-        var = np.empty(len(verts))
-        for s in range(0, len(verts), batch):
-            var[s:s + batch] = predict(verts[s:s + batch])[1]
+        tick("stitch")
+        # the worker's values of every stitched vertex (in ukeys' order); the vertices
+        # that only degenerate faces used are dropped with their values
+        moved, var = stream.result(ukeys)
+        del ukeys
+        used = np.zeros(len(verts), bool)
+        used[faces.reshape(-1)] = True
+        faces = (np.cumsum(used) - 1)[faces].astype(np.int64, copy=False)  # _drop_unused
+        verts, var = verts[used], var[used]
+        moved = moved[used] if moved is not None else None
+        if batch > 1 and len(verts) % batch == 1:
+            # the serial pass evaluates the last vertex alone: a batch of one point, to
+            # which the map's variance gives other last bits (_vertex_values)
+            if project is None:
+                var[-1] = predict(verts[-1:])[1][0]
+            else:
+                p, _, v = project_vertices(project, verts[-1:], project_steps,
+                                           project_clamp * h, batch, predict)
+                moved[-1], var[-1] = p[0], v[0]
+        if moved is not None:
+            verts = moved
     tick("vertices")
     if max_std is not None:
         bad = np.sqrt(np.maximum(var, 0)) > max_std
@@ -338,6 +409,137 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     verts, faces, var = _drop_unused(verts, faces, var)
     tick("final")
     return SurfaceMesh(verts, faces, var)
+
+
+def _variance(predict: Callable, verts: np.ndarray, batch: int) -> np.ndarray:
+    """``predict``'s variance at ``verts`` (V, 3), ``batch`` points per call."""
+    var = np.empty(len(verts))
+    for s in range(0, len(verts), batch):
+        var[s:s + batch] = predict(verts[s:s + batch])[1]
+    return var
+
+
+def _vertex_values(predict: Callable, project: Optional[Callable], verts: np.ndarray,
+                   steps: int, max_step: float, batch: int):
+    """The vertex pass of the serial path on any run of the stitched vertices: the
+    projected points (None without ``project``) and ``predict``'s variance, ``batch``
+    points per call. A map's field gives a point the same values in any batch of two
+    points or more, but not alone (its eq. calibrated_var takes a matrix-vector product,
+    which numpy computes another way for one row: the last bits of the variance differ);
+    so a run of one point (when ``batch`` > 1) is evaluated as a pair of copies, and the
+    serial pass's own lone last vertex is evaluated alone by the caller."""
+    moved = None if project is None else np.empty_like(verts)
+    var = np.empty(len(verts))
+    for s in range(0, len(verts), batch):
+        x = verts[s:s + batch]
+        pair = len(x) == 1 and batch > 1
+        if pair:
+            x = np.repeat(x, 2, axis=0)
+        if project is None:
+            v = predict(x)[1]
+        else:
+            p, _, v = project_vertices(project, x, steps, max_step, len(x), predict)
+            moved[s:s + batch] = p[:1] if pair else p
+        var[s:s + batch] = v[:1] if pair else v
+    return moved, var
+
+
+class _VertexStream:
+    """The vertex pass of :func:`extract_surface` (the variance, or the projection) run
+    in a worker thread while marching cubes goes on.
+
+    Blocks are meshed in lexicographic order, so once the blocks of layer ``I`` (block
+    coordinate ``I`` along the first axis) are done no later block makes a vertex whose
+    edge's lower node has a first coordinate below ``(I + 1) B``: the keys below
+    :meth:`_limit` are final. :meth:`layer` hands those (stitched as the serial path
+    does: one per key, the first copy; copies are bitwise equal) to the worker in jobs
+    of at least ``batch`` vertices; an inner vertex (negative key, one block's own) is
+    final at once. The keys handed over, in order, are the stitched keys
+    (``np.unique``'s) except the inner ones, which ``np.unique`` puts first in reverse:
+    :meth:`result` checks that and returns the values in the stitched order."""
+
+    def __init__(self, pool, vertex_pass: Callable, pack, block_cells: int, h: float,
+                 batch: int):
+        self.pool, self.vertex_pass, self.h, self.batch = pool, vertex_pass, h, batch
+        self.plane4 = 4 * int(pack.dims[1]) * int(pack.dims[2])
+        self.lo0, self.B = int(pack.lo[0]), int(block_cells)
+        self.current = None                 # the layer being meshed
+        self.keys, self.verts = [], []      # made since the last hand-over, not final
+        self.ready_k, self.ready_v, self.n_ready = [], [], 0
+        self.inner_k, self.inner_v = [], []
+        self.jobs = []                      # (positive keys, future)
+        self.inner_jobs = []                # (inner keys, future)
+
+    def _limit(self, layer: int) -> int:
+        """Keys below this are final once the blocks of ``layer`` are done."""
+        return ((layer + 1) * self.B - self.lo0) * self.plane4
+
+    def add(self, keys: np.ndarray, verts: np.ndarray) -> None:
+        self.keys.append(keys)
+        self.verts.append(verts)
+
+    def layer(self, layer: int) -> None:
+        """A block of ``layer`` is next: hand over what the finished layers made final."""
+        if self.current is not None and layer != self.current:
+            self._stitch(self._limit(self.current))
+        self.current = layer
+
+    def finish(self) -> None:
+        """Every block is meshed: hand over the rest."""
+        if self.keys:
+            self._stitch(None)
+        self._submit(force=True)
+
+    def _stitch(self, limit: Optional[int]) -> None:
+        if not self.keys:
+            return
+        k = np.concatenate(self.keys)
+        v = np.concatenate(self.verts)
+        inner = k < 0
+        if inner.any():
+            self.inner_k.append(k[inner])
+            self.inner_v.append(v[inner] * self.h)
+            k, v = k[~inner], v[~inner]
+        done = np.ones(len(k), bool) if limit is None else k < limit
+        self.keys, self.verts = ([], []) if done.all() else ([k[~done]], [v[~done]])
+        uk, first = np.unique(k[done], return_index=True)
+        self.ready_k.append(uk)
+        self.ready_v.append(v[done][first] * self.h)
+        self.n_ready += len(uk)
+        self._submit()
+
+    def _submit(self, force: bool = False) -> None:
+        if self.n_ready and (force or self.n_ready >= self.batch):
+            k, v = np.concatenate(self.ready_k), np.concatenate(self.ready_v)
+            self.ready_k, self.ready_v, self.n_ready = [], [], 0
+            self.jobs.append((k, self.pool.submit(self.vertex_pass, v)))
+        if self.inner_k and (force or sum(map(len, self.inner_k)) >= self.batch):
+            k, v = np.concatenate(self.inner_k), np.concatenate(self.inner_v)
+            self.inner_k, self.inner_v = [], []
+            self.inner_jobs.append((k, self.pool.submit(self.vertex_pass, v)))
+
+    def result(self, ukeys: np.ndarray):
+        """(moved points or None, values) of the stitched vertices ``ukeys`` (sorted),
+        once the worker has done them."""
+        inner = [(k, f.result()) for k, f in self.inner_jobs]
+        keys, moved, var = [], [], []
+        if inner:
+            # inner keys were made -1, -2, ...: np.unique's ascending order is their reverse
+            keys.append(np.concatenate([k for k, _ in inner])[::-1])
+            var.append(np.concatenate([v for _, (_, v) in inner])[::-1])
+            if inner[0][1][0] is not None:
+                moved.append(np.concatenate([p for _, (p, _) in inner])[::-1])
+        for k, job in self.jobs:
+            p, v = job.result()
+            keys.append(k)
+            var.append(v)
+            if p is not None:
+                moved.append(p)
+        if not np.array_equal(np.concatenate(keys) if keys else np.zeros(0, np.int64), ukeys):
+            raise RuntimeError("surface: the streamed vertices are not the stitched ones "
+                               "(a bug); use extract_surface(overlap=False).")
+        var = np.concatenate(var) if var else np.zeros(0)
+        return (np.concatenate(moved) if moved else None), var
 
 
 def clear_of_level(values: np.ndarray, clearance: float) -> np.ndarray:
