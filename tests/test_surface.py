@@ -484,12 +484,14 @@ def test_compiled_block_vertices_equal_the_numpy_functions():
 
 
 def test_timings_record_every_phase():
-    t = {}
-    mesh = extract_surface(_sphere_field, _sphere_seeds(3000), voxel_size=0.1, timings=t)
-    assert len(mesh.faces) > 100
-    assert set(t) == {"setup", "follow", "block_nodes", "marching_cubes", "stitch",
-                      "vertices", "final"}
-    assert all(v >= 0 for v in t.values())
+    for overlap in (False, True):
+        t, w = {}, {}
+        mesh = extract_surface(_sphere_field, _sphere_seeds(3000), voxel_size=0.1, timings=t,
+                               wall_timings=w, overlap=overlap)
+        assert len(mesh.faces) > 100
+        assert set(t) == set(w) == {"setup", "follow", "block_nodes", "marching_cubes",
+                                    "stitch", "vertices", "final"}
+        assert all(v >= 0 for v in t.values()) and all(v >= 0 for v in w.values())
 
 
 # ------------------------------------------------------------ lattice values near the level

@@ -159,7 +159,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
                     predict_mean: Optional[Callable] = None,
                     project: Optional[Callable] = None, project_steps: int = 1,
                     project_clamp: float = 0.5, timings: Optional[dict] = None,
-                    overlap: bool = True) -> SurfaceMesh:
+                    wall_timings: Optional[dict] = None, overlap: bool = True) -> SurfaceMesh:
     """Zero level set of a field as a triangle mesh with per-vertex variance.
 
     The lattice is evaluated only where the surface is: starting from the cells
@@ -212,6 +212,8 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
         field included), "block_nodes", "marching_cubes", "stitch", "vertices" (the
         variance pass or the projection; with ``overlap``, the wait for the worker
         thread's last vertices), "final"): what scripts/profile_surface.py reports.
+    wall_timings : dict, optional
+        Filled with the wall seconds of the same phases.
     overlap : bool
         Run serial parts side by side on two threads (default): the seeds' k-d tree is
         built in a worker thread while the first lattice nodes are evaluated, and the
@@ -228,7 +230,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     """
     from skimage.measure import marching_cubes
 
-    tick = _Ticker(timings)
+    tick = _Ticker(timings, wall_timings)
     seeds = np.asarray(seeds, dtype=np.float64)
     if seeds.ndim != 2 or seeds.shape[1] != 3 or len(seeds) == 0:
         raise ValueError(f"Expected seed points with shape (N, 3), N >= 1, found {seeds.shape}.")
@@ -575,20 +577,26 @@ def clear_of_level(values: np.ndarray, clearance: float) -> np.ndarray:
 
 
 class _Ticker:
-    """CPU seconds of the process since the last call, added to ``out[name]`` (nothing
-    when ``out`` is None)."""
+    """CPU seconds of the process since the last call, added to ``out[name]``, and wall
+    seconds, added to ``wall[name]`` (nothing for a dict that is None)."""
 
-    def __init__(self, out: Optional[dict]):
+    def __init__(self, out: Optional[dict], wall: Optional[dict] = None):
         import time
 
-        self.out, self.clock = out, time.process_time
+        self.out, self.wall = out, wall
+        self.clock, self.wall_clock = time.process_time, time.perf_counter
         self.last = self.clock() if out is not None else 0.0
+        self.last_wall = self.wall_clock() if wall is not None else 0.0
 
     def __call__(self, name: str) -> None:
         if self.out is not None:
             now = self.clock()
             self.out[name] = self.out.get(name, 0.0) + now - self.last
             self.last = now
+        if self.wall is not None:
+            now = self.wall_clock()
+            self.wall[name] = self.wall.get(name, 0.0) + now - self.last_wall
+            self.last_wall = now
 
 
 def project_vertices(project: Callable, verts: np.ndarray, steps: int = 1,
