@@ -244,27 +244,30 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     #    on as a "fin", which is not observed surface.
     from scipy.spatial import cKDTree
 
-    pool = None
+    pools = []
     if overlap:
         from concurrent.futures import ThreadPoolExecutor
 
-        pool = ThreadPoolExecutor(1, thread_name_prefix="gmmgp-surface")
+        # the fields' worker, and one for the seeds' tree (not to queue before the field)
+        pools = [ThreadPoolExecutor(1, thread_name_prefix="gmmgp-surface") for _ in range(2)]
     try:
         return _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress,
                         reach, predict_mean, project, project_steps, project_clamp, tick,
-                        pool, cKDTree, marching_cubes)
+                        *(pools or (None, None)), cKDTree, marching_cubes)
     finally:
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
+        for p in pools:
+            p.shutdown(wait=True, cancel_futures=True)
 
 
 def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, reach,
-             predict_mean, project, project_steps, project_clamp, tick, pool, cKDTree,
-             marching_cubes) -> SurfaceMesh:
+             predict_mean, project, project_steps, project_clamp, tick, pool, tree_pool,
+             cKDTree, marching_cubes) -> SurfaceMesh:
     """:func:`extract_surface` after its checks; ``pool`` (one worker thread, or None
-    for the serial path) runs the seeds' tree and the vertex pass beside the rest."""
+    for the serial path) evaluates the fields beside the rest (one call at a time: a
+    map's field is not called from two threads at once), ``tree_pool`` builds the
+    seeds' tree."""
     if pool is not None:          # sliding midpoint: faster, same answers
-        tree_job = pool.submit(cKDTree, seeds, balanced_tree=False)
+        tree_job = tree_pool.submit(cKDTree, seeds, balanced_tree=False)
         tree = None
     else:
         tree = cKDTree(seeds, balanced_tree=False)
@@ -287,7 +290,7 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
     tick("setup")
     bar = progress(dilate + 1, "surface field") if progress else None
     for _ in range(dilate):
-        new = lattice.evaluate_corners(frontier, followed)
+        new = lattice.evaluate_corners(frontier, followed, pool=pool)
         if len(new):
             if tree is None:
                 tree = tree_job.result()
@@ -299,13 +302,13 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
             break
         cells.append(new)
         frontier = new
-    lattice.evaluate_corners(frontier)  # the last cells' corners
+    lattice.evaluate_corners(frontier, pool=pool)  # the last cells' corners
     bar and bar.close()
     cells = np.concatenate(cells)
     node_keys, values = lattice.keys, lattice.values    # hash table: key -1 = empty slot
     # memory: only the node values go on
     if tree is None:
-        tree_job.result()         # let the worker finish before it meshes
+        tree_job.result()         # built (unused when nothing was followed)
     del tree, followed, frontier, lattice
     new = None
 
@@ -715,7 +718,7 @@ def _block_nodes(node_keys, values, pack, blocks, block_cells: int, dense=None):
                                order.astype(np.int64), bpack.lo, bpack.dims, dense)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _block_nodes_kernel(keys, values, lo, dims, B, bkeys_sorted, bindex, blo, bdims, dense):
     """:func:`_block_nodes`: per node its <= 8 blocks (shifted by one along the axes where
     it lies on a block face), counted, then written in node order per block. A block is
@@ -802,7 +805,7 @@ def _block_volume(node_local, node_value, s0: int, s1: int, nb: int):
     return vol.reshape(nb, nb, nb), finite.reshape(nb, nb, nb)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _fill_block(node_local, node_value, s0, s1, vol, finite):
     """:func:`_block_volume` in one pass: True when some evaluated value is <= 0 and
     some is >= 0."""
@@ -838,40 +841,65 @@ class _LatticeValues:
         self.count = 0
 
     def evaluate_corners(self, cells: np.ndarray, followed: Optional["_KeySet"] = None,
-                         chunk: int = 65536) -> Optional[np.ndarray]:
+                         chunk: int = 65536, pool=None) -> Optional[np.ndarray]:
         """Evaluate the corners of ``cells`` (lower corners, (n, 3)) not evaluated yet, a
         chunk of cells at a time; with ``followed``, also one step of surface following:
         the neighbours of ``cells`` across a face whose corner values change sign
-        (min < 0 < max) that are not in ``followed`` yet (added to it), returned (m, 3)."""
+        (min < 0 < max) that are not in ``followed`` yet (added to it), returned (m, 3).
+
+        With ``pool`` (one worker thread) the chunks are pipelined: a chunk's new nodes
+        are evaluated in the worker while the calling thread inserts the next chunk's
+        corners and follows the previous chunk's faces (the same nodes evaluated in the
+        same batches, the same cells proposed in the same order)."""
         out = []
+        pending = None                  # (cells, slots, new keys, values or a future)
         for s in range(0, len(cells), chunk):
             c = np.ascontiguousarray(cells[s:s + chunk], dtype=np.int64)
+            table = self.keys
             self._reserve(8 * len(c))
+            if pending is not None and self.keys is not table:
+                # rehashed: the waiting chunk's corner slots moved
+                pending[1][:] = _corner_slots(pending[0], self.pack.lo, self.pack.dims,
+                                              self.keys)
             new = np.empty(8 * len(c), np.int64)
             slots = np.empty((len(c), 8), np.int64)
             n = _insert_corners(c, self.pack.lo, self.pack.dims, self.keys, new, slots)
             self.count += n
             new = new[:n]
+            if pending is not None:
+                self._finish(pending, followed, out)
             # evaluated in key order (as the sorted unique keys were before)
             new.sort()
-            nodes = self.pack.unpack(new)
-            vals = np.empty(n)
-            for b in range(0, n, self.batch):
-                vals[b:b + self.batch] = self.predict(nodes[b:b + self.batch] * self.h)
-            # in voxels and off the level (clear_of_level): what following and
-            # marching cubes see
-            _set_values(self.keys, self.values, new,
-                        clear_of_level(vals / self.h, LEVEL_CLEARANCE))
-            if followed is not None:
-                followed.reserve(6 * len(c))
-                grown = np.empty((6 * len(c), 3), np.int64)
-                m = _grow_cells(c, self.pack.lo, self.pack.dims, self.values, slots,
-                                followed.keys, grown)
-                followed.count += m
-                out.append(grown[:m])
+            vals = pool.submit(self._values, new) if pool is not None else self._values(new)
+            pending = (c, slots, new, vals)
+        if pending is not None:
+            self._finish(pending, followed, out)
         if followed is None:
             return None
         return np.concatenate(out) if out else np.zeros((0, 3), np.int64)
+
+    def _values(self, new: np.ndarray) -> np.ndarray:
+        """The lattice values at the sorted new node keys ``new``, in voxels and off the
+        level (clear_of_level): what following and marching cubes see."""
+        nodes = self.pack.unpack(new)
+        vals = np.empty(len(new))
+        for b in range(0, len(new), self.batch):
+            vals[b:b + self.batch] = self.predict(nodes[b:b + self.batch] * self.h)
+        return clear_of_level(vals / self.h, LEVEL_CLEARANCE)
+
+    def _finish(self, pending, followed, out) -> None:
+        """Store a chunk's new values, then follow its cells' faces (on its slots)."""
+        c, slots, new, vals = pending
+        if not isinstance(vals, np.ndarray):
+            vals = vals.result()
+        _set_values(self.keys, self.values, new, vals)
+        if followed is not None:
+            followed.reserve(6 * len(c))
+            grown = np.empty((6 * len(c), 3), np.int64)
+            m = _grow_cells(c, self.pack.lo, self.pack.dims, self.values, slots,
+                            followed.keys, grown)
+            followed.count += m
+            out.append(grown[:m])
 
     def _reserve(self, more: int) -> None:
         self.keys, self.values = _reserve_table(self.keys, self.values, self.count + more)
@@ -931,7 +959,7 @@ def _probe(tk, key):
     return s
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _rehash(keys, values, nk, nv):
     with_values = len(nv) > 0
     for i in range(len(keys)):
@@ -942,7 +970,7 @@ def _rehash(keys, values, nk, nv):
                 nv[s] = values[i]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _add_keys(tk, keys):
     """Insert ``keys``; returns how many were new."""
     n = 0
@@ -959,7 +987,7 @@ def _pack1(i, j, k, lo, dims):
     return ((i - lo[0]) * dims[1] + (j - lo[1])) * dims[2] + (k - lo[2])
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _insert_corners(cells, lo, dims, tk, new, slots):
     """Insert the 8 corner nodes of each cell into the node table (value unset), writing
     each node not there before to ``new`` and each corner's table slot to ``slots``
@@ -978,13 +1006,26 @@ def _insert_corners(cells, lo, dims, tk, new, slots):
     return n
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
+def _corner_slots(cells, lo, dims, tk):
+    """The table slots of the 8 corner nodes of each cell (all in the table ``tk``), as
+    :func:`_insert_corners` records them: (n, 8)."""
+    slots = np.empty((len(cells), 8), np.int64)
+    for c in range(len(cells)):
+        for o in range(8):
+            slots[c, o] = _probe(tk, _pack1(cells[c, 0] + (o >> 2),
+                                            cells[c, 1] + ((o >> 1) & 1),
+                                            cells[c, 2] + (o & 1), lo, dims))
+    return slots
+
+
+@nb.njit(cache=True, nogil=True)
 def _set_values(tk, tv, keys, vals):
     for i in range(len(keys)):
         tv[_probe(tk, keys[i])] = vals[i]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _get_values(tk, tv, keys):
     out = np.empty(len(keys))
     for i in range(len(keys)):
@@ -993,7 +1034,7 @@ def _get_values(tk, tv, keys):
     return out
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _grow_cells(cells, lo, dims, tv, slots, ck, new):
     """Surface following, one step: for each cell and each of its 6 faces whose 4 corner
     values (``tv`` at the corners' ``slots``) change sign (min < 0 < max, as
@@ -1089,7 +1130,7 @@ def _block_vertices(v, f, vol, finite, offset, pack, n_inner: int):
     return k, v + offset, f, n_inner + len(inner)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _block_vertices_kernel(v, f, vol, finite, off, plo, pdims, n_inner):
     """:func:`_block_vertices` for float32 vertices: :func:`_valid_vertices` (float32
     ``v +- 1e-9``), the kept faces' vertices, :func:`_refine_on_edges` (float32
