@@ -40,6 +40,11 @@ REACH_SPACINGS = 1.0
 #: negative): see :func:`clear_of_level`.
 LEVEL_CLEARANCE = 1e-3
 
+#: With ``extract_surface(overlap=True)``: pipeline the surface following's chunks (a
+#: chunk's lattice nodes evaluated on the worker thread while the next chunk's corners
+#: are inserted): see docs/speed.md 'Session 10'.
+FOLLOW_PIPELINED = True
+
 
 class GridTooLargeError(MemoryError):
     """The requested surface grid would not fit the machine; message has the estimate."""
@@ -266,6 +271,7 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
     for the serial path) evaluates the fields beside the rest (one call at a time: a
     map's field is not called from two threads at once), ``tree_pool`` builds the
     seeds' tree."""
+    follow_pool = pool if FOLLOW_PIPELINED else None
     if pool is not None:          # sliding midpoint: faster, same answers
         tree_job = tree_pool.submit(cKDTree, seeds, balanced_tree=False)
         tree = None
@@ -290,7 +296,7 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
     tick("setup")
     bar = progress(dilate + 1, "surface field") if progress else None
     for _ in range(dilate):
-        new = lattice.evaluate_corners(frontier, followed, pool=pool)
+        new = lattice.evaluate_corners(frontier, followed, pool=follow_pool)
         if len(new):
             if tree is None:
                 tree = tree_job.result()
@@ -302,7 +308,7 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
             break
         cells.append(new)
         frontier = new
-    lattice.evaluate_corners(frontier, pool=pool)  # the last cells' corners
+    lattice.evaluate_corners(frontier, pool=follow_pool)  # the last cells' corners
     bar and bar.close()
     cells = np.concatenate(cells)
     node_keys, values = lattice.keys, lattice.values    # hash table: key -1 = empty slot
@@ -326,8 +332,9 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
     stream = None
     if pool is not None:
         def vertex_pass(x):
+            # one numba thread while marching cubes holds the other core, all after
             return _vertex_values(predict, project, x, project_steps, project_clamp * h,
-                                  batch)
+                                  batch, lambda: 1 if stream.meshing else None)
         stream = _VertexStream(pool, vertex_pass, pack, block_cells, h, batch)
     for b, s0, s1 in zip(blocks, bptr[:-1], bptr[1:]):
         bar and bar.update(1)
@@ -425,17 +432,24 @@ def _variance(predict: Callable, verts: np.ndarray, batch: int) -> np.ndarray:
 
 
 def _vertex_values(predict: Callable, project: Optional[Callable], verts: np.ndarray,
-                   steps: int, max_step: float, batch: int):
+                   steps: int, max_step: float, batch: int,
+                   threads: Optional[Callable] = None):
     """The vertex pass of the serial path on any run of the stitched vertices: the
     projected points (None without ``project``) and ``predict``'s variance, ``batch``
     points per call. A map's field gives a point the same values in any batch of two
     points or more, but not alone (its eq. calibrated_var takes a matrix-vector product,
     which numpy computes another way for one row: the last bits of the variance differ);
     so a run of one point (when ``batch`` > 1) is evaluated as a pair of copies, and the
-    serial pass's own lone last vertex is evaluated alone by the caller."""
+    serial pass's own lone last vertex is evaluated alone by the caller.
+
+    ``threads() -> int or None``, asked before each batch: the numba threads of this
+    thread for it (None: numba's default). The fields' kernels give each point the same
+    values on any number of threads (each writes its own points' outputs)."""
     moved = None if project is None else np.empty_like(verts)
     var = np.empty(len(verts))
     for s in range(0, len(verts), batch):
+        if threads is not None:
+            nb.set_num_threads(threads() or nb.config.NUMBA_NUM_THREADS)
         x = verts[s:s + batch]
         pair = len(x) == 1 and batch > 1
         if pair:
@@ -469,6 +483,7 @@ class _VertexStream:
         self.plane4 = 4 * int(pack.dims[1]) * int(pack.dims[2])
         self.lo0, self.B = int(pack.lo[0]), int(block_cells)
         self.current = None                 # the layer being meshed
+        self.meshing = True                 # until finish(): marching cubes runs beside
         self.keys, self.verts = [], []      # made since the last hand-over, not final
         self.ready_k, self.ready_v, self.n_ready = [], [], 0
         self.inner_k, self.inner_v = [], []
@@ -491,6 +506,7 @@ class _VertexStream:
 
     def finish(self) -> None:
         """Every block is meshed: hand over the rest."""
+        self.meshing = False
         if self.keys:
             self._stitch(None)
         self._submit(force=True)
