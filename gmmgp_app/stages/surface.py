@@ -42,8 +42,10 @@ LEVEL_CLEARANCE = 1e-3
 
 #: With ``extract_surface(overlap=True)``: pipeline the surface following's chunks (a
 #: chunk's lattice nodes evaluated on the worker thread while the next chunk's corners
-#: are inserted): see docs/speed.md 'Session 10'.
-FOLLOW_PIPELINED = True
+#: are inserted). Off: on the street it made the stage slower (17.3 against 14.9 s wall,
+#: 11.4 against 9.9 CPU-s, medians of 3 under load ~7; the worker's own OpenMP team
+#: spins beside the calling thread's), docs/speed.md 'Session 10 (speed-16s)'.
+FOLLOW_PIPELINED = False
 
 
 class GridTooLargeError(MemoryError):
