@@ -141,6 +141,20 @@ def test_node_grouping_by_block_matches_a_brute_force_box_lookup(dense):
     blocks = blocks[rng.permutation(len(blocks))]
     ptr, loc, val = S._block_nodes(keys, values, pack, blocks, B, dense=dense)
     assert len(ptr) == len(blocks) + 1 and ptr[-1] == len(loc) == len(val)
+    # the runs of nodes grouped in parallel give the one-run grouping exactly (each
+    # block's nodes in node order; hash-table gaps, key -1, skipped), any run count
+    gappy = np.insert(keys, rng.integers(0, len(keys), 60), -1)
+    gval = np.insert(values, 0, 0.0)[np.cumsum(gappy >= 0) * (gappy >= 0)]
+    one = S._block_nodes(gappy, gval, pack, blocks, B, dense=dense, nchunk=1)
+    for a, b in zip(one, (ptr, loc, val)):
+        np.testing.assert_array_equal(a, b)
+    for nchunk in (2, 3, 7, 50):
+        for a, b in zip(one, S._block_nodes(gappy, gval, pack, blocks, B, dense=dense,
+                                            nchunk=nchunk)):
+            np.testing.assert_array_equal(a, b)
+    nodes_of = [np.searchsorted(keys, pack(blocks[t] * B + np.stack(np.unravel_index(
+        loc[ptr[t]:ptr[t + 1]], (B + 1,) * 3), -1))) for t in range(len(blocks))]
+    assert all(np.all(np.diff(i) > 0) for i in nodes_of)     # node order in each block
     nb = B + 1
     n_shared = 0
     for t, b in enumerate(blocks):

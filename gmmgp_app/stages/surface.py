@@ -705,15 +705,18 @@ def _unique_rows(cells: np.ndarray, pack=None) -> np.ndarray:
     return cells[first]
 
 
-def _block_nodes(node_keys, values, pack, blocks, block_cells: int, dense=None):
+def _block_nodes(node_keys, values, pack, blocks, block_cells: int, dense=None,
+                 nchunk: Optional[int] = None):
     """Lattice nodes grouped by the marching-cubes blocks ``blocks`` whose (B+1)^3 node
     boxes hold them (a node on a block face belongs to both blocks, on an edge or
     corner to 4 or 8): CSR ``ptr`` (len(blocks) + 1) over the flat local indices
     ``(i nb + j) nb + k`` (int32) and values of each block's nodes. Negative keys (the
     empty slots of :class:`_LatticeValues`' table) are skipped.
 
-    One compiled counting pass over the nodes (no per-block box lookups, no sort of
-    (block, node) pairs: the grouping needs ~12 bytes per pair). Blocks are found in a
+    A compiled counting pass over the nodes (no per-block box lookups, no sort of
+    (block, node) pairs: the grouping needs ~12 bytes per pair), on runs of nodes in
+    parallel (``nchunk`` runs; default up to 4 per numba thread, of >= 2^16 nodes
+    each), each block's nodes in node order whatever the runs. Blocks are found in a
     dense table of the blocks' bounding box when it is small (``dense`` None: at most
     8 cells per block or 1M cells; False: always by binary search).
     """
@@ -731,84 +734,119 @@ def _block_nodes(node_keys, values, pack, blocks, block_cells: int, dense=None):
         dense[bkeys] = np.arange(len(bkeys))
     else:
         dense = np.zeros(0, np.int64)
+    # runs of >= 2^16 nodes, up to 4 per thread: the same result for any count
+    if nchunk is None:
+        nchunk = max(1, min(4 * nb.get_num_threads(), len(node_keys) >> 16))
     return _block_nodes_kernel(np.asarray(node_keys, np.int64), np.asarray(values, np.float64),
                                pack.lo, pack.dims, int(block_cells), bkeys[order],
-                               order.astype(np.int64), bpack.lo, bpack.dims, dense)
+                               order.astype(np.int64), bpack.lo, bpack.dims, dense, int(nchunk))
 
 
-@nb.njit(cache=True, nogil=True)
-def _block_nodes_kernel(keys, values, lo, dims, B, bkeys_sorted, bindex, blo, bdims, dense):
-    """:func:`_block_nodes`: per node its <= 8 blocks (shifted by one along the axes where
-    it lies on a block face), counted, then written in node order per block. A block is
-    found in ``dense`` (block index per key) when given, else by binary search."""
+@nb.njit(cache=True, inline="always")
+def _node_blocks(kq, lo, dims, B, bkeys_sorted, bindex, blo, bdims, dense, ijk, base, face,
+                 q, bis, locs):
+    """The <= 8 blocks of node key ``kq`` (shifted by one along the axes where it lies on a
+    block face) that are in the block set: their indices to ``bis``, the node's local
+    index in each to ``locs``; returns how many. A block is found in ``dense`` (block
+    index per key) when given, else by binary search. ``ijk``, ``base``, ``face``, ``q``:
+    scratch."""
     nblk = len(bkeys_sorted)
     nb_ = B + 1
     plane = dims[1] * dims[2]
-    counts = np.zeros(nblk + 1, np.int64)
-    ptr = np.zeros(nblk + 1, np.int64)
-    fill = np.zeros(nblk, np.int64)
-    loc = np.empty(0, np.int32)
-    val = np.empty(0)
-    ijk = np.empty(3, np.int64)     # scratch, rewritten per node
-    base = np.empty(3, np.int64)
-    face = np.empty(3, np.bool_)
-    q = np.empty(3, np.int64)
-    for sweep in range(2):
-        if sweep == 1:
-            ptr = np.zeros(nblk + 1, np.int64)
-            for i in range(nblk):
-                ptr[i + 1] = ptr[i] + counts[i]
-            fill = ptr[:-1].copy()
-            loc = np.empty(ptr[-1], np.int32)
-            val = np.empty(ptr[-1])
-        for n in range(len(keys)):
-            kq = keys[n]
-            if kq < 0:
+    ijk[0] = kq // plane + lo[0]
+    ijk[1] = (kq % plane) // dims[2] + lo[1]
+    ijk[2] = kq % dims[2] + lo[2]
+    for a in range(3):
+        base[a] = ijk[a] // B            # floor division, as np.floor_divide
+        face[a] = ijk[a] - base[a] * B == 0
+    m = 0
+    for o in range(8):
+        ok = True
+        bk = 0
+        for a in range(3):
+            oa = (o >> (2 - a)) & 1
+            if oa == 1 and not face[a]:
+                ok = False
+                break
+            b = base[a] - oa
+            if b < blo[a] or b >= blo[a] + bdims[a]:
+                ok = False
+                break
+            q[a] = ijk[a] - b * B
+            bk = bk * bdims[a] + (b - blo[a])
+        if not ok:
+            continue
+        if len(dense):
+            bi = dense[bk]
+            if bi < 0:
+                continue
+        else:
+            # binary search of the block key
+            lo_, hi_ = 0, nblk
+            while lo_ < hi_:
+                mid = (lo_ + hi_) // 2
+                if bkeys_sorted[mid] < bk:
+                    lo_ = mid + 1
+                else:
+                    hi_ = mid
+            if lo_ == nblk or bkeys_sorted[lo_] != bk:
+                continue
+            bi = bindex[lo_]
+        bis[m] = bi
+        locs[m] = (q[0] * nb_ + q[1]) * nb_ + q[2]
+        m += 1
+    return m
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _block_nodes_kernel(keys, values, lo, dims, B, bkeys_sorted, bindex, blo, bdims, dense,
+                        nchunk):
+    """:func:`_block_nodes`: the nodes cut into ``nchunk`` runs, in parallel: each run
+    counts its nodes per block (:func:`_node_blocks`), the runs' counts are laid out
+    block by block (run after run), then each run writes its nodes in order into its
+    own stretch of every block. So each block holds its nodes in node order, whatever
+    ``nchunk`` (what one serial counting pass gave)."""
+    nblk = len(bkeys_sorted)
+    n = len(keys)
+    nchunk = max(1, min(nchunk, n))
+    step = (n + nchunk - 1) // nchunk
+    counts = np.zeros((nchunk, nblk), np.int64)
+    for t in nb.prange(nchunk):
+        ijk, base, q = np.empty(3, np.int64), np.empty(3, np.int64), np.empty(3, np.int64)
+        face = np.empty(3, np.bool_)
+        bis, locs = np.empty(8, np.int64), np.empty(8, np.int64)
+        for i in range(t * step, min(n, (t + 1) * step)):
+            if keys[i] < 0:
                 continue                         # an empty slot of a hash table
-            ijk[0] = kq // plane + lo[0]
-            ijk[1] = (kq % plane) // dims[2] + lo[1]
-            ijk[2] = kq % dims[2] + lo[2]
-            for a in range(3):
-                base[a] = ijk[a] // B            # floor division, as np.floor_divide
-                face[a] = ijk[a] - base[a] * B == 0
-            for o in range(8):
-                ok = True
-                bk = 0
-                for a in range(3):
-                    oa = (o >> (2 - a)) & 1
-                    if oa == 1 and not face[a]:
-                        ok = False
-                        break
-                    b = base[a] - oa
-                    if b < blo[a] or b >= blo[a] + bdims[a]:
-                        ok = False
-                        break
-                    q[a] = ijk[a] - b * B
-                    bk = bk * bdims[a] + (b - blo[a])
-                if not ok:
-                    continue
-                if len(dense):
-                    bi = dense[bk]
-                    if bi < 0:
-                        continue
-                else:
-                    # binary search of the block key
-                    lo_, hi_ = 0, nblk
-                    while lo_ < hi_:
-                        mid = (lo_ + hi_) // 2
-                        if bkeys_sorted[mid] < bk:
-                            lo_ = mid + 1
-                        else:
-                            hi_ = mid
-                    if lo_ == nblk or bkeys_sorted[lo_] != bk:
-                        continue
-                    bi = bindex[lo_]
-                if sweep == 0:
-                    counts[bi] += 1
-                else:
-                    loc[fill[bi]] = (q[0] * nb_ + q[1]) * nb_ + q[2]
-                    val[fill[bi]] = values[n]
-                    fill[bi] += 1
+            m = _node_blocks(keys[i], lo, dims, B, bkeys_sorted, bindex, blo, bdims, dense,
+                             ijk, base, face, q, bis, locs)
+            for r in range(m):
+                counts[t, bis[r]] += 1
+    ptr = np.zeros(nblk + 1, np.int64)
+    start = np.empty((nchunk, nblk), np.int64)
+    for b in range(nblk):
+        acc = ptr[b]
+        for t in range(nchunk):
+            start[t, b] = acc
+            acc += counts[t, b]
+        ptr[b + 1] = acc
+    loc = np.empty(ptr[-1], np.int32)
+    val = np.empty(ptr[-1])
+    for t in nb.prange(nchunk):
+        ijk, base, q = np.empty(3, np.int64), np.empty(3, np.int64), np.empty(3, np.int64)
+        face = np.empty(3, np.bool_)
+        bis, locs = np.empty(8, np.int64), np.empty(8, np.int64)
+        fill = start[t].copy()
+        for i in range(t * step, min(n, (t + 1) * step)):
+            if keys[i] < 0:
+                continue
+            m = _node_blocks(keys[i], lo, dims, B, bkeys_sorted, bindex, blo, bdims, dense,
+                             ijk, base, face, q, bis, locs)
+            for r in range(m):
+                bi = bis[r]
+                loc[fill[bi]] = locs[r]
+                val[fill[bi]] = values[i]
+                fill[bi] += 1
     return ptr, loc, val
 
 
