@@ -661,3 +661,27 @@ def test_overlap_gives_the_serial_mesh_of_a_map_bit_for_bit(box_scene):
                                  **kw)
         assert len(serial.faces) > 1000 and (sum(calls) > 3 or project is not None)
         _assert_same_mesh(serial, over)
+
+
+def test_overlap_workers_keep_the_callers_numba_threads():
+    # numba's thread count is per thread: the worker evaluates on the caller's count
+    # (the viewer leaves a core free), and on one thread while marching cubes runs
+    import threading
+
+    import numba
+
+    seen = []
+
+    def field(x):
+        if threading.current_thread() is not threading.main_thread():
+            seen.append(numba.get_num_threads())
+        return _sphere_field(x)
+
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        extract_surface(field, _sphere_seeds(3000), voxel_size=0.05, block_cells=4,
+                        batch=500)
+    finally:
+        numba.set_num_threads(before)
+    assert len(seen) > 5 and set(seen) == {1}

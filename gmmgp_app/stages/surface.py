@@ -255,8 +255,11 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     if overlap:
         from concurrent.futures import ThreadPoolExecutor
 
-        # the fields' worker, and one for the seeds' tree (not to queue before the field)
-        pools = [ThreadPoolExecutor(1, thread_name_prefix="gmmgp-surface") for _ in range(2)]
+        # the fields' worker, and one for the seeds' tree (not to queue before the
+        # field); numba's thread count is per thread: the workers take the caller's
+        pools = [ThreadPoolExecutor(1, thread_name_prefix="gmmgp-surface",
+                                    initializer=nb.set_num_threads,
+                                    initargs=(nb.get_num_threads(),)) for _ in range(2)]
     try:
         return _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress,
                         reach, predict_mean, project, project_steps, project_clamp, tick,
@@ -333,10 +336,12 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
     tick("block_nodes")
     stream = None
     if pool is not None:
+        threads = _numba_threads()      # (nb is a count here)
+
         def vertex_pass(x):
-            # one numba thread while marching cubes holds the other core, all after
+            # one numba thread while marching cubes holds a core, the caller's after
             return _vertex_values(predict, project, x, project_steps, project_clamp * h,
-                                  batch, lambda: 1 if stream.meshing else None)
+                                  batch, lambda: 1 if stream.meshing else threads)
         stream = _VertexStream(pool, vertex_pass, pack, block_cells, h, batch)
     for b, s0, s1 in zip(blocks, bptr[:-1], bptr[1:]):
         bar and bar.update(1)
@@ -425,6 +430,11 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
     return SurfaceMesh(verts, faces, var)
 
 
+def _numba_threads() -> int:
+    """The calling thread's numba thread count."""
+    return nb.get_num_threads()
+
+
 def _variance(predict: Callable, verts: np.ndarray, batch: int) -> np.ndarray:
     """``predict``'s variance at ``verts`` (V, 3), ``batch`` points per call."""
     var = np.empty(len(verts))
@@ -444,14 +454,14 @@ def _vertex_values(predict: Callable, project: Optional[Callable], verts: np.nda
     so a run of one point (when ``batch`` > 1) is evaluated as a pair of copies, and the
     serial pass's own lone last vertex is evaluated alone by the caller.
 
-    ``threads() -> int or None``, asked before each batch: the numba threads of this
-    thread for it (None: numba's default). The fields' kernels give each point the same
+    ``threads() -> int``, asked before each batch: the numba threads of this thread
+    for it. The fields' kernels give each point the same
     values on any number of threads (each writes its own points' outputs)."""
     moved = None if project is None else np.empty_like(verts)
     var = np.empty(len(verts))
     for s in range(0, len(verts), batch):
         if threads is not None:
-            nb.set_num_threads(threads() or nb.config.NUMBA_NUM_THREADS)
+            nb.set_num_threads(threads())
         x = verts[s:s + batch]
         pair = len(x) == 1 and batch > 1
         if pair:
