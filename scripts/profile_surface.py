@@ -16,8 +16,14 @@ spacing h_t) with the field wrapped to count and time every evaluation, and repo
 * the CPU seconds of each phase of ``extract_surface`` (``timings``: setup, follow (the
   lattice field included; ``follow_bookkeeping_cpu_s`` without it), block_nodes,
   marching_cubes, stitch, vertices, final);
+* the wall seconds of the same phases (``wall_timings``, where the profiled code has
+  it), and the process's peak RSS (``ru_maxrss``);
 * with ``--repeat N``: the extraction N times in the process, the last one reported
   (the first pays numba's cache loading);
+* with ``--serial``: ``extract_surface(overlap=False)``, everything in one thread in
+  order (the default overlaps the vertex pass with marching cubes on a worker thread);
+* with ``--save-mesh F.npz``: the mesh's vertices, faces and variances, to compare
+  two trees or the two paths bit for bit (``--compare F.npz`` does it and reports it);
 * with ``--mesh-ref`` (exact mesh) and ``--scan``: bench_peers' mesh metrics.
 
     PYTHONPATH=$PWD .venv/bin/python scripts/profile_surface.py out/street_run/map \\
@@ -33,6 +39,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import sys
 import tempfile
 import time
@@ -56,6 +63,9 @@ def main(argv=None) -> int:
     ap.add_argument("--mesh-ref", help="exact mesh .ply for the mesh metrics")
     ap.add_argument("--json", help="write the report here")
     ap.add_argument("--repeat", type=int, default=1, help="extractions (the last reported)")
+    ap.add_argument("--serial", action="store_true", help="extract_surface(overlap=False)")
+    ap.add_argument("--save-mesh", help="write vertices, faces, variances (.npz) here")
+    ap.add_argument("--compare", help="a --save-mesh file: report whether the mesh equals it")
     args = ap.parse_args(argv)
 
     from gmmgp_app.pipeline import load_map
@@ -84,13 +94,25 @@ def main(argv=None) -> int:
     smap.predict, smap.lattice_mean = counted(field, False), counted(lattice, True)
     import gmmgp_app.stages.surface as surface_stage
 
+    import inspect
+
     extract = surface_stage.extract_surface
-    phases = {}
+    phases, walls = {}, {}
+    extra = {}
+    known = inspect.signature(extract).parameters
+    if "wall_timings" in known:
+        extra["wall_timings"] = walls
+    if args.serial:
+        if "overlap" not in known:
+            ap.error("--serial: this gmmgp_app's extract_surface has no overlap (serial "
+                     "already)")
+        extra["overlap"] = False
     # the phases' CPU seconds (the pipeline reaches extract_surface through the module)
-    surface_stage.extract_surface = lambda *a, **kw: extract(*a, timings=phases, **kw)
+    surface_stage.extract_surface = lambda *a, **kw: extract(*a, timings=phases, **extra, **kw)
     for _ in range(max(args.repeat, 1)):
         calls.clear()
         phases.clear()
+        walls.clear()
         t0, c0 = time.perf_counter(), time.process_time()
         mesh = smap.extract_surface(h)
         total, total_cpu = time.perf_counter() - t0, time.process_time() - c0
@@ -125,6 +147,9 @@ def main(argv=None) -> int:
         "rest_s": float(total - secs.sum()),
         "rest_cpu_s": float(total_cpu - cpu.sum()),
         "phases_cpu_s": phases,
+        "phases_wall_s": walls,
+        "overlap": not args.serial and "overlap" in known,
+        "ru_maxrss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "follow_bookkeeping_cpu_s": float(phases.get("follow", 0.0) - cpu[on_lattice].sum()),
         "load_avg": list(os.getloadavg()),
     }
@@ -135,6 +160,15 @@ def main(argv=None) -> int:
             pts = np.ascontiguousarray(z["points"], np.float64)
         rep["mesh"] = mesh_metrics(mesh.vertices + smap.offset, mesh.faces, pts,
                                    read_ref_mesh(Path(args.mesh_ref)), 200_000, 0)
+    if args.save_mesh:
+        np.savez(args.save_mesh, vertices=mesh.vertices, faces=mesh.faces,
+                 variance=mesh.vertex_variance)
+    if args.compare:
+        with np.load(args.compare) as z:
+            rep["equal_to"] = {"file": args.compare, **{
+                k: bool(np.array_equal(z[k], a)) for k, a in
+                (("vertices", mesh.vertices), ("faces", mesh.faces),
+                 ("variance", mesh.vertex_variance))}}
     import gmmgp_app
 
     rep["gmmgp_app"] = str(Path(gmmgp_app.__file__).parent)

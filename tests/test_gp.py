@@ -227,7 +227,7 @@ def test_octree_cover_hashed_equals_binary_search():
     the same order as the binary search of the sorted keys (``lookup``) it replaced,
     on blocks that share two of three coordinates (a hash of part of the key would
     pile them up), negative cells, cells at the +-2^20 limit and queries beyond it."""
-    from gmmgp_app.stages.octree import _BIAS, _find, _hash_table, _hfind
+    from gmmgp_app.stages.octree import _BIAS, _find, _hash_table, _hfind, _lookup
     rng = np.random.default_rng(3)
     line = np.c_[np.arange(-300, 300), np.full(600, 7), np.full(600, -2)]     # c0 only
     plane = np.stack(np.meshgrid(np.full(1, 4), np.arange(-20, 20), np.arange(-20, 20),
@@ -254,7 +254,7 @@ def test_octree_cover_hashed_equals_binary_search():
                                      indexing="ij"), -1).reshape(-1, 3)
         inside = np.all((cells >= -_BIAS) & (cells < _BIAS), axis=1)
         j = np.full(len(cells), -1)
-        j[inside] = grid.lookup(cells[inside])
+        j[inside] = _lookup(grid._packed, np.ascontiguousarray(cells[inside]))
         j = j[j >= 0]
         pi_old.append(np.full(len(j), i))
         bi_old.append(j)
@@ -262,6 +262,36 @@ def test_octree_cover_hashed_equals_binary_search():
     o = np.argsort(bi_old, kind="stable")          # by block, then by point
     assert len(qi) > 5000
     assert np.array_equal(qi, pi_old[o]) and np.array_equal(bi, bi_old[o])
+
+
+def test_octree_lookup_hashed_equals_binary_search():
+    """BlockGrid.lookup goes through the hash table that cover() uses (built once): the
+    same index as the binary search of the sorted keys (``_lookup``, the oracle) on every
+    key, on random cells that mostly miss, next to the keys, and at and beyond the
+    +-2^20 limit; the table is built once and shared with cover()."""
+    from gmmgp_app.stages.octree import _BIAS, _lookup
+    rng = np.random.default_rng(11)
+    edge = np.array([[_BIAS - 1, 0, 0], [-_BIAS, -_BIAS, -_BIAS], [0, _BIAS - 1, -_BIAS]])
+    keys = np.unique(np.concatenate([rng.integers(-40, 40, size=(5000, 3)),
+                                     np.c_[np.arange(-500, 500), np.zeros((1000, 2), int)],
+                                     edge]), axis=0)
+    grid = BlockGrid(keys, 0.25, 0.5)
+    assert grid._table is None
+    probe = np.concatenate([keys[rng.permutation(len(keys))],
+                            rng.integers(-80, 80, size=(20000, 3)),
+                            keys[:3000] + rng.integers(-1, 2, size=(3000, 3)),
+                            edge + 1, edge - 1,
+                            [[_BIAS, 0, 0], [0, -_BIAS - 1, 0], [0, 0, 5 * _BIAS]]])
+    got = grid.lookup(probe)
+    want = _lookup(grid._packed, np.ascontiguousarray(probe, dtype=np.int64))
+    assert np.array_equal(got, want)
+    assert (want < 0).sum() > 15000 and (want >= 0).sum() > len(keys)   # hits and misses
+    assert np.array_equal(grid.keys[got[:len(keys)]], probe[:len(keys)])
+    table = grid._table
+    grid.cover(np.zeros((4, 3)))
+    assert grid._table is table                     # one table for lookup and cover
+    assert np.array_equal(BlockGrid(keys, 0.25, 0.5).lookup(np.zeros((0, 3))),
+                          np.zeros(0, np.int64))
 
 
 def test_bad_inputs(sphere_scene):

@@ -141,6 +141,20 @@ def test_node_grouping_by_block_matches_a_brute_force_box_lookup(dense):
     blocks = blocks[rng.permutation(len(blocks))]
     ptr, loc, val = S._block_nodes(keys, values, pack, blocks, B, dense=dense)
     assert len(ptr) == len(blocks) + 1 and ptr[-1] == len(loc) == len(val)
+    # the runs of nodes grouped in parallel give the one-run grouping exactly (each
+    # block's nodes in node order; hash-table gaps, key -1, skipped), any run count
+    gappy = np.insert(keys, rng.integers(0, len(keys), 60), -1)
+    gval = np.insert(values, 0, 0.0)[np.cumsum(gappy >= 0) * (gappy >= 0)]
+    one = S._block_nodes(gappy, gval, pack, blocks, B, dense=dense, nchunk=1)
+    for a, b in zip(one, (ptr, loc, val)):
+        np.testing.assert_array_equal(a, b)
+    for nchunk in (2, 3, 7, 50):
+        for a, b in zip(one, S._block_nodes(gappy, gval, pack, blocks, B, dense=dense,
+                                            nchunk=nchunk)):
+            np.testing.assert_array_equal(a, b)
+    nodes_of = [np.searchsorted(keys, pack(blocks[t] * B + np.stack(np.unravel_index(
+        loc[ptr[t]:ptr[t + 1]], (B + 1,) * 3), -1))) for t in range(len(blocks))]
+    assert all(np.all(np.diff(i) > 0) for i in nodes_of)     # node order in each block
     nb = B + 1
     n_shared = 0
     for t, b in enumerate(blocks):
@@ -484,12 +498,14 @@ def test_compiled_block_vertices_equal_the_numpy_functions():
 
 
 def test_timings_record_every_phase():
-    t = {}
-    mesh = extract_surface(_sphere_field, _sphere_seeds(3000), voxel_size=0.1, timings=t)
-    assert len(mesh.faces) > 100
-    assert set(t) == {"setup", "follow", "block_nodes", "marching_cubes", "stitch",
-                      "vertices", "final"}
-    assert all(v >= 0 for v in t.values())
+    for overlap in (False, True):
+        t, w = {}, {}
+        mesh = extract_surface(_sphere_field, _sphere_seeds(3000), voxel_size=0.1, timings=t,
+                               wall_timings=w, overlap=overlap)
+        assert len(mesh.faces) > 100
+        assert set(t) == set(w) == {"setup", "follow", "block_nodes", "marching_cubes",
+                                    "stitch", "vertices", "final"}
+        assert all(v >= 0 for v in t.values()) and all(v >= 0 for v in w.values())
 
 
 # ------------------------------------------------------------ lattice values near the level
@@ -557,3 +573,115 @@ def test_mesh_topology_does_not_depend_on_the_units():
             continue
         np.testing.assert_array_equal(m.faces, ref.faces)
         np.testing.assert_allclose(m.vertices / s, ref.vertices, rtol=0, atol=1e-9)
+
+
+def _worker_calls(field):
+    """``field`` recording whether each call came from another thread than the caller's
+    (the overlap's worker)."""
+    import threading
+
+    main = threading.get_ident()
+    calls = []
+
+    def run(x, *a, **k):
+        calls.append(threading.get_ident() != main)
+        return field(x, *a, **k)
+    return run, calls
+
+
+def _assert_same_mesh(a, b):
+    assert np.array_equal(a.vertices, b.vertices)
+    assert np.array_equal(a.faces, b.faces)
+    assert np.array_equal(a.vertex_variance, b.vertex_variance)
+
+
+def test_overlap_gives_the_serial_mesh_bit_for_bit():
+    # Random node values (inner vertices of ambiguous cubes, negative keys, in many
+    # layers of 4-cell blocks) with a variance that varies from point to point, and small
+    # batches: the worker thread's vertex pass, handed each finished layer's stitched
+    # vertices, gives the serial path's mesh exactly; so does the projection's.
+    h = 0.1
+    noise = _noise_field(h)
+
+    def field(x):
+        return noise(x)[0], 1e-4 * (1.5 + np.sin(7 * x[:, 0]) * np.cos(3 * x[:, 1] + x[:, 2]))
+
+    g = np.stack(np.meshgrid(*(np.arange(-8, 8) * h + h / 2,) * 3, indexing="ij"),
+                 -1).reshape(-1, 3)
+    kw = dict(voxel_size=h, block_cells=4, dilate=2, batch=97)
+    serial = extract_surface(field, g, overlap=False, **kw)
+    counted, calls = _worker_calls(field)
+    over = extract_surface(counted, g, overlap=True, **kw)
+    assert sum(calls) > 20 and len(np.unique(serial.vertex_variance)) > 1000
+    frac = np.abs(serial.vertices / h - np.round(serial.vertices / h)) > 1e-6
+    assert np.sum(frac.sum(1) >= 2) > 10, "the case must have inner vertices"
+    _assert_same_mesh(serial, over)
+    # a field that gives a point alone other values than in a batch (as the map's
+    # variance does in its last bits): the serial pass's lone last vertex (batch chosen
+    # so) keeps its value, the worker's runs of one point do not take it
+    lone = lambda x: (field(x)[0], field(x)[1] + (1e-9 if len(x) == 1 else 0.0))  # noqa
+    n = len(serial.vertices)
+    for b in (n - 1, 97):
+        kw["batch"] = b
+        serial = extract_surface(lone, g, overlap=False, **kw)
+        _assert_same_mesh(serial, extract_surface(lone, g, overlap=True, **kw))
+        assert np.sum(serial.vertex_variance != field(serial.vertices)[1]) == (b == n - 1)
+    # with the projection (an ellipsoid, Newton steps in the worker) and a std cut
+    seeds = _ellipsoid_seeds(5000)
+    kw = dict(voxel_size=0.1, block_cells=4, batch=101, project_steps=2,
+              predict_mean=lambda x: _ellipsoid(x)[0] - 0.02, max_std=0.0101)
+
+    def ell(x):
+        m, _, grad = _ellipsoid(x)
+        return m, 1e-4 * (1 + x[:, 0] ** 2), grad
+
+    serial = extract_surface(lambda x: ell(x)[:2], seeds, project=ell, overlap=False, **kw)
+    counted, calls = _worker_calls(ell)
+    over = extract_surface(lambda x: ell(x)[:2], seeds, project=counted, overlap=True, **kw)
+    assert sum(calls) > 5 and 0 < len(serial.faces)
+    _assert_same_mesh(serial, over)
+
+
+def test_overlap_gives_the_serial_mesh_of_a_map_bit_for_bit(box_scene):
+    # A map's own fields (GP, far field, prior, blends) give each point the same values
+    # in any batch: the overlapped mesh is the serial one, with and without projection.
+    import gmmgp_app as gm
+    from gmmgp_app.stages import surface as S
+
+    _, scan = box_scene
+    smap = gm.build_map(scan, gm.MappingConfig())
+    h = smap.config.surface.voxel_size
+    kw = dict(voxel_size=h, block_cells=8, batch=1000, reach=smap.surface_reach(),
+              predict_mean=smap.lattice_mean)
+    for project in (None, smap._predict_with_grad):
+        serial = S.extract_surface(smap.predict, smap.seed_points, project=project,
+                                   overlap=False, **kw)
+        counted, calls = _worker_calls(smap.predict)
+        over = S.extract_surface(counted, smap.seed_points, project=project, overlap=True,
+                                 **kw)
+        assert len(serial.faces) > 1000 and (sum(calls) > 3 or project is not None)
+        _assert_same_mesh(serial, over)
+
+
+def test_overlap_workers_keep_the_callers_numba_threads():
+    # numba's thread count is per thread: the worker evaluates on the caller's count
+    # (the viewer leaves a core free), and on one thread while marching cubes runs
+    import threading
+
+    import numba
+
+    seen = []
+
+    def field(x):
+        if threading.current_thread() is not threading.main_thread():
+            seen.append(numba.get_num_threads())
+        return _sphere_field(x)
+
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        extract_surface(field, _sphere_seeds(3000), voxel_size=0.05, block_cells=4,
+                        batch=500)
+    finally:
+        numba.set_num_threads(before)
+    assert len(seen) > 5 and set(seen) == {1}

@@ -257,7 +257,7 @@ def _maha2(x0, x1, x2, mux, prec, j):
             + 2.0 * (p[0, 1] * d0 * d1 + p[0, 2] * d0 * d2 + p[1, 2] * d1 * d2))
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, nogil=True)
 def _prune_cells(centres, rho, ptr, idx, mux, prec, logc, lip, n_active, cut):
     """Mask of cell candidates that may be active somewhere in their cell."""
     n_cells = centres.shape[0]
@@ -290,7 +290,7 @@ def _prune_cells(centres, rho, ptr, idx, mux, prec, logc, lip, n_active, cut):
     return keep
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, nogil=True)
 def _lookup_cells(xyz, inv_h, base, span, keys, slots):
     """Cell key and cached slot per query.
 
@@ -348,7 +348,7 @@ def _push_top(l, j, best_l, best_j, n, imin):
     return n, imin
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, nogil=True)
 def _gmr_kernel(xyz, qslot, ptr, idx, mux, prec, logc, a, b, s2, axes, half,
                 n_active, cut, growth, tau, want_grad):
     """GMR mean (eq. gmm_mean), variance (eq. gmm_sigma + eq. gmr_far_growth), gradient.
@@ -466,7 +466,7 @@ def _merge_lists(n_cells, ptrs, idxs, members):
     return ptr, idx
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _scatter_lists(p, vals, at, out):
     """Append list c of CSR (p, vals) at ``out[at[c]:]`` and advance ``at[c]``."""
     for c in range(len(p) - 1):

@@ -900,7 +900,7 @@ def _fit_block_batch(task) -> list:
     return list(blocks)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _value_cross(x, sig, q, X, sp, a):
     """Scaled cross-covariance rows ``k*`` of query values with a block's value+gradient
     observations (eqs. kernel2, kernel_j), (len(q), 4n); as in :func:`_predict_pairs`."""
@@ -923,7 +923,7 @@ def _value_cross(x, sig, q, X, sp, a):
     return out
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _value_blocks(x, sig, qi, bi, starts, ends, ptr, X, sp, L, Loff, alpha, a, dm, red):
     """Value posterior of every (query, block) pair, pairs sorted by block; run
     ``[starts[t], ends[t])`` holds the queries of one block (eqs. gpm2, gpv2).
@@ -1003,7 +1003,7 @@ def _value_blocks(x, sig, qi, bi, starts, ends, ptr, X, sp, L, Loff, alpha, a, d
             red[s + j] = acc[j]
 
 
-@nb.njit(parallel=True, cache=True, fastmath=False)
+@nb.njit(parallel=True, cache=True, fastmath=False, nogil=True)
 def _predict_pairs(x, sig, qi, bi, ptr, X, sp, L, Loff, alpha, a, with_grad):
     """Residual posterior of block ``bi[p]`` at query ``qi[p]`` for every pair p.
 

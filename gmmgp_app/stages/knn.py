@@ -191,7 +191,7 @@ def _cell_table(p, c, lo, dims):
     return order, np.ascontiguousarray(p[order]), tk, ts, te
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _build_table(ukeys, starts, ends, size):
     """Open-addressing hash table (linear probing) of the occupied cells' point runs."""
     mask = size - 1
@@ -284,7 +284,7 @@ def _shell_knn(p0, p1, p2, k, cell, lo, dims, tk, ts, te, pts, max_ring, bd, bi)
     return False
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, nogil=True)
 def _knn_grid(x, k, cell, lo, dims, tk, ts, te, pts, order, max_ring):
     """Per query: :func:`_shell_knn` around it; ``done`` False where ``max_ring``
     shells were not enough."""
@@ -306,7 +306,7 @@ def _knn_grid(x, k, cell, lo, dims, tk, ts, te, pts, order, max_ring):
     return dist, idx, done
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, nogil=True)
 def _knn_groups(x, qorder, gptr, gcell, k, cell, lo, dims, tk, ts, te, pts, order, max_ring,
                 cap, dist, idx, done):
     """Per group of queries (``qorder[gptr[g]:gptr[g + 1]]``, all in one cube of edge
@@ -449,7 +449,7 @@ def ball_lists(points, centres, radius: float):
     return ptr, idx
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, nogil=True)
 def _ball_pass(x, r, cell, lo, dims, tk, ts, te, pts, order, ptr, idx, fill):
     """Count (``fill`` False: counts per centre) or write (at ``ptr``) the points within
     ``r`` of each centre; centres in parallel (each writes its own count and run)."""

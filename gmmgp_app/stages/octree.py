@@ -34,7 +34,7 @@ def _key(c0, c1, c2):
     return ((c0 + _BIAS) << (2 * _BITS)) | ((c1 + _BIAS) << _BITS) | (c2 + _BIAS)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _pack(cells):
     """Keys of (n, 3) cells (all within +-_BIAS)."""
     out = np.empty(cells.shape[0], dtype=np.int64)
@@ -43,7 +43,7 @@ def _pack(cells):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _find(packed, c0, c1, c2):
     """Index of cell (c0, c1, c2) in the sorted packed table, -1 if absent."""
     if c0 < -_BIAS or c0 >= _BIAS or c1 < -_BIAS or c1 >= _BIAS or c2 < -_BIAS or c2 >= _BIAS:
@@ -55,16 +55,26 @@ def _find(packed, c0, c1, c2):
     return -1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _lookup(packed, cells):
-    """:func:`_find` of every (n, 3) cell."""
+    """:func:`_find` of every (n, 3) cell: the binary-search oracle that
+    :func:`_hlookup` (what :meth:`BlockGrid.lookup` uses) is tested against."""
     out = np.empty(cells.shape[0], dtype=np.int64)
     for i in range(cells.shape[0]):
         out[i] = _find(packed, cells[i, 0], cells[i, 1], cells[i, 2])
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
+def _hlookup(tk, tv, cells):
+    """:func:`_hfind` of every (n, 3) cell (the indices :func:`_lookup` gives)."""
+    out = np.empty(cells.shape[0], dtype=np.int64)
+    for i in range(cells.shape[0]):
+        out[i] = _hfind(tk, tv, cells[i, 0], cells[i, 1], cells[i, 2])
+    return out
+
+
+@njit(cache=True, nogil=True)
 def _hash_table(packed):
     """Open-addressing table of the sorted packed keys: ``(tk, tv)`` of a power-of-two
     size at least twice the number of keys, ``tk`` the key (-1 empty; packed keys are
@@ -114,7 +124,7 @@ def _hfind(tk, tv, c0, c1, c2):
         s = (s + 1) & mask
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def _cover_pairs(lo, hi, nb, tk, tv):
     """(point, block) pairs for per-point cell ranges [lo, hi], sorted by block, then
     by point; ``nb`` blocks, looked up in the hash table ``(tk, tv)`` of
@@ -190,7 +200,7 @@ class BlockGrid:
         self._packed = packed[order]
         if len(np.unique(self._packed)) != len(self._packed):
             raise OctreeError("Expected distinct block keys, found duplicates.")
-        self._table = None          # hash table of _packed, built by cover() when needed
+        self._table = None          # hash table of _packed (_table_of), built on first use
         self.block_size = float(block_size)
         self.overlap = float(overlap)
 
@@ -224,7 +234,14 @@ class BlockGrid:
     def lookup(self, cells: np.ndarray) -> np.ndarray:
         """Block index of each (n, 3) integer cell, -1 where the cell is unoccupied."""
         cells = np.ascontiguousarray(np.asarray(cells, dtype=np.int64).reshape(-1, 3))
-        return _lookup(self._packed, cells)
+        return _hlookup(*self._table_of(), cells)
+
+    def _table_of(self) -> tuple:
+        """The hash table ``(tk, tv)`` of the sorted keys (:func:`_hash_table`), built once
+        on first use and shared by :meth:`lookup` and :meth:`cover`."""
+        if self._table is None:
+            self._table = _hash_table(self._packed)
+        return self._table
 
     def cover(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pairs (point, block) such that the block's region contains the point.
@@ -247,9 +264,7 @@ class BlockGrid:
         hi = np.ascontiguousarray(np.floor((xyz + half) / h - 0.5).astype(np.int64))
         if len(xyz) == 0 or len(self._packed) == 0:
             return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-        if self._table is None:
-            self._table = _hash_table(self._packed)
-        return _cover_pairs(lo, hi, len(self._packed), *self._table)  # by block, then point
+        return _cover_pairs(lo, hi, len(self._packed), *self._table_of())  # by block, then point
 
 
 def new_space_fraction(old_points, new_points, voxel: float) -> float:

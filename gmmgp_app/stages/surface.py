@@ -40,6 +40,13 @@ REACH_SPACINGS = 1.0
 #: negative): see :func:`clear_of_level`.
 LEVEL_CLEARANCE = 1e-3
 
+#: With ``extract_surface(overlap=True)``: pipeline the surface following's chunks (a
+#: chunk's lattice nodes evaluated on the worker thread while the next chunk's corners
+#: are inserted). Off: on the street it made the stage slower (17.3 against 14.9 s wall,
+#: 11.4 against 9.9 CPU-s, medians of 3 under load ~7; the worker's own OpenMP team
+#: spins beside the calling thread's), docs/speed.md 'Session 10 (speed-16s)'.
+FOLLOW_PIPELINED = False
+
 
 class GridTooLargeError(MemoryError):
     """The requested surface grid would not fit the machine; message has the estimate."""
@@ -158,7 +165,8 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
                     progress=None, reach: Optional[float] = None,
                     predict_mean: Optional[Callable] = None,
                     project: Optional[Callable] = None, project_steps: int = 1,
-                    project_clamp: float = 0.5, timings: Optional[dict] = None) -> SurfaceMesh:
+                    project_clamp: float = 0.5, timings: Optional[dict] = None,
+                    wall_timings: Optional[dict] = None, overlap: bool = True) -> SurfaceMesh:
     """Zero level set of a field as a triangle mesh with per-vertex variance.
 
     The lattice is evaluated only where the surface is: starting from the cells
@@ -209,8 +217,19 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     timings : dict, optional
         Filled with the process's CPU seconds per phase ("setup", "follow" (the lattice
         field included), "block_nodes", "marching_cubes", "stitch", "vertices" (the
-        variance pass or the projection), "final"): what scripts/profile_surface.py
-        reports.
+        variance pass or the projection; with ``overlap``, the wait for the worker
+        thread's last vertices), "final"): what scripts/profile_surface.py reports.
+    wall_timings : dict, optional
+        Filled with the wall seconds of the same phases.
+    overlap : bool
+        Run serial parts side by side on two threads (default): the seeds' k-d tree is
+        built in a worker thread while the first lattice nodes are evaluated, and the
+        vertex pass (variance, or projection) runs in it on the stitched vertices of
+        each finished layer of blocks while scikit-image's marching cubes (which holds
+        the GIL) meshes the next ones (:class:`_VertexStream`). The mesh is the same
+        bit for bit as with ``overlap=False`` (everything in the calling thread, in
+        order) provided ``predict`` and ``project`` give each point the same values
+        whatever batch it is in (the map's fields do: tests/test_surface.py).
 
     Returns
     -------
@@ -218,7 +237,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     """
     from skimage.measure import marching_cubes
 
-    tick = _Ticker(timings)
+    tick = _Ticker(timings, wall_timings)
     seeds = np.asarray(seeds, dtype=np.float64)
     if seeds.ndim != 2 or seeds.shape[1] != 3 or len(seeds) == 0:
         raise ValueError(f"Expected seed points with shape (N, 3), N >= 1, found {seeds.shape}.")
@@ -232,7 +251,37 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     #    on as a "fin", which is not observed surface.
     from scipy.spatial import cKDTree
 
-    tree = cKDTree(seeds, balanced_tree=False)   # sliding midpoint: faster, same answers
+    pools = []
+    if overlap:
+        from concurrent.futures import ThreadPoolExecutor
+
+        # the fields' worker, and one for the seeds' tree (not to queue before the
+        # field); numba's thread count is per thread: the workers take the caller's
+        pools = [ThreadPoolExecutor(1, thread_name_prefix="gmmgp-surface",
+                                    initializer=nb.set_num_threads,
+                                    initargs=(nb.get_num_threads(),)) for _ in range(2)]
+    try:
+        return _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress,
+                        reach, predict_mean, project, project_steps, project_clamp, tick,
+                        *(pools or (None, None)), cKDTree, marching_cubes)
+    finally:
+        for p in pools:
+            p.shutdown(wait=True, cancel_futures=True)
+
+
+def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, reach,
+             predict_mean, project, project_steps, project_clamp, tick, pool, tree_pool,
+             cKDTree, marching_cubes) -> SurfaceMesh:
+    """:func:`extract_surface` after its checks; ``pool`` (one worker thread, or None
+    for the serial path) evaluates the fields beside the rest (one call at a time: a
+    map's field is not called from two threads at once), ``tree_pool`` builds the
+    seeds' tree."""
+    follow_pool = pool if FOLLOW_PIPELINED else None
+    if pool is not None:          # sliding midpoint: faster, same answers
+        tree_job = tree_pool.submit(cKDTree, seeds, balanced_tree=False)
+        tree = None
+    else:
+        tree = cKDTree(seeds, balanced_tree=False)
     if reach is None:
         reach = surface_reach(seeds, h)
     elif not reach > 0:
@@ -252,8 +301,10 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     tick("setup")
     bar = progress(dilate + 1, "surface field") if progress else None
     for _ in range(dilate):
-        new = lattice.evaluate_corners(frontier, followed)
+        new = lattice.evaluate_corners(frontier, followed, pool=follow_pool)
         if len(new):
+            if tree is None:
+                tree = tree_job.result()
             near = tree.query((new + 0.5) * h, k=1, distance_upper_bound=reach,
                               workers=-1)[0] < np.inf
             new = new[near]
@@ -262,11 +313,13 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
             break
         cells.append(new)
         frontier = new
-    lattice.evaluate_corners(frontier)  # the last cells' corners
+    lattice.evaluate_corners(frontier, pool=follow_pool)  # the last cells' corners
     bar and bar.close()
     cells = np.concatenate(cells)
     node_keys, values = lattice.keys, lattice.values    # hash table: key -1 = empty slot
     # memory: only the node values go on
+    if tree is None:
+        tree_job.result()         # built (unused when nothing was followed)
     del tree, followed, frontier, lattice
     new = None
 
@@ -281,8 +334,19 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     bptr, node_local, node_value = _block_nodes(node_keys, values, pack, blocks, block_cells)
     del node_keys, values
     tick("block_nodes")
+    stream = None
+    if pool is not None:
+        threads = _numba_threads()      # (nb is a count here)
+
+        def vertex_pass(x):
+            # one numba thread while marching cubes holds a core, the caller's after
+            return _vertex_values(predict, project, x, project_steps, project_clamp * h,
+                                  batch, lambda: 1 if stream.meshing else threads)
+        stream = _VertexStream(pool, vertex_pass, pack, block_cells, h, batch)
     for b, s0, s1 in zip(blocks, bptr[:-1], bptr[1:]):
         bar and bar.update(1)
+        if stream is not None:
+            stream.layer(int(b[0]))
         if s1 - s0 < 8:
             continue
         # the block's nodes, unevaluated ones masked (value 1.0: a placeholder, faces
@@ -302,6 +366,8 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
             continue
         keys_all.append(k)
         verts_all.append(v)                             # lattice coordinates
+        if stream is not None:
+            stream.add(k, v)
         faces_all.append((f + n_verts).astype(np.int32 if n_verts + len(v) < 2**31
                                               else np.int64))
         n_verts += len(v)
@@ -311,10 +377,12 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     if not verts_all:
         return SurfaceMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros(0))
     del bptr, node_local, node_value
+    if stream is not None:
+        stream.finish()           # the last layers' vertices to the worker
     keys = np.concatenate(keys_all)  # packed (lower lattice node, axis) of each vertex's edge
     del keys_all
     # Stitch: one vertex per lattice-edge key.
-    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    ukeys, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
     del keys
     verts = np.concatenate(verts_all)[first] * h
     del verts_all, first
@@ -322,15 +390,37 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     del faces_all, inverse
     faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
                   & (faces[:, 0] != faces[:, 2])]
-    verts, faces, _ = _drop_unused(verts, faces, np.zeros(len(verts)))
-    tick("stitch")
-    if project is not None:
-        verts, _, var = project_vertices(project, verts, project_steps, project_clamp * h,
-                                         batch, predict)
+    if stream is None:
+        del ukeys
+        verts, faces, _ = _drop_unused(verts, faces, np.zeros(len(verts)))
+        tick("stitch")
+        if project is not None:
+            verts, _, var = project_vertices(project, verts, project_steps, project_clamp * h,
+                                             batch, predict)
+        else:
+            var = _variance(predict, verts, batch)
     else:
-        var = np.empty(len(verts))
-        for s in range(0, len(verts), batch):
-            var[s:s + batch] = predict(verts[s:s + batch])[1]
+        tick("stitch")
+        # the worker's values of every stitched vertex (in ukeys' order); the vertices
+        # that only degenerate faces used are dropped with their values
+        moved, var = stream.result(ukeys)
+        del ukeys
+        used = np.zeros(len(verts), bool)
+        used[faces.reshape(-1)] = True
+        faces = (np.cumsum(used) - 1)[faces].astype(np.int64, copy=False)  # _drop_unused
+        verts, var = verts[used], var[used]
+        moved = moved[used] if moved is not None else None
+        if batch > 1 and len(verts) % batch == 1:
+            # the serial pass evaluates the last vertex alone: a batch of one point, to
+            # which the map's variance gives other last bits (_vertex_values)
+            if project is None:
+                var[-1] = predict(verts[-1:])[1][0]
+            else:
+                p, _, v = project_vertices(project, verts[-1:], project_steps,
+                                           project_clamp * h, batch, predict)
+                moved[-1], var[-1] = p[0], v[0]
+        if moved is not None:
+            verts = moved
     tick("vertices")
     if max_std is not None:
         bad = np.sqrt(np.maximum(var, 0)) > max_std
@@ -338,6 +428,151 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     verts, faces, var = _drop_unused(verts, faces, var)
     tick("final")
     return SurfaceMesh(verts, faces, var)
+
+
+def _numba_threads() -> int:
+    """The calling thread's numba thread count."""
+    return nb.get_num_threads()
+
+
+def _variance(predict: Callable, verts: np.ndarray, batch: int) -> np.ndarray:
+    """``predict``'s variance at ``verts`` (V, 3), ``batch`` points per call."""
+    var = np.empty(len(verts))
+    for s in range(0, len(verts), batch):
+        var[s:s + batch] = predict(verts[s:s + batch])[1]
+    return var
+
+
+def _vertex_values(predict: Callable, project: Optional[Callable], verts: np.ndarray,
+                   steps: int, max_step: float, batch: int,
+                   threads: Optional[Callable] = None):
+    """The vertex pass of the serial path on any run of the stitched vertices: the
+    projected points (None without ``project``) and ``predict``'s variance, ``batch``
+    points per call. A map's field gives a point the same values in any batch of two
+    points or more, but not alone (its eq. calibrated_var takes a matrix-vector product,
+    which numpy computes another way for one row: the last bits of the variance differ);
+    so a run of one point (when ``batch`` > 1) is evaluated as a pair of copies, and the
+    serial pass's own lone last vertex is evaluated alone by the caller.
+
+    ``threads() -> int``, asked before each batch: the numba threads of this thread
+    for it. The fields' kernels give each point the same
+    values on any number of threads (each writes its own points' outputs)."""
+    moved = None if project is None else np.empty_like(verts)
+    var = np.empty(len(verts))
+    for s in range(0, len(verts), batch):
+        if threads is not None:
+            nb.set_num_threads(threads())
+        x = verts[s:s + batch]
+        pair = len(x) == 1 and batch > 1
+        if pair:
+            x = np.repeat(x, 2, axis=0)
+        if project is None:
+            v = predict(x)[1]
+        else:
+            p, _, v = project_vertices(project, x, steps, max_step, len(x), predict)
+            moved[s:s + batch] = p[:1] if pair else p
+        var[s:s + batch] = v[:1] if pair else v
+    return moved, var
+
+
+class _VertexStream:
+    """The vertex pass of :func:`extract_surface` (the variance, or the projection) run
+    in a worker thread while marching cubes goes on.
+
+    Blocks are meshed in lexicographic order, so once the blocks of layer ``I`` (block
+    coordinate ``I`` along the first axis) are done no later block makes a vertex whose
+    edge's lower node has a first coordinate below ``(I + 1) B``: the keys below
+    :meth:`_limit` are final. :meth:`layer` hands those (stitched as the serial path
+    does: one per key, the first copy; copies are bitwise equal) to the worker in jobs
+    of at least ``batch`` vertices; an inner vertex (negative key, one block's own) is
+    final at once. The keys handed over, in order, are the stitched keys
+    (``np.unique``'s) except the inner ones, which ``np.unique`` puts first in reverse:
+    :meth:`result` checks that and returns the values in the stitched order."""
+
+    def __init__(self, pool, vertex_pass: Callable, pack, block_cells: int, h: float,
+                 batch: int):
+        self.pool, self.vertex_pass, self.h, self.batch = pool, vertex_pass, h, batch
+        self.plane4 = 4 * int(pack.dims[1]) * int(pack.dims[2])
+        self.lo0, self.B = int(pack.lo[0]), int(block_cells)
+        self.current = None                 # the layer being meshed
+        self.meshing = True                 # until finish(): marching cubes runs beside
+        self.keys, self.verts = [], []      # made since the last hand-over, not final
+        self.ready_k, self.ready_v, self.n_ready = [], [], 0
+        self.inner_k, self.inner_v = [], []
+        self.jobs = []                      # (positive keys, future)
+        self.inner_jobs = []                # (inner keys, future)
+
+    def _limit(self, layer: int) -> int:
+        """Keys below this are final once the blocks of ``layer`` are done."""
+        return ((layer + 1) * self.B - self.lo0) * self.plane4
+
+    def add(self, keys: np.ndarray, verts: np.ndarray) -> None:
+        self.keys.append(keys)
+        self.verts.append(verts)
+
+    def layer(self, layer: int) -> None:
+        """A block of ``layer`` is next: hand over what the finished layers made final."""
+        if self.current is not None and layer != self.current:
+            self._stitch(self._limit(self.current))
+        self.current = layer
+
+    def finish(self) -> None:
+        """Every block is meshed: hand over the rest."""
+        self.meshing = False
+        if self.keys:
+            self._stitch(None)
+        self._submit(force=True)
+
+    def _stitch(self, limit: Optional[int]) -> None:
+        if not self.keys:
+            return
+        k = np.concatenate(self.keys)
+        v = np.concatenate(self.verts)
+        inner = k < 0
+        if inner.any():
+            self.inner_k.append(k[inner])
+            self.inner_v.append(v[inner] * self.h)
+            k, v = k[~inner], v[~inner]
+        done = np.ones(len(k), bool) if limit is None else k < limit
+        self.keys, self.verts = ([], []) if done.all() else ([k[~done]], [v[~done]])
+        uk, first = np.unique(k[done], return_index=True)
+        self.ready_k.append(uk)
+        self.ready_v.append(v[done][first] * self.h)
+        self.n_ready += len(uk)
+        self._submit()
+
+    def _submit(self, force: bool = False) -> None:
+        if self.n_ready and (force or self.n_ready >= self.batch):
+            k, v = np.concatenate(self.ready_k), np.concatenate(self.ready_v)
+            self.ready_k, self.ready_v, self.n_ready = [], [], 0
+            self.jobs.append((k, self.pool.submit(self.vertex_pass, v)))
+        if self.inner_k and (force or sum(map(len, self.inner_k)) >= self.batch):
+            k, v = np.concatenate(self.inner_k), np.concatenate(self.inner_v)
+            self.inner_k, self.inner_v = [], []
+            self.inner_jobs.append((k, self.pool.submit(self.vertex_pass, v)))
+
+    def result(self, ukeys: np.ndarray):
+        """(moved points or None, values) of the stitched vertices ``ukeys`` (sorted),
+        once the worker has done them."""
+        inner = [(k, f.result()) for k, f in self.inner_jobs]
+        keys, moved, var = [], [], []
+        if inner:
+            # inner keys were made -1, -2, ...: np.unique's ascending order is their reverse
+            keys.append(np.concatenate([k for k, _ in inner])[::-1])
+            var.append(np.concatenate([v for _, (_, v) in inner])[::-1])
+            if inner[0][1][0] is not None:
+                moved.append(np.concatenate([p for _, (p, _) in inner])[::-1])
+        for k, job in self.jobs:
+            p, v = job.result()
+            keys.append(k)
+            var.append(v)
+            if p is not None:
+                moved.append(p)
+        if not np.array_equal(np.concatenate(keys) if keys else np.zeros(0, np.int64), ukeys):
+            raise RuntimeError("surface: the streamed vertices are not the stitched ones "
+                               "(a bug); use extract_surface(overlap=False).")
+        var = np.concatenate(var) if var else np.zeros(0)
+        return (np.concatenate(moved) if moved else None), var
 
 
 def clear_of_level(values: np.ndarray, clearance: float) -> np.ndarray:
@@ -373,20 +608,26 @@ def clear_of_level(values: np.ndarray, clearance: float) -> np.ndarray:
 
 
 class _Ticker:
-    """CPU seconds of the process since the last call, added to ``out[name]`` (nothing
-    when ``out`` is None)."""
+    """CPU seconds of the process since the last call, added to ``out[name]``, and wall
+    seconds, added to ``wall[name]`` (nothing for a dict that is None)."""
 
-    def __init__(self, out: Optional[dict]):
+    def __init__(self, out: Optional[dict], wall: Optional[dict] = None):
         import time
 
-        self.out, self.clock = out, time.process_time
+        self.out, self.wall = out, wall
+        self.clock, self.wall_clock = time.process_time, time.perf_counter
         self.last = self.clock() if out is not None else 0.0
+        self.last_wall = self.wall_clock() if wall is not None else 0.0
 
     def __call__(self, name: str) -> None:
         if self.out is not None:
             now = self.clock()
             self.out[name] = self.out.get(name, 0.0) + now - self.last
             self.last = now
+        if self.wall is not None:
+            now = self.wall_clock()
+            self.wall[name] = self.wall.get(name, 0.0) + now - self.last_wall
+            self.last_wall = now
 
 
 def project_vertices(project: Callable, verts: np.ndarray, steps: int = 1,
@@ -474,15 +715,18 @@ def _unique_rows(cells: np.ndarray, pack=None) -> np.ndarray:
     return cells[first]
 
 
-def _block_nodes(node_keys, values, pack, blocks, block_cells: int, dense=None):
+def _block_nodes(node_keys, values, pack, blocks, block_cells: int, dense=None,
+                 nchunk: Optional[int] = None):
     """Lattice nodes grouped by the marching-cubes blocks ``blocks`` whose (B+1)^3 node
     boxes hold them (a node on a block face belongs to both blocks, on an edge or
     corner to 4 or 8): CSR ``ptr`` (len(blocks) + 1) over the flat local indices
     ``(i nb + j) nb + k`` (int32) and values of each block's nodes. Negative keys (the
     empty slots of :class:`_LatticeValues`' table) are skipped.
 
-    One compiled counting pass over the nodes (no per-block box lookups, no sort of
-    (block, node) pairs: the grouping needs ~12 bytes per pair). Blocks are found in a
+    A compiled counting pass over the nodes (no per-block box lookups, no sort of
+    (block, node) pairs: the grouping needs ~12 bytes per pair), on runs of nodes in
+    parallel (``nchunk`` runs; default up to 4 per numba thread, of >= 2^16 nodes
+    each), each block's nodes in node order whatever the runs. Blocks are found in a
     dense table of the blocks' bounding box when it is small (``dense`` None: at most
     8 cells per block or 1M cells; False: always by binary search).
     """
@@ -500,84 +744,119 @@ def _block_nodes(node_keys, values, pack, blocks, block_cells: int, dense=None):
         dense[bkeys] = np.arange(len(bkeys))
     else:
         dense = np.zeros(0, np.int64)
+    # runs of >= 2^16 nodes, up to 4 per thread: the same result for any count
+    if nchunk is None:
+        nchunk = max(1, min(4 * nb.get_num_threads(), len(node_keys) >> 16))
     return _block_nodes_kernel(np.asarray(node_keys, np.int64), np.asarray(values, np.float64),
                                pack.lo, pack.dims, int(block_cells), bkeys[order],
-                               order.astype(np.int64), bpack.lo, bpack.dims, dense)
+                               order.astype(np.int64), bpack.lo, bpack.dims, dense, int(nchunk))
 
 
-@nb.njit(cache=True)
-def _block_nodes_kernel(keys, values, lo, dims, B, bkeys_sorted, bindex, blo, bdims, dense):
-    """:func:`_block_nodes`: per node its <= 8 blocks (shifted by one along the axes where
-    it lies on a block face), counted, then written in node order per block. A block is
-    found in ``dense`` (block index per key) when given, else by binary search."""
+@nb.njit(cache=True, inline="always")
+def _node_blocks(kq, lo, dims, B, bkeys_sorted, bindex, blo, bdims, dense, ijk, base, face,
+                 q, bis, locs):
+    """The <= 8 blocks of node key ``kq`` (shifted by one along the axes where it lies on a
+    block face) that are in the block set: their indices to ``bis``, the node's local
+    index in each to ``locs``; returns how many. A block is found in ``dense`` (block
+    index per key) when given, else by binary search. ``ijk``, ``base``, ``face``, ``q``:
+    scratch."""
     nblk = len(bkeys_sorted)
     nb_ = B + 1
     plane = dims[1] * dims[2]
-    counts = np.zeros(nblk + 1, np.int64)
-    ptr = np.zeros(nblk + 1, np.int64)
-    fill = np.zeros(nblk, np.int64)
-    loc = np.empty(0, np.int32)
-    val = np.empty(0)
-    ijk = np.empty(3, np.int64)     # scratch, rewritten per node
-    base = np.empty(3, np.int64)
-    face = np.empty(3, np.bool_)
-    q = np.empty(3, np.int64)
-    for sweep in range(2):
-        if sweep == 1:
-            ptr = np.zeros(nblk + 1, np.int64)
-            for i in range(nblk):
-                ptr[i + 1] = ptr[i] + counts[i]
-            fill = ptr[:-1].copy()
-            loc = np.empty(ptr[-1], np.int32)
-            val = np.empty(ptr[-1])
-        for n in range(len(keys)):
-            kq = keys[n]
-            if kq < 0:
+    ijk[0] = kq // plane + lo[0]
+    ijk[1] = (kq % plane) // dims[2] + lo[1]
+    ijk[2] = kq % dims[2] + lo[2]
+    for a in range(3):
+        base[a] = ijk[a] // B            # floor division, as np.floor_divide
+        face[a] = ijk[a] - base[a] * B == 0
+    m = 0
+    for o in range(8):
+        ok = True
+        bk = 0
+        for a in range(3):
+            oa = (o >> (2 - a)) & 1
+            if oa == 1 and not face[a]:
+                ok = False
+                break
+            b = base[a] - oa
+            if b < blo[a] or b >= blo[a] + bdims[a]:
+                ok = False
+                break
+            q[a] = ijk[a] - b * B
+            bk = bk * bdims[a] + (b - blo[a])
+        if not ok:
+            continue
+        if len(dense):
+            bi = dense[bk]
+            if bi < 0:
+                continue
+        else:
+            # binary search of the block key
+            lo_, hi_ = 0, nblk
+            while lo_ < hi_:
+                mid = (lo_ + hi_) // 2
+                if bkeys_sorted[mid] < bk:
+                    lo_ = mid + 1
+                else:
+                    hi_ = mid
+            if lo_ == nblk or bkeys_sorted[lo_] != bk:
+                continue
+            bi = bindex[lo_]
+        bis[m] = bi
+        locs[m] = (q[0] * nb_ + q[1]) * nb_ + q[2]
+        m += 1
+    return m
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _block_nodes_kernel(keys, values, lo, dims, B, bkeys_sorted, bindex, blo, bdims, dense,
+                        nchunk):
+    """:func:`_block_nodes`: the nodes cut into ``nchunk`` runs, in parallel: each run
+    counts its nodes per block (:func:`_node_blocks`), the runs' counts are laid out
+    block by block (run after run), then each run writes its nodes in order into its
+    own stretch of every block. So each block holds its nodes in node order, whatever
+    ``nchunk`` (what one serial counting pass gave)."""
+    nblk = len(bkeys_sorted)
+    n = len(keys)
+    nchunk = max(1, min(nchunk, n))
+    step = (n + nchunk - 1) // nchunk
+    counts = np.zeros((nchunk, nblk), np.int64)
+    for t in nb.prange(nchunk):
+        ijk, base, q = np.empty(3, np.int64), np.empty(3, np.int64), np.empty(3, np.int64)
+        face = np.empty(3, np.bool_)
+        bis, locs = np.empty(8, np.int64), np.empty(8, np.int64)
+        for i in range(t * step, min(n, (t + 1) * step)):
+            if keys[i] < 0:
                 continue                         # an empty slot of a hash table
-            ijk[0] = kq // plane + lo[0]
-            ijk[1] = (kq % plane) // dims[2] + lo[1]
-            ijk[2] = kq % dims[2] + lo[2]
-            for a in range(3):
-                base[a] = ijk[a] // B            # floor division, as np.floor_divide
-                face[a] = ijk[a] - base[a] * B == 0
-            for o in range(8):
-                ok = True
-                bk = 0
-                for a in range(3):
-                    oa = (o >> (2 - a)) & 1
-                    if oa == 1 and not face[a]:
-                        ok = False
-                        break
-                    b = base[a] - oa
-                    if b < blo[a] or b >= blo[a] + bdims[a]:
-                        ok = False
-                        break
-                    q[a] = ijk[a] - b * B
-                    bk = bk * bdims[a] + (b - blo[a])
-                if not ok:
-                    continue
-                if len(dense):
-                    bi = dense[bk]
-                    if bi < 0:
-                        continue
-                else:
-                    # binary search of the block key
-                    lo_, hi_ = 0, nblk
-                    while lo_ < hi_:
-                        mid = (lo_ + hi_) // 2
-                        if bkeys_sorted[mid] < bk:
-                            lo_ = mid + 1
-                        else:
-                            hi_ = mid
-                    if lo_ == nblk or bkeys_sorted[lo_] != bk:
-                        continue
-                    bi = bindex[lo_]
-                if sweep == 0:
-                    counts[bi] += 1
-                else:
-                    loc[fill[bi]] = (q[0] * nb_ + q[1]) * nb_ + q[2]
-                    val[fill[bi]] = values[n]
-                    fill[bi] += 1
+            m = _node_blocks(keys[i], lo, dims, B, bkeys_sorted, bindex, blo, bdims, dense,
+                             ijk, base, face, q, bis, locs)
+            for r in range(m):
+                counts[t, bis[r]] += 1
+    ptr = np.zeros(nblk + 1, np.int64)
+    start = np.empty((nchunk, nblk), np.int64)
+    for b in range(nblk):
+        acc = ptr[b]
+        for t in range(nchunk):
+            start[t, b] = acc
+            acc += counts[t, b]
+        ptr[b + 1] = acc
+    loc = np.empty(ptr[-1], np.int32)
+    val = np.empty(ptr[-1])
+    for t in nb.prange(nchunk):
+        ijk, base, q = np.empty(3, np.int64), np.empty(3, np.int64), np.empty(3, np.int64)
+        face = np.empty(3, np.bool_)
+        bis, locs = np.empty(8, np.int64), np.empty(8, np.int64)
+        fill = start[t].copy()
+        for i in range(t * step, min(n, (t + 1) * step)):
+            if keys[i] < 0:
+                continue
+            m = _node_blocks(keys[i], lo, dims, B, bkeys_sorted, bindex, blo, bdims, dense,
+                             ijk, base, face, q, bis, locs)
+            for r in range(m):
+                bi = bis[r]
+                loc[fill[bi]] = locs[r]
+                val[fill[bi]] = values[i]
+                fill[bi] += 1
     return ptr, loc, val
 
 
@@ -592,7 +871,7 @@ def _block_volume(node_local, node_value, s0: int, s1: int, nb: int):
     return vol.reshape(nb, nb, nb), finite.reshape(nb, nb, nb)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _fill_block(node_local, node_value, s0, s1, vol, finite):
     """:func:`_block_volume` in one pass: True when some evaluated value is <= 0 and
     some is >= 0."""
@@ -628,40 +907,65 @@ class _LatticeValues:
         self.count = 0
 
     def evaluate_corners(self, cells: np.ndarray, followed: Optional["_KeySet"] = None,
-                         chunk: int = 65536) -> Optional[np.ndarray]:
+                         chunk: int = 65536, pool=None) -> Optional[np.ndarray]:
         """Evaluate the corners of ``cells`` (lower corners, (n, 3)) not evaluated yet, a
         chunk of cells at a time; with ``followed``, also one step of surface following:
         the neighbours of ``cells`` across a face whose corner values change sign
-        (min < 0 < max) that are not in ``followed`` yet (added to it), returned (m, 3)."""
+        (min < 0 < max) that are not in ``followed`` yet (added to it), returned (m, 3).
+
+        With ``pool`` (one worker thread) the chunks are pipelined: a chunk's new nodes
+        are evaluated in the worker while the calling thread inserts the next chunk's
+        corners and follows the previous chunk's faces (the same nodes evaluated in the
+        same batches, the same cells proposed in the same order)."""
         out = []
+        pending = None                  # (cells, slots, new keys, values or a future)
         for s in range(0, len(cells), chunk):
             c = np.ascontiguousarray(cells[s:s + chunk], dtype=np.int64)
+            table = self.keys
             self._reserve(8 * len(c))
+            if pending is not None and self.keys is not table:
+                # rehashed: the waiting chunk's corner slots moved
+                pending[1][:] = _corner_slots(pending[0], self.pack.lo, self.pack.dims,
+                                              self.keys)
             new = np.empty(8 * len(c), np.int64)
             slots = np.empty((len(c), 8), np.int64)
             n = _insert_corners(c, self.pack.lo, self.pack.dims, self.keys, new, slots)
             self.count += n
             new = new[:n]
+            if pending is not None:
+                self._finish(pending, followed, out)
             # evaluated in key order (as the sorted unique keys were before)
             new.sort()
-            nodes = self.pack.unpack(new)
-            vals = np.empty(n)
-            for b in range(0, n, self.batch):
-                vals[b:b + self.batch] = self.predict(nodes[b:b + self.batch] * self.h)
-            # in voxels and off the level (clear_of_level): what following and
-            # marching cubes see
-            _set_values(self.keys, self.values, new,
-                        clear_of_level(vals / self.h, LEVEL_CLEARANCE))
-            if followed is not None:
-                followed.reserve(6 * len(c))
-                grown = np.empty((6 * len(c), 3), np.int64)
-                m = _grow_cells(c, self.pack.lo, self.pack.dims, self.values, slots,
-                                followed.keys, grown)
-                followed.count += m
-                out.append(grown[:m])
+            vals = pool.submit(self._values, new) if pool is not None else self._values(new)
+            pending = (c, slots, new, vals)
+        if pending is not None:
+            self._finish(pending, followed, out)
         if followed is None:
             return None
         return np.concatenate(out) if out else np.zeros((0, 3), np.int64)
+
+    def _values(self, new: np.ndarray) -> np.ndarray:
+        """The lattice values at the sorted new node keys ``new``, in voxels and off the
+        level (clear_of_level): what following and marching cubes see."""
+        nodes = self.pack.unpack(new)
+        vals = np.empty(len(new))
+        for b in range(0, len(new), self.batch):
+            vals[b:b + self.batch] = self.predict(nodes[b:b + self.batch] * self.h)
+        return clear_of_level(vals / self.h, LEVEL_CLEARANCE)
+
+    def _finish(self, pending, followed, out) -> None:
+        """Store a chunk's new values, then follow its cells' faces (on its slots)."""
+        c, slots, new, vals = pending
+        if not isinstance(vals, np.ndarray):
+            vals = vals.result()
+        _set_values(self.keys, self.values, new, vals)
+        if followed is not None:
+            followed.reserve(6 * len(c))
+            grown = np.empty((6 * len(c), 3), np.int64)
+            m = _grow_cells(c, self.pack.lo, self.pack.dims, self.values, slots,
+                            followed.keys, grown)
+            followed.count += m
+            out.append(grown[:m])
 
     def _reserve(self, more: int) -> None:
         self.keys, self.values = _reserve_table(self.keys, self.values, self.count + more)
@@ -721,7 +1025,7 @@ def _probe(tk, key):
     return s
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _rehash(keys, values, nk, nv):
     with_values = len(nv) > 0
     for i in range(len(keys)):
@@ -732,7 +1036,7 @@ def _rehash(keys, values, nk, nv):
                 nv[s] = values[i]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _add_keys(tk, keys):
     """Insert ``keys``; returns how many were new."""
     n = 0
@@ -749,7 +1053,7 @@ def _pack1(i, j, k, lo, dims):
     return ((i - lo[0]) * dims[1] + (j - lo[1])) * dims[2] + (k - lo[2])
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _insert_corners(cells, lo, dims, tk, new, slots):
     """Insert the 8 corner nodes of each cell into the node table (value unset), writing
     each node not there before to ``new`` and each corner's table slot to ``slots``
@@ -768,13 +1072,26 @@ def _insert_corners(cells, lo, dims, tk, new, slots):
     return n
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
+def _corner_slots(cells, lo, dims, tk):
+    """The table slots of the 8 corner nodes of each cell (all in the table ``tk``), as
+    :func:`_insert_corners` records them: (n, 8)."""
+    slots = np.empty((len(cells), 8), np.int64)
+    for c in range(len(cells)):
+        for o in range(8):
+            slots[c, o] = _probe(tk, _pack1(cells[c, 0] + (o >> 2),
+                                            cells[c, 1] + ((o >> 1) & 1),
+                                            cells[c, 2] + (o & 1), lo, dims))
+    return slots
+
+
+@nb.njit(cache=True, nogil=True)
 def _set_values(tk, tv, keys, vals):
     for i in range(len(keys)):
         tv[_probe(tk, keys[i])] = vals[i]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _get_values(tk, tv, keys):
     out = np.empty(len(keys))
     for i in range(len(keys)):
@@ -783,7 +1100,7 @@ def _get_values(tk, tv, keys):
     return out
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _grow_cells(cells, lo, dims, tv, slots, ck, new):
     """Surface following, one step: for each cell and each of its 6 faces whose 4 corner
     values (``tv`` at the corners' ``slots``) change sign (min < 0 < max, as
@@ -879,7 +1196,7 @@ def _block_vertices(v, f, vol, finite, offset, pack, n_inner: int):
     return k, v + offset, f, n_inner + len(inner)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _block_vertices_kernel(v, f, vol, finite, off, plo, pdims, n_inner):
     """:func:`_block_vertices` for float32 vertices: :func:`_valid_vertices` (float32
     ``v +- 1e-9``), the kept faces' vertices, :func:`_refine_on_edges` (float32
