@@ -350,7 +350,7 @@ class FarField:
                                workers=-1)[0]
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _imls(x, d, nbr, points, normals, rho0, growth, noise, spread_weight, beta, robust_scale,
           robust_iterations, with_grad, sphere):
     """Eqs. imls, rimls and far_var per query from its ``k`` nearest hit points (distances
@@ -604,7 +604,7 @@ def project_to_local_planes(points, normals, rho0: float, k: int = 16,
     return out
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _project(p, n, start, d, nbr, rho0, min_cos, out):
     """Eq. point_projection for the points ``start ... start + len(d)``."""
     K, k = d.shape
