@@ -23,6 +23,7 @@ import numba as nb
 import numpy as np
 
 from .._atomic import atomic_path
+from .._memory import release_free_memory
 from . import _distinct
 from ..types import SurfaceMesh
 
@@ -386,10 +387,10 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
     del keys
     verts = np.concatenate(verts_all)[first] * h
     del verts_all, first
-    faces = inverse.reshape(-1)[np.concatenate(faces_all)]
+    faces = _stitched_faces(inverse.reshape(-1), faces_all)
     del faces_all, inverse
-    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
-                  & (faces[:, 0] != faces[:, 2])]
+    # the blocks' small arrays (heap memory: glibc keeps their pages) are all freed
+    release_free_memory()
     if stream is None:
         del ukeys
         verts, faces, _ = _drop_unused(verts, faces, np.zeros(len(verts)))
@@ -407,7 +408,7 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
         del ukeys
         used = np.zeros(len(verts), bool)
         used[faces.reshape(-1)] = True
-        faces = (np.cumsum(used) - 1)[faces].astype(np.int64, copy=False)  # _drop_unused
+        faces = _renumber(np.cumsum(used) - 1, faces)  # _drop_unused
         verts, var = verts[used], var[used]
         moved = moved[used] if moved is not None else None
         if batch > 1 and len(verts) % batch == 1:
@@ -965,7 +966,7 @@ class _LatticeValues:
             m = _grow_cells(c, self.pack.lo, self.pack.dims, self.values, slots,
                             followed.keys, grown)
             followed.count += m
-            out.append(grown[:m])
+            out.append(grown[:m].copy())    # not a view keeping the 6-per-cell buffer
 
     def _reserve(self, more: int) -> None:
         self.keys, self.values = _reserve_table(self.keys, self.values, self.count + more)
@@ -1346,10 +1347,44 @@ def _valid_vertices(v: np.ndarray, finite: np.ndarray) -> np.ndarray:
 
 
 def _drop_unused(verts, faces, var):
+    """The vertices (and values ``var``) that ``faces`` use, and the faces renumbered
+    (``faces`` itself when it is an int64 array: renumbered in place)."""
     used = np.zeros(len(verts), bool)
     used[faces.reshape(-1)] = True
-    remap = np.cumsum(used) - 1
-    return verts[used], remap[faces].astype(np.int64, copy=False), var[used]
+    return verts[used], _renumber(np.cumsum(used) - 1, faces), var[used]
+
+
+def _renumber(remap: np.ndarray, faces: np.ndarray, chunk: int = 1 << 18) -> np.ndarray:
+    """``remap[faces]`` as int64; an int64 ``faces`` (the caller's own) is renumbered in
+    place, ``chunk`` rows at a time, so that no second faces array is alive (62 MB on
+    the 1.3M-point street)."""
+    if faces.dtype != np.int64 or not faces.flags.writeable:
+        return remap[faces].astype(np.int64, copy=False)
+    for s in range(0, len(faces), chunk):
+        faces[s:s + chunk] = remap[faces[s:s + chunk]]
+    return faces
+
+
+def _stitched_faces(inverse: np.ndarray, faces_all: list, chunk: int = 1 << 18) -> np.ndarray:
+    """``inverse[np.concatenate(faces_all)]`` (the blocks' faces on the stitched
+    vertices, ``inverse``: vertex -> stitched vertex) without the degenerate faces (two
+    corners on one vertex), computed a few blocks (``chunk`` faces) at a time into one
+    array, so that neither the concatenated faces nor a filtered copy is alive beside
+    it. ``faces_all`` is emptied (its arrays freed as they are used)."""
+    out = np.empty((sum(map(len, faces_all)), 3), inverse.dtype)
+    w = 0
+    faces_all.reverse()                 # popped from the end: in block order
+    while faces_all:
+        part, m = [], 0
+        while faces_all and m < chunk:
+            part.append(faces_all.pop())
+            m += len(part[-1])
+        f = inverse[np.concatenate(part)]
+        del part
+        f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+        out[w:w + len(f)] = f
+        w += len(f)
+    return out[:w]
 
 
 # --------------------------------------------------------------------------- export
@@ -1363,6 +1398,14 @@ def variance_colors(variance: np.ndarray, vmax: Optional[float] = None,
     t = np.clip(std / max(vmax, 1e-12), 0, 1)
     rgba = matplotlib.colormaps[cmap](t)
     return (rgba[:, :3] * 255 + 0.5).astype(np.uint8)
+
+
+def _colour_top(variance: np.ndarray, vmax: Optional[float]) -> float:
+    """The top of :func:`variance_colors`' scale for the whole of ``variance``, as a
+    value that gives every part of it the colours the whole would get."""
+    if vmax is None and len(variance):
+        vmax = float(np.quantile(np.sqrt(np.maximum(variance, 0)), 0.98))
+    return max(vmax or 1.0, 1e-12)
 
 
 def std_colour_max(meshes) -> Optional[float]:
@@ -1389,25 +1432,34 @@ def ply_header(n_vertices: int, n_faces: int) -> bytes:
             ).encode()
 
 
-def write_mesh_ply(mesh: SurfaceMesh, path, offset=None, vmax: Optional[float] = None) -> Path:
+def write_mesh_ply(mesh: SurfaceMesh, path, offset=None, vmax: Optional[float] = None,
+                   chunk: int = 1 << 17) -> Path:
     """Binary PLY with vertex colours (std on viridis) and a float ``variance`` property.
 
-    Written to a temporary name and renamed, so no half-written file remains.
+    Written to a temporary name and renamed, so no half-written file remains. The
+    records are made and written ``chunk`` rows at a time (the same bytes as all at
+    once): the whole file's records were ~0.16 GB beside the mesh on the 1.3M-point
+    street, the process's peak (docs/speed.md, session 10).
     """
     path = Path(path)
-    v = mesh.vertices + (0 if offset is None else np.asarray(offset))
-    rgb = variance_colors(mesh.vertex_variance, vmax)
-    vert = np.empty(len(v), PLY_VERTEX)
-    vert["x"], vert["y"], vert["z"] = v.T
-    vert["red"], vert["green"], vert["blue"] = rgb.T
-    vert["variance"] = mesh.vertex_variance
-    face = np.empty(len(mesh.faces), PLY_FACE)
-    face["n"] = 3
-    face["i"] = mesh.faces
+    shift = 0 if offset is None else np.asarray(offset)
+    var, faces = mesh.vertex_variance, mesh.faces
+    top = _colour_top(var, vmax)
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        f.write(ply_header(len(v), len(face)))
-        f.write(vert.data)      # the arrays themselves, no bytes copy
-        f.write(face.data)
+        f.write(ply_header(len(mesh.vertices), len(faces)))
+        for s in range(0, len(mesh.vertices), chunk):
+            v = mesh.vertices[s:s + chunk] + shift
+            rgb = variance_colors(var[s:s + chunk], top)
+            vert = np.empty(len(v), PLY_VERTEX)
+            vert["x"], vert["y"], vert["z"] = v.T
+            vert["red"], vert["green"], vert["blue"] = rgb.T
+            vert["variance"] = var[s:s + chunk]
+            f.write(vert.data)      # the records themselves, no bytes copy
+        for s in range(0, len(faces), chunk):
+            face = np.empty(len(faces[s:s + chunk]), PLY_FACE)
+            face["n"] = 3
+            face["i"] = faces[s:s + chunk]
+            f.write(face.data)
     return path
 
 
