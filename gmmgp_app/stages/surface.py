@@ -316,7 +316,6 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
         frontier = new
     lattice.evaluate_corners(frontier, pool=follow_pool)  # the last cells' corners
     bar and bar.close()
-    cells = np.concatenate(cells)
     node_keys, values = lattice.keys, lattice.values    # hash table: key -1 = empty slot
     # memory: only the node values go on
     if tree is None:
@@ -326,7 +325,10 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
 
     tick("follow")
     # 2. Marching cubes per block on its (B+1)^3 nodes, looked up by key.
-    blocks = _unique_rows(np.floor_divide(cells, block_cells))
+    # (the blocks of each step's cells, then of them all: the same rows as of the
+    # concatenated cells, without a copy of every followed cell)
+    blocks = _unique_rows(np.concatenate([_unique_rows(np.floor_divide(c, block_cells))
+                                          for c in cells]))
     del cells
     nb = block_cells + 1
     keys_all, verts_all, faces_all = [], [], []
@@ -385,12 +387,13 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
     # Stitch: one vertex per lattice-edge key.
     ukeys, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
     del keys
-    verts = np.concatenate(verts_all)[first] * h
+    verts = np.concatenate(verts_all)[first]
+    verts *= h
     del verts_all, first
+    release_free_memory()     # the pages of the blocks' keys and vertices (heap)
     faces = _stitched_faces(inverse.reshape(-1), faces_all)
     del faces_all, inverse
-    # the blocks' small arrays (heap memory: glibc keeps their pages) are all freed
-    release_free_memory()
+    release_free_memory()     # and of their faces
     if stream is None:
         del ukeys
         verts, faces, _ = _drop_unused(verts, faces, np.zeros(len(verts)))
