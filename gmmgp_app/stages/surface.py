@@ -387,10 +387,12 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
     # Stitch: one vertex per lattice-edge key.
     ukeys, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
     del keys
-    verts = np.concatenate(verts_all)[first]
-    verts *= h
-    del verts_all, first
+    verts = np.concatenate(verts_all)
+    del verts_all
     release_free_memory()     # the pages of the blocks' keys and vertices (heap)
+    verts = verts[first]
+    verts *= h
+    del first
     faces = _stitched_faces(inverse.reshape(-1), faces_all)
     del faces_all, inverse
     release_free_memory()     # and of their faces
@@ -972,7 +974,16 @@ class _LatticeValues:
             out.append(grown[:m].copy())    # not a view keeping the 6-per-cell buffer
 
     def _reserve(self, more: int) -> None:
-        self.keys, self.values = _reserve_table(self.keys, self.values, self.count + more)
+        """Room for ``more`` new nodes (a chunk's worst case, 8 per cell: new ones are
+        ~1 per cell). The table grows when its nodes exceed ``_MAX_LOAD`` of it, or when
+        the worst case could fill more than ``_FULL_LOAD`` of it; not when only the worst
+        case would exceed ``_MAX_LOAD`` (on the 1.3M-point street that doubled the table
+        for its last 12 % of nodes: 128 instead of 64 MB, 192 MB while rehashing, the
+        run's peak). Where each node sits does not change any value or the mesh."""
+        n = len(self.keys)
+        if self.count > _MAX_LOAD * n or self.count + more > _FULL_LOAD * n:
+            self.keys, self.values = _rehashed(self.keys, self.values,
+                                               _table_size(self.count + more))
 
     def __call__(self, ijk: np.ndarray) -> np.ndarray:
         """Values at integer nodes ``ijk`` (..., 3), all evaluated before (NaN where not)."""
@@ -997,6 +1008,8 @@ class _KeySet:
 
 
 _MAX_LOAD = 0.7
+#: The most of a lattice table that a chunk's worst case may fill (:meth:`_LatticeValues._reserve`).
+_FULL_LOAD = 0.9
 
 
 def _table_size(n: int) -> int:
@@ -1009,7 +1022,11 @@ def _reserve_table(keys, values, need: int):
     would exceed ``_MAX_LOAD`` (the same arrays otherwise)."""
     if need <= _MAX_LOAD * len(keys):
         return keys, values
-    size = _table_size(need)
+    return _rehashed(keys, values, _table_size(need))
+
+
+def _rehashed(keys, values, size: int):
+    """The table (keys, values or None) rehashed into one of ``size`` slots."""
     nk = np.full(size, -1, np.int64)
     nv = np.zeros(size) if values is not None else np.zeros(0)
     _rehash(keys, values if values is not None else np.zeros(0), nk, nv)
