@@ -212,3 +212,25 @@ def test_projected_far_field_is_not_compressed_next_to_a_noisy_sphere():
     assert bias[False][0] > 1e-3 and bias[False][1] < -1e-3
     assert abs(bias[True][0]) < 0.5 * bias[False][0]
     assert abs(bias[True][1]) < 0.5 * abs(bias[False][1])
+
+
+def test_a_map_predicts_a_query_alone_as_in_a_batch_bit_for_bit():
+    """The map's mean and variance at a query do not depend on the batch it is in:
+    eq. calibrated_var's linear predictor is summed feature by feature (numpy's
+    matrix-vector product took another path for one row and changed the last bits)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        smap = gm.build_map(_plane_scan(1500, seed=7), gm.MappingConfig())
+    rng = np.random.default_rng(8)
+    q = np.c_[rng.uniform(-1.2, 1.2, (300, 2)), rng.uniform(-0.6, 0.6, 300)]
+    m, v = smap.predict(q)
+    alone = [smap.predict(q[j:j + 1]) for j in range(0, 300, 7)]
+    np.testing.assert_array_equal(np.concatenate([a[0] for a in alone]), m[::7])
+    np.testing.assert_array_equal(np.concatenate([a[1] for a in alone]), v[::7])
+    # the linear predictor itself, against the matrix product within rounding
+    X = rng.normal(size=(50, 5))
+    u = rng.normal(size=5)
+    np.testing.assert_allclose(F._features_dot(X, u), X @ u, rtol=1e-13, atol=1e-14)
+    np.testing.assert_array_equal(F._features_dot(X[3:4], u), F._features_dot(X, u)[3:4])
+    with pytest.raises(ValueError, match="5 features"):
+        F._features_dot(X[:, :4], u)

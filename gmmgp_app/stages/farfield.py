@@ -737,7 +737,7 @@ def field_variance(h, noise, r, spread2, disagreement2, v_own, coef):
     (K,) float64, m^2 (infinite where ``v_own`` is)
     """
     X = variance_features(h, noise, r, spread2, disagreement2, v_own)
-    v = h * h * np.exp(X @ np.asarray(coef, dtype=np.float64))
+    v = h * h * np.exp(_features_dot(X, coef))
     return np.where(np.isinf(np.asarray(v_own, dtype=np.float64)), np.inf, v)
 
 
@@ -814,6 +814,20 @@ def fit_error_correlation(z1, z2):
                                  options=dict(xatol=1e-10)).x)
 
 
+def _features_dot(X, coef):
+    """``X @ coef`` for the (K, P) feature rows, summed column by column in a fixed
+    order, so that a query's value does not depend on the batch it is predicted in
+    (numpy's matrix-vector product takes another path for a single row, which changed
+    the last bits of a lone query's variance)."""
+    u = np.asarray(coef, dtype=np.float64)
+    if X.ndim != 2 or X.shape[1] != len(u):
+        raise ValueError(f"Expected {len(u)} features per row, found shape {X.shape}.")
+    out = X[:, 0] * u[0]
+    for j in range(1, len(u)):
+        out = out + X[:, j] * u[j]
+    return out
+
+
 def variance_features(h, noise, r, spread2, disagreement2, v_gp):
     """The five dimensionless features of eq. calibrated_var, one row per query:
     ``1, log((r^2 + h^2)/h^2), log((s^2 + sigma^2)/h^2), log((d^2 + sigma^2)/h^2),
@@ -868,7 +882,7 @@ def calibrated_variance(h, noise, r, spread2, disagreement2, v_gp, coef=VARIANCE
     (K,) float64, m^2
     """
     X = variance_features(h, noise, r, spread2, disagreement2, v_gp)
-    return h * h * np.exp(X @ np.asarray(coef, dtype=np.float64)) \
+    return h * h * np.exp(_features_dot(X, coef)) \
         + np.asarray(disagreement_weight) * np.asarray(disagreement2, dtype=np.float64)
 
 
