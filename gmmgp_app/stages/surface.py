@@ -1385,14 +1385,16 @@ def _renumber(remap: np.ndarray, faces: np.ndarray, chunk: int = 1 << 18) -> np.
     return faces
 
 
-def _stitched_faces(inverse: np.ndarray, faces_all: list, chunk: int = 1 << 18) -> np.ndarray:
+def _stitched_faces(inverse: np.ndarray, faces_all: list, chunk: int = 1 << 18,
+                    release_every: int = 1 << 20) -> np.ndarray:
     """``inverse[np.concatenate(faces_all)]`` (the blocks' faces on the stitched
     vertices, ``inverse``: vertex -> stitched vertex) without the degenerate faces (two
     corners on one vertex), computed a few blocks (``chunk`` faces) at a time into one
     array, so that neither the concatenated faces nor a filtered copy is alive beside
-    it. ``faces_all`` is emptied (its arrays freed as they are used)."""
+    it. ``faces_all`` is emptied (its arrays freed as they are used, and their heap
+    pages released every ``release_every`` faces)."""
     out = np.empty((sum(map(len, faces_all)), 3), inverse.dtype)
-    w = 0
+    w = done = 0
     faces_all.reverse()                 # popped from the end: in block order
     while faces_all:
         part, m = [], 0
@@ -1404,6 +1406,10 @@ def _stitched_faces(inverse: np.ndarray, faces_all: list, chunk: int = 1 << 18) 
         f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
         out[w:w + len(f)] = f
         w += len(f)
+        done += m
+        if done >= release_every:
+            release_free_memory()
+            done = 0
     return out[:w]
 
 
