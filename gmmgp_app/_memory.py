@@ -20,10 +20,17 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import functools
 import sys
 
 #: glibc's mallopt parameter number for the mmap threshold (malloc.h: M_MMAP_THRESHOLD).
 _M_MMAP_THRESHOLD = -3
+
+
+@functools.lru_cache(maxsize=None)
+def _libc():
+    """The C library (found once: ``find_library`` runs ``ldconfig``)."""
+    return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
 
 
 def fix_mmap_threshold(nbytes: int = 1024 * 1024) -> bool:
@@ -32,7 +39,19 @@ def fix_mmap_threshold(nbytes: int = 1024 * 1024) -> bool:
     if not sys.platform.startswith("linux"):
         return False
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        return bool(libc.mallopt(_M_MMAP_THRESHOLD, int(nbytes)))
+        return bool(_libc().mallopt(_M_MMAP_THRESHOLD, int(nbytes)))
     except (OSError, AttributeError):   # not glibc (musl has no mallopt)
+        return False
+
+
+def release_free_memory() -> bool:
+    """Return the allocator's free pages to the system (glibc's ``malloc_trim(0)``;
+    elsewhere nothing happens): after many small arrays (below the mmap threshold, in
+    the heap) are freed, glibc keeps their pages resident until the heap's top is free.
+    Returns whether memory was released."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        return bool(_libc().malloc_trim(0))
+    except (OSError, AttributeError):   # not glibc
         return False

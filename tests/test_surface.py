@@ -685,3 +685,75 @@ def test_overlap_workers_keep_the_callers_numba_threads():
     finally:
         numba.set_num_threads(before)
     assert len(seen) > 5 and set(seen) == {1}
+
+
+def test_ply_written_in_chunks_is_the_whole_arrays_file(tmp_path):
+    # the records made a chunk at a time give the bytes of the records made at once
+    from gmmgp_app.stages.surface import PLY_FACE, PLY_VERTEX, ply_header, variance_colors
+
+    mesh = extract_surface(_sphere_field, _sphere_seeds(3000), voxel_size=0.2)
+    offset = np.array([1e5, -3.25, 7.0])
+    for vmax in (None, 0.0, 0.05):
+        v = mesh.vertices + offset
+        rgb = variance_colors(mesh.vertex_variance, vmax)
+        vert = np.empty(len(v), PLY_VERTEX)
+        vert["x"], vert["y"], vert["z"] = v.T
+        vert["red"], vert["green"], vert["blue"] = rgb.T
+        vert["variance"] = mesh.vertex_variance
+        face = np.empty(len(mesh.faces), PLY_FACE)
+        face["n"], face["i"] = 3, mesh.faces
+        whole = ply_header(len(v), len(face)) + vert.tobytes() + face.tobytes()
+        for chunk in (7, 1000, 1 << 17):
+            path = write_mesh_ply(mesh, tmp_path / f"m{chunk}.ply", offset=offset, vmax=vmax,
+                                  chunk=chunk)
+            assert path.read_bytes() == whole, (vmax, chunk)
+
+
+def test_stitched_faces_and_renumbering_equal_the_whole_array_expressions():
+    from gmmgp_app.stages.surface import _drop_unused, _renumber, _stitched_faces
+
+    rng = np.random.default_rng(5)
+    inverse = rng.integers(0, 300, 2000)            # vertex -> stitched vertex, some merged
+    faces_all = [rng.integers(0, 2000, (n, 3)).astype(np.int32) for n in (5, 0, 40, 1, 300)]
+    cat = np.concatenate(faces_all)
+    want = inverse[cat]
+    want = want[(want[:, 0] != want[:, 1]) & (want[:, 1] != want[:, 2])
+                & (want[:, 0] != want[:, 2])]
+    assert len(want) < len(cat)                     # some faces are degenerate
+    for chunk in (1, 7, 1 << 18):
+        got = _stitched_faces(inverse, list(faces_all), chunk=chunk)
+        assert got.dtype == inverse.dtype
+        np.testing.assert_array_equal(got, want)
+    remap = np.cumsum(rng.random(300) < 0.7) - 1
+    f = want.copy()
+    out = _renumber(remap, f, chunk=13)
+    assert out is f and out.dtype == np.int64
+    np.testing.assert_array_equal(out, remap[want])
+    f32 = want.astype(np.int32)                     # not int64: a new array, input untouched
+    np.testing.assert_array_equal(_renumber(remap, f32), remap[want])
+    np.testing.assert_array_equal(f32, want)
+    verts, var = rng.random((300, 3)), rng.random(300)
+    used = np.zeros(300, bool)
+    used[want.reshape(-1)] = True
+    v2, f2, var2 = _drop_unused(verts, want.copy(), var)
+    np.testing.assert_array_equal(v2, verts[used])
+    np.testing.assert_array_equal(var2, var[used])
+    np.testing.assert_array_equal(f2, (np.cumsum(used) - 1)[want])
+
+
+def test_lattice_table_does_not_double_for_a_chunks_worst_case_alone():
+    # 8 corners per cell reserved, ~1-2 new per cell: the table grows on its nodes' load
+    # (0.7), or when the worst case could pass 0.9 of it, not merely 0.7
+    from gmmgp_app.stages import surface as S
+    from gmmgp_app.stages.surface import _LatticeValues, _Packer
+
+    cells = np.stack(np.meshgrid(np.arange(120), np.arange(120), np.arange(5),
+                                 indexing="ij"), -1).reshape(-1, 3)   # a slab: ~1.2 nodes/cell
+    pack = _Packer(cells.min(0) - 2, cells.max(0) + 2)
+    lat = _LatticeValues(lambda x: x[:, 2] - 1.0, 1.0, pack, 4096)
+    lat.evaluate_corners(cells, chunk=4096)
+    n = len(lat.keys)
+    assert lat.count <= S._FULL_LOAD * n
+    # the count fits the table at load 0.7 while a chunk's worst case did not: the old
+    # rule (grow when count + 8 * chunk > 0.7 * size) doubled it
+    assert lat.count <= S._MAX_LOAD * n < lat.count + 8 * 4096

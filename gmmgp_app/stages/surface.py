@@ -23,6 +23,7 @@ import numba as nb
 import numpy as np
 
 from .._atomic import atomic_path
+from .._memory import release_free_memory
 from . import _distinct
 from ..types import SurfaceMesh
 
@@ -315,7 +316,6 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
         frontier = new
     lattice.evaluate_corners(frontier, pool=follow_pool)  # the last cells' corners
     bar and bar.close()
-    cells = np.concatenate(cells)
     node_keys, values = lattice.keys, lattice.values    # hash table: key -1 = empty slot
     # memory: only the node values go on
     if tree is None:
@@ -325,7 +325,10 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
 
     tick("follow")
     # 2. Marching cubes per block on its (B+1)^3 nodes, looked up by key.
-    blocks = _unique_rows(np.floor_divide(cells, block_cells))
+    # (the blocks of each step's cells, then of them all: the same rows as of the
+    # concatenated cells, without a copy of every followed cell)
+    blocks = _unique_rows(np.concatenate([_unique_rows(np.floor_divide(c, block_cells))
+                                          for c in cells]))
     del cells
     nb = block_cells + 1
     keys_all, verts_all, faces_all = [], [], []
@@ -384,12 +387,15 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
     # Stitch: one vertex per lattice-edge key.
     ukeys, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
     del keys
-    verts = np.concatenate(verts_all)[first] * h
-    del verts_all, first
-    faces = inverse.reshape(-1)[np.concatenate(faces_all)]
+    verts = np.concatenate(verts_all)
+    del verts_all
+    release_free_memory()     # the pages of the blocks' keys and vertices (heap)
+    verts = verts[first]
+    verts *= h
+    del first
+    faces = _stitched_faces(inverse.reshape(-1), faces_all)
     del faces_all, inverse
-    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
-                  & (faces[:, 0] != faces[:, 2])]
+    release_free_memory()     # and of their faces
     if stream is None:
         del ukeys
         verts, faces, _ = _drop_unused(verts, faces, np.zeros(len(verts)))
@@ -407,7 +413,7 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
         del ukeys
         used = np.zeros(len(verts), bool)
         used[faces.reshape(-1)] = True
-        faces = (np.cumsum(used) - 1)[faces].astype(np.int64, copy=False)  # _drop_unused
+        faces = _renumber(np.cumsum(used) - 1, faces)  # _drop_unused
         verts, var = verts[used], var[used]
         moved = moved[used] if moved is not None else None
         if batch > 1 and len(verts) % batch == 1:
@@ -965,10 +971,19 @@ class _LatticeValues:
             m = _grow_cells(c, self.pack.lo, self.pack.dims, self.values, slots,
                             followed.keys, grown)
             followed.count += m
-            out.append(grown[:m])
+            out.append(grown[:m].copy())    # not a view keeping the 6-per-cell buffer
 
     def _reserve(self, more: int) -> None:
-        self.keys, self.values = _reserve_table(self.keys, self.values, self.count + more)
+        """Room for ``more`` new nodes (a chunk's worst case, 8 per cell: new ones are
+        ~1 per cell). The table grows when its nodes exceed ``_MAX_LOAD`` of it, or when
+        the worst case could fill more than ``_FULL_LOAD`` of it; not when only the worst
+        case would exceed ``_MAX_LOAD`` (on the 1.3M-point street that doubled the table
+        for its last 12 % of nodes: 128 instead of 64 MB, 192 MB while rehashing, the
+        run's peak). Where each node sits does not change any value or the mesh."""
+        n = len(self.keys)
+        if self.count > _MAX_LOAD * n or self.count + more > _FULL_LOAD * n:
+            self.keys, self.values = _rehashed(self.keys, self.values,
+                                               _table_size(self.count + more))
 
     def __call__(self, ijk: np.ndarray) -> np.ndarray:
         """Values at integer nodes ``ijk`` (..., 3), all evaluated before (NaN where not)."""
@@ -993,6 +1008,8 @@ class _KeySet:
 
 
 _MAX_LOAD = 0.7
+#: The most of a lattice table that a chunk's worst case may fill (:meth:`_LatticeValues._reserve`).
+_FULL_LOAD = 0.9
 
 
 def _table_size(n: int) -> int:
@@ -1005,7 +1022,11 @@ def _reserve_table(keys, values, need: int):
     would exceed ``_MAX_LOAD`` (the same arrays otherwise)."""
     if need <= _MAX_LOAD * len(keys):
         return keys, values
-    size = _table_size(need)
+    return _rehashed(keys, values, _table_size(need))
+
+
+def _rehashed(keys, values, size: int):
+    """The table (keys, values or None) rehashed into one of ``size`` slots."""
     nk = np.full(size, -1, np.int64)
     nv = np.zeros(size) if values is not None else np.zeros(0)
     _rehash(keys, values if values is not None else np.zeros(0), nk, nv)
@@ -1346,10 +1367,50 @@ def _valid_vertices(v: np.ndarray, finite: np.ndarray) -> np.ndarray:
 
 
 def _drop_unused(verts, faces, var):
+    """The vertices (and values ``var``) that ``faces`` use, and the faces renumbered
+    (``faces`` itself when it is an int64 array: renumbered in place)."""
     used = np.zeros(len(verts), bool)
     used[faces.reshape(-1)] = True
-    remap = np.cumsum(used) - 1
-    return verts[used], remap[faces].astype(np.int64, copy=False), var[used]
+    return verts[used], _renumber(np.cumsum(used) - 1, faces), var[used]
+
+
+def _renumber(remap: np.ndarray, faces: np.ndarray, chunk: int = 1 << 18) -> np.ndarray:
+    """``remap[faces]`` as int64; an int64 ``faces`` (the caller's own) is renumbered in
+    place, ``chunk`` rows at a time, so that no second faces array is alive (62 MB on
+    the 1.3M-point street)."""
+    if faces.dtype != np.int64 or not faces.flags.writeable:
+        return remap[faces].astype(np.int64, copy=False)
+    for s in range(0, len(faces), chunk):
+        faces[s:s + chunk] = remap[faces[s:s + chunk]]
+    return faces
+
+
+def _stitched_faces(inverse: np.ndarray, faces_all: list, chunk: int = 1 << 18,
+                    release_every: int = 1 << 20) -> np.ndarray:
+    """``inverse[np.concatenate(faces_all)]`` (the blocks' faces on the stitched
+    vertices, ``inverse``: vertex -> stitched vertex) without the degenerate faces (two
+    corners on one vertex), computed a few blocks (``chunk`` faces) at a time into one
+    array, so that neither the concatenated faces nor a filtered copy is alive beside
+    it. ``faces_all`` is emptied (its arrays freed as they are used, and their heap
+    pages released every ``release_every`` faces)."""
+    out = np.empty((sum(map(len, faces_all)), 3), inverse.dtype)
+    w = done = 0
+    faces_all.reverse()                 # popped from the end: in block order
+    while faces_all:
+        part, m = [], 0
+        while faces_all and m < chunk:
+            part.append(faces_all.pop())
+            m += len(part[-1])
+        f = inverse[np.concatenate(part)]
+        del part
+        f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+        out[w:w + len(f)] = f
+        w += len(f)
+        done += m
+        if done >= release_every:
+            release_free_memory()
+            done = 0
+    return out[:w]
 
 
 # --------------------------------------------------------------------------- export
@@ -1363,6 +1424,14 @@ def variance_colors(variance: np.ndarray, vmax: Optional[float] = None,
     t = np.clip(std / max(vmax, 1e-12), 0, 1)
     rgba = matplotlib.colormaps[cmap](t)
     return (rgba[:, :3] * 255 + 0.5).astype(np.uint8)
+
+
+def _colour_top(variance: np.ndarray, vmax: Optional[float]) -> float:
+    """The top of :func:`variance_colors`' scale for the whole of ``variance``, as a
+    value that gives every part of it the colours the whole would get."""
+    if vmax is None and len(variance):
+        vmax = float(np.quantile(np.sqrt(np.maximum(variance, 0)), 0.98))
+    return max(vmax or 1.0, 1e-12)
 
 
 def std_colour_max(meshes) -> Optional[float]:
@@ -1389,25 +1458,34 @@ def ply_header(n_vertices: int, n_faces: int) -> bytes:
             ).encode()
 
 
-def write_mesh_ply(mesh: SurfaceMesh, path, offset=None, vmax: Optional[float] = None) -> Path:
+def write_mesh_ply(mesh: SurfaceMesh, path, offset=None, vmax: Optional[float] = None,
+                   chunk: int = 1 << 17) -> Path:
     """Binary PLY with vertex colours (std on viridis) and a float ``variance`` property.
 
-    Written to a temporary name and renamed, so no half-written file remains.
+    Written to a temporary name and renamed, so no half-written file remains. The
+    records are made and written ``chunk`` rows at a time (the same bytes as all at
+    once): the whole file's records were ~0.16 GB beside the mesh on the 1.3M-point
+    street, the process's peak (docs/speed.md, session 10).
     """
     path = Path(path)
-    v = mesh.vertices + (0 if offset is None else np.asarray(offset))
-    rgb = variance_colors(mesh.vertex_variance, vmax)
-    vert = np.empty(len(v), PLY_VERTEX)
-    vert["x"], vert["y"], vert["z"] = v.T
-    vert["red"], vert["green"], vert["blue"] = rgb.T
-    vert["variance"] = mesh.vertex_variance
-    face = np.empty(len(mesh.faces), PLY_FACE)
-    face["n"] = 3
-    face["i"] = mesh.faces
+    shift = 0 if offset is None else np.asarray(offset)
+    var, faces = mesh.vertex_variance, mesh.faces
+    top = _colour_top(var, vmax)
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        f.write(ply_header(len(v), len(face)))
-        f.write(vert.data)      # the arrays themselves, no bytes copy
-        f.write(face.data)
+        f.write(ply_header(len(mesh.vertices), len(faces)))
+        for s in range(0, len(mesh.vertices), chunk):
+            v = mesh.vertices[s:s + chunk] + shift
+            rgb = variance_colors(var[s:s + chunk], top)
+            vert = np.empty(len(v), PLY_VERTEX)
+            vert["x"], vert["y"], vert["z"] = v.T
+            vert["red"], vert["green"], vert["blue"] = rgb.T
+            vert["variance"] = var[s:s + chunk]
+            f.write(vert.data)      # the records themselves, no bytes copy
+        for s in range(0, len(faces), chunk):
+            face = np.empty(len(faces[s:s + chunk]), PLY_FACE)
+            face["n"] = 3
+            face["i"] = faces[s:s + chunk]
+            f.write(face.data)
     return path
 
 
