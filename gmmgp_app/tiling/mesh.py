@@ -201,7 +201,12 @@ def stream_tiled_surface(tmap, voxel_size: Optional[float] = None, max_std=None,
                                reach=reach, predict_mean=view.lattice_mean,
                                project=inside.wrap(lambda x: view.predict(
                                    x, return_grad=True), grad=True),
-                               block_cells=BLOCK_CELLS, dilate=dilate)
+                               block_cells=BLOCK_CELLS, dilate=dilate,
+                               # serial: the same mesh; the overlap's worker thread
+                               # gained no time region by region and its per-thread
+                               # allocations raised the 8x street's peak RSS from
+                               # 320 to 435-445 MB (scripts/bench_scale.py, session 10)
+                               overlap=False)
         bar and bar.update(1)
         holder.drop([k for k in list(holder._held) if last_use.get(k, -1) <= t_i])
         if piece is not None and len(piece.faces):
