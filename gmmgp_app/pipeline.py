@@ -264,7 +264,8 @@ class SurfaceMap:
         return self.method != "loggpis"
 
     def extract_surface(self, voxel_size: Optional[float] = None, max_std=None,
-                        progress=None, reach: Optional[float] = None) -> SurfaceMesh:
+                        progress=None, reach: Optional[float] = None,
+                        overlap: bool = False) -> SurfaceMesh:
         """Marching-cubes surface of the zero level set, vertices carrying variance.
 
         ``voxel_size`` and ``max_std`` default to ``config.surface``; ``reach`` (m), how
@@ -276,6 +277,13 @@ class SurfaceMap:
         :meth:`predict`'s zero level along its gradient (``stages.surface``,
         ``project_vertices``). The vertex variance is :meth:`predict`'s at the vertex;
         the field itself is unchanged.
+
+        ``overlap``: run the vertex pass on a worker thread beside marching cubes (the
+        same mesh; ``stages.surface.extract_surface``). Off by default: it starts worker
+        threads at every call, and a process that meshes again and again (the viewer's
+        threshold changes) grew its peak RSS from 556 to 838 MB over 8 calls on the demo
+        map against 550 to 666 MB serial (session 10); ``gmmgp run``, which meshes once,
+        turns it on.
         """
         if not self.signed:
             raise PipelineError(f"A {self.method} map predicts an unsigned distance, which "
@@ -285,7 +293,8 @@ class SurfaceMap:
                                    voxel_size, max_std, progress,
                                    self.surface_reach() if reach is None else reach,
                                    predict_mean=self.lattice_mean,
-                                   project=self._predict_with_grad if project else None)
+                                   project=self._predict_with_grad if project else None,
+                                   overlap=overlap)
 
     def lattice_mean(self, xyz) -> np.ndarray:
         """(K,) the field the surface lattice is evaluated with (``surface.lattice_field``):

@@ -757,3 +757,29 @@ def test_lattice_table_does_not_double_for_a_chunks_worst_case_alone():
     # the count fits the table at load 0.7 while a chunk's worst case did not: the old
     # rule (grow when count + 8 * chunk > 0.7 * size) doubled it
     assert lat.count <= S._MAX_LOAD * n < lat.count + 8 * 4096
+
+
+def test_map_meshes_serially_by_default_and_the_same_with_the_overlap(box_scene):
+    # SurfaceMap.extract_surface runs the serial path unless asked (gmmgp run asks:
+    # one mesh per process); both give the same mesh bit for bit
+    import gmmgp_app as gm
+    from gmmgp_app.stages import surface as S
+
+    _, scan = box_scene
+    smap = gm.build_map(scan, gm.MappingConfig())
+    seen = []
+    real = S.extract_surface
+
+    def spy(*a, **kw):
+        seen.append(kw.get("overlap"))
+        return real(*a, **kw)
+
+    S.extract_surface, orig = spy, S.extract_surface
+    try:
+        serial = smap.extract_surface()
+        over = smap.extract_surface(overlap=True)
+    finally:
+        S.extract_surface = orig
+    assert seen == [False, True]
+    assert len(serial.faces) > 1000
+    _assert_same_mesh(serial, over)

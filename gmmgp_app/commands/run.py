@@ -330,7 +330,8 @@ def _write_meshes(smap, out: Path, observer, console, prior_mesh: bool = False) 
     t0 = time.perf_counter()
     meshes = {}
     if smap.method != "hgmm" and smap.signed:  # loggpis: no zero level set to mesh
-        meshes[smap.method] = smap.extract_surface(progress=console.progress)
+        # one mesh per process: the vertex pass beside marching cubes (same mesh)
+        meshes[smap.method] = smap.extract_surface(progress=console.progress, overlap=True)
     if smap.hgmm is not None and (prior_mesh or smap.method == "hgmm"):
         meshes["hgmm"] = smap.prior_surface(progress=console.progress)
     seconds = time.perf_counter() - t0

@@ -135,19 +135,23 @@ def mesh_field(predict: Callable, seeds: np.ndarray, cfg, voxel_size: Optional[f
                max_std: Optional[float] = None, progress=None,
                reach: Optional[float] = None,
                predict_mean: Optional[Callable] = None,
-               project: Optional[Callable] = None, **lattice) -> SurfaceMesh:
+               project: Optional[Callable] = None, overlap: bool = False,
+               **lattice) -> SurfaceMesh:
     """:func:`extract_surface` with the voxel, std cut and vertex projection of ``cfg``
     (SurfaceConfig) unless given: the one place where a map's surface settings are
     resolved. ``project`` (the field's ``predict(xyz, return_grad=True)``) is used only
     when ``cfg.project_steps`` > 0. ``lattice`` (``block_cells``, ``dilate``) goes to
-    :func:`extract_surface` as is (a tiled map's regions share the whole map's)."""
+    :func:`extract_surface` as is (a tiled map's regions share the whole map's).
+    ``overlap`` (off here: worker threads started at every call raised the peak RSS of
+    processes that mesh many times, see ``SurfaceMap.extract_surface``) as in
+    :func:`extract_surface`; the same mesh either way."""
     steps = project_steps(cfg)
     return extract_surface(predict, seeds,
                            voxel_size=cfg.voxel_size if voxel_size is None else voxel_size,
                            max_std=cfg.max_std if max_std is None else max_std,
                            progress=progress, reach=reach, predict_mean=predict_mean,
                            project=project if steps > 0 else None, project_steps=max(steps, 1),
-                           project_clamp=project_clamp(cfg), **lattice)
+                           project_clamp=project_clamp(cfg), overlap=overlap, **lattice)
 
 
 def project_steps(cfg) -> int:
