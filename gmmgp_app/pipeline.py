@@ -202,10 +202,8 @@ class SurfaceMap:
             if near is not None:
                 return tuple(near)
             return self._near_field.predict(xyz, return_grad=return_grad)
-        if neighbours is not None:
-            return self._blended().predict(xyz, return_grad=return_grad, base_out=near,
-                                           neighbours=neighbours)
-        return self._blended().predict(xyz, return_grad=return_grad, base_out=near)
+        return self._blended().predict(xyz, return_grad=return_grad, base_out=near,
+                                       neighbours=neighbours)
 
     def distribution(self, xyz):
         """The predictive distribution of the signed distance at query points (what

@@ -1049,8 +1049,7 @@ class BlendedField:
 
         out = self.base.predict(xyz, return_grad=return_grad) if base_out is None \
             else tuple(base_out)
-        c = self.far.components(xyz, return_grad) if neighbours is None \
-            else self.far.components(xyz, return_grad, neighbours=neighbours)
+        c = self.far.components(xyz, return_grad, neighbours=neighbours)
         grads = (out[2], c["grad"]) if return_grad else ()
         d2 = (out[0] - c["mean"]) ** 2
         h, sigma = self.far.rho0, self.far.noise

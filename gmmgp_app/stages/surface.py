@@ -334,7 +334,7 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
     blocks = _unique_rows(np.concatenate([_unique_rows(np.floor_divide(c, block_cells))
                                           for c in cells]))
     del cells
-    nb = block_cells + 1
+    n_side = block_cells + 1     # nodes along a block's edge
     keys_all, verts_all, faces_all = [], [], []
     n_verts = n_inner = 0
     bar = progress(len(blocks), "marching cubes") if progress else None
@@ -343,7 +343,7 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
     tick("block_nodes")
     stream = None
     if pool is not None:
-        threads = _numba_threads()      # (nb is a count here)
+        threads = nb.get_num_threads()
 
         def vertex_pass(x):
             # one numba thread while marching cubes holds a core, the caller's after
@@ -358,7 +358,7 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
             continue
         # the block's nodes, unevaluated ones masked (value 1.0: a placeholder, faces
         # on it are dropped); None when no evaluated node is <= 0 or none >= 0
-        filled = _block_volume(node_local, node_value, s0, s1, nb)
+        filled = _block_volume(node_local, node_value, s0, s1, n_side)
         if filled is None:
             continue
         vol_filled, finite = filled
@@ -438,11 +438,6 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
     verts, faces, var = _drop_unused(verts, faces, var)
     tick("final")
     return SurfaceMesh(verts, faces, var)
-
-
-def _numba_threads() -> int:
-    """The calling thread's numba thread count."""
-    return nb.get_num_threads()
 
 
 def _variance(predict: Callable, verts: np.ndarray, batch: int) -> np.ndarray:
