@@ -14,6 +14,14 @@ such array: at 128 KiB the 1.3M-point street's run took ~1.4M minor faults and
 ~4.5 s of system CPU (2.5 s more than glibc's dynamic threshold). At 1 MiB (the
 default here) the many 128 KiB-1 MiB temporaries come from the heap again: ~0.8M
 faults, ~1.5 s less CPU, peak RSS +10 MB (docs/speed.md "Session 10 (first calls)").
+
+Fixing the mmap threshold also stops glibc from adjusting its trim threshold, which
+stays at 128 KiB: whenever more than that is free at the top of the heap it is given
+back, so the heap's temporaries of one field batch (below 1 MiB each, ~10-20 MB in
+all) were faulted in again in the next one (about half of the surface stage's
+~0.63M faults on the street). :func:`fix_mmap_threshold` keeps up to 32 MiB free at
+the heap's top instead; :func:`release_free_memory` still returns it
+(docs/speed.md "Session 11 (speed-16w)").
 """
 
 from __future__ import annotations
@@ -25,6 +33,8 @@ import sys
 
 #: glibc's mallopt parameter number for the mmap threshold (malloc.h: M_MMAP_THRESHOLD).
 _M_MMAP_THRESHOLD = -3
+#: ... and for the trim threshold (malloc.h: M_TRIM_THRESHOLD).
+_M_TRIM_THRESHOLD = -1
 
 
 @functools.lru_cache(maxsize=None)
@@ -33,13 +43,17 @@ def _libc():
     return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
 
 
-def fix_mmap_threshold(nbytes: int = 1024 * 1024) -> bool:
-    """Serve blocks of at least ``nbytes`` by their own mapping, always (glibc only;
-    elsewhere nothing happens). Returns whether the setting was applied."""
+def fix_mmap_threshold(nbytes: int = 1024 * 1024, keep_top: int = 32 * 1024 * 1024) -> bool:
+    """Serve blocks of at least ``nbytes`` by their own mapping, always, and keep up to
+    ``keep_top`` bytes free at the heap's top mapped (glibc's trim threshold, which the
+    fixed mmap threshold would leave at 128 KiB) (glibc only; elsewhere nothing
+    happens). Returns whether the settings were applied."""
     if not sys.platform.startswith("linux"):
         return False
     try:
-        return bool(_libc().mallopt(_M_MMAP_THRESHOLD, int(nbytes)))
+        libc = _libc()
+        return bool(libc.mallopt(_M_MMAP_THRESHOLD, int(nbytes))) \
+            and bool(libc.mallopt(_M_TRIM_THRESHOLD, int(keep_top)))
     except (OSError, AttributeError):   # not glibc (musl has no mallopt)
         return False
 
