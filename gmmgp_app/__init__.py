@@ -16,13 +16,6 @@ from importlib import import_module
 # numba's TBB layer refuses the TBB that Open3D's wheels bring (too old) and warns on
 # every parallel kernel; OpenMP is what it would fall back to anyway.
 os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")
-# OpenMP's idle threads sleep at once instead of spinning ~300,000 turns after each
-# parallel kernel: the spin took a core from the calling thread's serial work between
-# kernels (and from the surface stage's other threads), e.g. the street's lattice field
-# 4.0-4.3 CPU-s / wall s with spinning against 2.9 passive on a loaded 2-core machine
-# (docs/speed.md "Session 11 (speed-16w)"). Read when libgomp loads (numba's first
-# parallel kernel); a value set by the user stands.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 __version__ = "0.1.0"
 
