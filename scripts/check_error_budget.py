@@ -404,25 +404,29 @@ def final(args) -> int:
         rows.append({"seed": seed, "what": "step from the truth, noise-free drive",
                      "xi": _one_step(yc, rc, gc, wc)[0]})
         # which faces carry the map's part: the noise-free residuals' score split by the
-        # gradient's dominant axis and sign, through the noise-free normal matrix
-        ax = np.argmax(np.abs(gc), axis=1)
-        sg = np.sign(gc[np.arange(len(gc)), ax])
-        J, Hc, _ = _normal_matrix(yc, gc, wc, rc, pivot)
-        Hinv = np.linalg.inv(Hc)
-        for a, name in enumerate("xyz"):
-            for sgn in (1, -1):
-                sel = (ax == a) & (sg == sgn) & (wc > 0)
-                if not sel.any():
-                    continue
-                bk = -(J[sel] * (wc[sel] * rc[sel])[:, None]).sum(0)
-                xi = Hinv @ bk
-                rows.append({"seed": seed,
-                             "what": f"noise-free map part from faces {'+' if sgn > 0 else '-'}{name} "
-                                     f"(weight share, weighted mean r mm, corrected share)",
-                             "xi": np.r_[1e3 * xi[:3], 1e3 * np.degrees(xi[3:])],
-                             "extra": f"{wc[sel].sum() / wc.sum():.2f}, "
-                                      f"{1e3 * np.average(rc[sel], weights=wc[sel]):+.2f}, "
-                                      f"{np.mean(rc[sel] != mgc[sel]):.2f}"})
+        # gradient's dominant axis and sign, through the normal matrix; with the noisy
+        # drive's points, gradient and weights (the map part above) and with the
+        # noise-free drive's own
+        for label, yy, gg, ww in (("map part (noisy weights)", yn, gn, wn),
+                                  ("noise-free drive", yc, gc, wc)):
+            ax = np.argmax(np.abs(gg), axis=1)
+            sg = np.sign(gg[np.arange(len(gg)), ax])
+            J, Hc, _ = _normal_matrix(yy, gg, ww, rc, pivot)
+            Hinv = np.linalg.inv(Hc)
+            for a, name in enumerate("xyz"):
+                for sgn in (1, -1):
+                    sel = (ax == a) & (sg == sgn) & (ww > 0)
+                    if not sel.any():
+                        continue
+                    bk = -(J[sel] * (ww[sel] * rc[sel])[:, None]).sum(0)
+                    xi = Hinv @ bk
+                    rows.append({"seed": seed,
+                                 "what": f"{label} from faces {'+' if sgn > 0 else '-'}{name} "
+                                         f"(weight share, weighted mean r mm, corrected share)",
+                                 "xi": np.r_[1e3 * xi[:3], 1e3 * np.degrees(xi[3:])],
+                                 "extra": f"{ww[sel].sum() / ww.sum():.2f}, "
+                                          f"{1e3 * np.average(rc[sel], weights=ww[sel]):+.2f}, "
+                                          f"{np.mean(rc[sel] != mgc[sel]):.2f}"})
         print(f"  seed {seed}: done", file=sys.stderr, flush=True)
     return _print_rows(rows, args.out)
 
