@@ -539,15 +539,21 @@ def _gmr_stage(ctx, data, hgmm=None, prior=None):
     return {"prior": prior, "gmr_error": prior.predict(data.points)[0]}
 
 
-def _selection_residual(ctx, data, gmr_error):
-    """What eq. condition1 compares with d_m: each hit's own prior residual, or with
-    ``gp.select_neighbours`` k > 1 its k nearest hits' mean (an opt-in study switch)."""
-    k = ctx.cfg.gp.select_neighbours
-    return gmr_error if k <= 1 else _gp.neighbourhood_residual(data.points, gmr_error, k)
+def _select_mask(ctx, data, gmr_error):
+    """Eq. condition1 on each hit's own prior residual, or with ``gp.select_neighbours``
+    k > 1 (an opt-in study switch) on its k nearest hits' mean residual, alone
+    (``gp.select_rule`` 'neighbourhood') or as well as its own ('both')."""
+    g = ctx.cfg.gp
+    own = _gp.select_gp_points(gmr_error, g.d_m)
+    if g.select_neighbours <= 1:
+        return own
+    near = _gp.select_gp_points(_gp.neighbourhood_residual(data.points, gmr_error,
+                                                           g.select_neighbours), g.d_m)
+    return near & own if g.select_rule == "both" else near
 
 
 def _select_stage(ctx, data, gmr_error):
-    mask = _gp.select_gp_points(_selection_residual(ctx, data, gmr_error), ctx.cfg.gp.d_m)
+    mask = _select_mask(ctx, data, gmr_error)
     return {"gp_points": data.points[mask], "gp_normals": data.normals[mask]}
 
 

@@ -323,7 +323,8 @@ def test_save_in_background_writes_what_save_writes(sphere, tmp_path):
 
 def test_select_neighbours_selects_on_the_neighbourhoods_mean_residual(sphere):
     """gp.select_neighbours k > 1 (an opt-in study switch): the select stage keeps the hit
-    points whose k nearest hits' mean prior residual exceeds d_m; k = 1 is eq. condition1."""
+    points whose k nearest hits' mean prior residual exceeds d_m (with select_rule 'both'
+    and their own residual too); k = 1 is eq. condition1."""
     from gmmgp_app.pipeline import RunContext, run_stages
     from gmmgp_app.stages.gp import neighbourhood_residual
 
@@ -337,3 +338,7 @@ def test_select_neighbours_selects_on_the_neighbourhoods_mean_residual(sphere):
     want = np.abs(neighbourhood_residual(pts, m, 8)) > 0.002
     np.testing.assert_array_equal(state8["gp_points"], pts[want])
     assert 0 < want.sum() and not np.array_equal(want, np.abs(m) > 0.002)
+    both = run_stages(["select"], dict(state),
+                      RunContext(cfg8.replace({"gp.select_rule": "both"})))
+    np.testing.assert_array_equal(both["gp_points"], pts[want & (np.abs(m) > 0.002)])
+    assert len(both["gp_points"]) < min(want.sum(), (np.abs(m) > 0.002).sum())
