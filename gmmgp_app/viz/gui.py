@@ -42,7 +42,7 @@ from .gui_script import ScriptRunner, load_script
 from .gui_layers import (LAYERS, STAGE_LAYERS, layer_geometry, scene_view,
                          layer_parts, materials, set_lighting)
 from .gui_tuning import run_record
-from ..commands.view import add_view_arguments   # the app's options (gmmgp view's)
+from . import add_view_arguments   # the app's options (gmmgp view's)
 from ..config import concrete, is_auto
 
 __all__ = ["add_view_arguments", "open_view", "ViewerApp", "ViewerError", "run_app"]
