@@ -539,8 +539,21 @@ def _gmr_stage(ctx, data, hgmm=None, prior=None):
     return {"prior": prior, "gmr_error": prior.predict(data.points)[0]}
 
 
+def _select_mask(ctx, data, gmr_error):
+    """Eq. condition1 on each hit's own prior residual, or with ``gp.select_neighbours``
+    k > 1 (an opt-in study switch) on its k nearest hits' mean residual, alone
+    (``gp.select_rule`` 'neighbourhood') or as well as its own ('both')."""
+    g = ctx.cfg.gp
+    own = _gp.select_gp_points(gmr_error, g.d_m)
+    if g.select_neighbours <= 1:
+        return own
+    near = _gp.select_gp_points(_gp.neighbourhood_residual(data.points, gmr_error,
+                                                           g.select_neighbours), g.d_m)
+    return near & own if g.select_rule == "both" else near
+
+
 def _select_stage(ctx, data, gmr_error):
-    mask = _gp.select_gp_points(gmr_error, ctx.cfg.gp.d_m)
+    mask = _select_mask(ctx, data, gmr_error)
     return {"gp_points": data.points[mask], "gp_normals": data.normals[mask]}
 
 
@@ -739,8 +752,11 @@ def _info_counts(out, ctx):
 
 def _gmr_counts(out, ctx):
     m = out["gmr_error"]
-    n_gp = int(_gp.select_gp_points(m, ctx.cfg.gp.d_m).sum()) if ctx.method == "gmmgp" else 0
-    return {"rms_error_at_hits": float(np.sqrt(np.mean(m ** 2))), "gp_points": n_gp}
+    out_ = {"rms_error_at_hits": float(np.sqrt(np.mean(m ** 2)))}
+    if ctx.cfg.gp.select_neighbours <= 1:   # else the gp stage's n_points says it
+        out_["gp_points"] = (int(_gp.select_gp_points(m, ctx.cfg.gp.d_m).sum())
+                             if ctx.method == "gmmgp" else 0)
+    return out_
 
 
 #: The recipe table: every stage, the function computing it, what it takes and gives.

@@ -9,7 +9,8 @@ from sklearn.mixture import GaussianMixture as SkGMM
 from gmmgp_app.config import GPConfig, concrete
 from gmmgp_app.stages.gmr import GMRField
 from gmmgp_app.stages.gp import (ConstantPrior, GPError, LocalGPField, fit_block,
-                                 fit_local_gps, select_gp_points)
+                                 fit_local_gps, neighbourhood_residual,
+                                 select_gp_points)
 from gmmgp_app.stages.kernels import matern32_joint
 from gmmgp_app.stages.octree import BlockGrid, OctreeError
 from gmmgp_app.types import GaussianMixture
@@ -191,6 +192,35 @@ def test_jitter_raised_when_cholesky_fails():
     assert fit.jitter_raised >= 1 and fit.jitter > 0
     np.testing.assert_allclose(fit.L @ fit.L.T, matern32_joint(X, X, 0.1)
                                + fit.jitter * np.eye(12), atol=1e-9)
+
+
+def test_neighbourhood_selection_keeps_a_misfitted_patch_whole_and_unbiased():
+    """A plane z = 0 whose prior sits 12 mm behind it on one half (x < 0) and on it on the
+    other; hits with 6 mm noise, d_m = 6 mm. Each point's own residual (eq. condition1)
+    keeps a truncated sample of the misfitted half (its points lie on the free side: the
+    noise that adds to the miss) and noise outliers of the fitted half; the mean over 16
+    neighbours keeps the misfitted half whole (its mean offset the data's, about 0) and
+    nothing of the fitted half."""
+    rng = np.random.default_rng(3)
+    n = 4000
+    xy = rng.uniform(-1.0, 1.0, size=(n, 2))
+    z = 0.006 * rng.normal(size=n)                  # the hits' noise along the normal
+    pts = np.c_[xy, z]
+    bias = np.where(xy[:, 0] < 0, 0.012, 0.0)       # prior's zero level 12 mm behind
+    m = z + bias                                    # prior mean at the hits (free side +)
+    own = select_gp_points(m, 0.006)
+    near = select_gp_points(neighbourhood_residual(pts, m, 16), 0.006)
+    left = xy[:, 0] < -0.1
+    right = xy[:, 0] > 0.1
+    assert own[left].mean() < 0.9 and own[right].mean() > 0.2
+    assert z[own & left].mean() > 0.001            # the truncated sample: free side
+    assert near[left].mean() > 0.99 and near[right].mean() < 0.01
+    assert abs(z[near & left].mean()) < 0.0005
+    np.testing.assert_array_equal(neighbourhood_residual(pts, m, 1), m)
+    with pytest.raises(GPError, match="k >= 1"):
+        neighbourhood_residual(pts, m, 0)
+    with pytest.raises(GPError, match="one prior mean per hit point"):
+        neighbourhood_residual(pts, m[:-1], 4)
 
 
 def test_select_gp_points():

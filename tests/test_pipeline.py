@@ -383,3 +383,26 @@ def test_update_map_rebuilds_the_far_field_of_the_new_points(floor_and_wall, tmp
     loaded = gm.load_map(upd.save(tmp_path / "upd"))
     for a, b in zip(upd.predict(q), loaded.predict(q)):
         np.testing.assert_array_equal(a, b)
+
+
+def test_select_neighbours_selects_on_the_neighbourhoods_mean_residual(sphere):
+    """gp.select_neighbours k > 1 (an opt-in study switch): the select stage keeps the hit
+    points whose k nearest hits' mean prior residual exceeds d_m (with select_rule 'both'
+    and their own residual too); k = 1 is eq. condition1."""
+    from gmmgp_app.pipeline import RunContext, run_stages
+    from gmmgp_app.stages.gp import neighbourhood_residual
+
+    cfg = gm.MappingConfig().replace({"gp.d_m": 0.002})
+    state = run_stages(["prepare", "hgmm", "gmr", "select"], {"scan": sphere[0]},
+                       RunContext(cfg))
+    pts, m = state["data"].points, state["gmr_error"]
+    np.testing.assert_array_equal(state["gp_points"], pts[np.abs(m) > 0.002])
+    cfg8 = cfg.replace({"gp.select_neighbours": 8})
+    state8 = run_stages(["select"], dict(state), RunContext(cfg8))
+    want = np.abs(neighbourhood_residual(pts, m, 8)) > 0.002
+    np.testing.assert_array_equal(state8["gp_points"], pts[want])
+    assert 0 < want.sum() and not np.array_equal(want, np.abs(m) > 0.002)
+    both = run_stages(["select"], dict(state),
+                      RunContext(cfg8.replace({"gp.select_rule": "both"})))
+    np.testing.assert_array_equal(both["gp_points"], pts[want & (np.abs(m) > 0.002)])
+    assert len(both["gp_points"]) < min(want.sum(), (np.abs(m) > 0.002).sum())

@@ -31,6 +31,7 @@ __all__ = [
     "BlockFit",
     "LocalGPField",
     "select_gp_points",
+    "neighbourhood_residual",
     "fit_block",
     "predict_block",
     "fit_local_gps",
@@ -117,6 +118,50 @@ def select_gp_points(prior_mean_at_hits, d_m: float) -> np.ndarray:
     if not (d_m >= 0 and math.isfinite(d_m)):
         raise GPError(f"Expected d_m >= 0, found {d_m}; use e.g. 0.02 m.")
     return np.abs(m) > d_m
+
+
+def neighbourhood_residual(points, prior_mean_at_hits, k: int) -> np.ndarray:
+    """Mean of the prior's residual over each hit point's ``k`` nearest hit points
+    (itself included): what the opt-in selection ``GPConfig.select_neighbours``
+    compares with d_m in place of each point's own residual (paper eq. condition1).
+    Not in the paper.
+
+    Why: condition1 on a noisy point's own residual keeps, where the prior misses a
+    surface by about d_m, only the points whose noise adds to the miss: a truncated,
+    biased sample of the surface (the bench street's far facade: GP points 0.6-1.3 mm
+    on the street side, docs/check.md Session 6), and a sparse one, between whose
+    points the GP field is the prior. Averaged over ``k`` neighbours the noise drops by
+    about sqrt(k) and the decision is the prior's error at that place: every point of
+    a misfitted patch is kept, none of a fitted one.
+
+    Parameters
+    ----------
+    points : (P, 3) array_like
+        Hit points (the prepared training hits).
+    prior_mean_at_hits : (P,) array_like
+        Prior mean at ``points`` (their true distance is 0).
+    k : int
+        Neighbours averaged, >= 1 (1: the residuals themselves; at most P are used).
+
+    Returns
+    -------
+    (P,) float64 array.
+    """
+    from scipy.spatial import cKDTree
+
+    pts = _xyz(points, "hit points")
+    m = np.asarray(prior_mean_at_hits, dtype=np.float64)
+    if m.shape != (len(pts),):
+        raise GPError(f"Expected one prior mean per hit point ({len(pts)}), found shape "
+                      f"{m.shape}.")
+    if int(k) != k or k < 1:
+        raise GPError(f"Expected a neighbour count k >= 1, found {k}; use e.g. 16 "
+                      "(or 1 for each point's own residual).")
+    k = min(int(k), len(pts))
+    if k <= 1:
+        return m.copy()
+    _, idx = cKDTree(pts).query(pts, k=k)
+    return m[idx].mean(axis=1)
 
 
 # -------------------------------------------------------------- one block
