@@ -237,6 +237,22 @@ class GPConfig:
         "(scripts/bench_accuracy.py --set gp.d_m=...): 0.005 / 0.01 / 0.02 / 0.05 m give "
         "near-surface RMSE 11.5 / 11.6 / 12.2 / 17.1 mm with 8.5k / 6.3k / 4.5k / 2.0k GP "
         "points and the best log-likelihood at 0.02 m", urban=0.02)
+    select_neighbours: int = _f(
+        1, "Hit points whose k nearest hit points (itself included) miss the prior by "
+        "more than d_m on average are GP training points (1: each point's own residual, "
+        "the paper's eq. condition1); see select_rule.", 1, 1000, unit="points",
+        symbol="k_s",
+        source="1, the paper's. Opt-in study switch (docs/check.md, Session 11): the "
+        "per-point condition keeps a truncated, biased sample where the prior misses a "
+        "surface by about d_m, and isolated noise tails where it fits")
+    select_rule: str = _f(
+        "neighbourhood", "With select_neighbours k > 1: 'neighbourhood' keeps the points "
+        "whose neighbourhood's mean residual exceeds d_m; 'both' those whose own residual "
+        "exceeds it too (drops isolated noise tails on surfaces the prior fits, keeps "
+        "eq. condition1 inside misfitted patches).", choices=("neighbourhood", "both"),
+        source="study (docs/check.md, Session 11): bench street rotation better on 8 / 9 "
+        "of 9 pairs, the test street's along-street error 2-5x worse with either, KITTI's "
+        "splits mixed")
     length_scale: float = _f(
         AUTO, "Matern 3/2 length scale.", 1e-4, 100.0, unit="m", symbol="l",
         source="chosen by a sweep with tied HGMM components (scripts/bench_accuracy.py --set "

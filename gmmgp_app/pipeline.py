@@ -539,8 +539,21 @@ def _gmr_stage(ctx, data, hgmm=None, prior=None):
     return {"prior": prior, "gmr_error": prior.predict(data.points)[0]}
 
 
+def _select_mask(ctx, data, gmr_error):
+    """Eq. condition1 on each hit's own prior residual, or with ``gp.select_neighbours``
+    k > 1 (an opt-in study switch) on its k nearest hits' mean residual, alone
+    (``gp.select_rule`` 'neighbourhood') or as well as its own ('both')."""
+    g = ctx.cfg.gp
+    own = _gp.select_gp_points(gmr_error, g.d_m)
+    if g.select_neighbours <= 1:
+        return own
+    near = _gp.select_gp_points(_gp.neighbourhood_residual(data.points, gmr_error,
+                                                           g.select_neighbours), g.d_m)
+    return near & own if g.select_rule == "both" else near
+
+
 def _select_stage(ctx, data, gmr_error):
-    mask = _gp.select_gp_points(gmr_error, ctx.cfg.gp.d_m)
+    mask = _select_mask(ctx, data, gmr_error)
     return {"gp_points": data.points[mask], "gp_normals": data.normals[mask]}
 
 
@@ -641,15 +654,20 @@ def far_field(data, cfg: MappingConfig):
     from .config import concrete
 
     f, g = concrete(cfg.far), concrete(cfg.gp)
-    points = data.points
-    if f.project_points:  # eq. point_projection
-        points = _farfield.project_to_local_planes(points, data.normals, f.kernel_floor,
-                                                   k=f.neighbours)
+    points = _far_points(data, f.project_points, f.kernel_floor, f.neighbours)
     return _farfield.FarField(points, data.normals, f.kernel_floor,
                               max(g.value_noise, 1e-30) ** 0.5, k=f.neighbours,
                               growth=f.kernel_growth, spread_weight=f.spread_weight,
                               beta=f.growth, robust_scale=f.robust_scale,
                               robust_iterations=f.robust_iterations, vote=f.vote)
+
+
+def _far_points(data, project: bool, rho0: float, k: int) -> np.ndarray:
+    """The hit points the far field votes from: ``data.points``, moved onto their local
+    planes (eq. point_projection) when ``project``."""
+    if not project:
+        return data.points
+    return _farfield.project_to_local_planes(data.points, data.normals, rho0, k=k)
 
 
 def _map_stage(ctx, scan, summary=None, prior=None, hgmm=None, gp=None, gp_points=None,
@@ -684,14 +702,46 @@ def _touch_stage(ctx, smap, all_points, all_origins, new_points):
     return {"touched": touched, "scan": sub, "prior": smap.prior}
 
 
-def _refit_stage(ctx, smap, touched, gp_points, gp_normals, all_points):
+def _covered(grid, points) -> np.ndarray:
+    """(P,) bool: which ``points`` lie in the training region of a block of ``grid``."""
+    mask = np.zeros(len(points), dtype=bool)
+    if len(points):
+        mask[grid.cover(points)[0]] = True
+    return mask
+
+
+def _far_update_stage(ctx, smap, touched, data):
+    """The map's far field with the hit points of the touched blocks' training regions
+    replaced by those of the update's prepared neighbourhood (``data``: all points there,
+    old and new, subsampled and oriented as a build does); elsewhere its points, and
+    everywhere its parameters (kernel, noise, vote), stay the map's."""
+    far = smap.far
+    if far is None:
+        return {"far": None}
+    fresh = _far_points(data, smap.config.far.project_points, far.rho0, far.k)
+    keep, new = ~_covered(touched, far.points), _covered(touched, data.points)
+    fp = far.params()
+    return {"far": _farfield.FarField(
+        np.concatenate([far.points[keep], fresh[new]]),
+        np.concatenate([far.normals[keep], data.normals[new]]),
+        fp.pop("rho0"), fp.pop("noise"), **fp)}
+
+
+def _refit_stage(ctx, smap, touched, gp_points, gp_normals, all_points, far):
     field_, pts, n_refit = _gp.refit_touched_blocks(smap.gp, touched, gp_points, gp_normals,
                                                     ctx.cfg.gp, ctx.executor)
-    gpp = np.unique(np.concatenate([smap.gp_points, pts]), axis=0)
+    # the points the blocks were fitted on: the old ones (untouched blocks' regions may
+    # overlap the touched ones) and the touched blocks' new ones, with their normals
+    # (none for a map saved without them)
+    gpp, first = np.unique(np.concatenate([smap.gp_points, pts]), axis=0, return_index=True)
+    gpn = None
+    if len(smap.gp_normals) == len(smap.gp_points):
+        gpn = np.concatenate([smap.gp_normals,
+                              gp_normals[_covered(touched, gp_points)]])[first]
     out = SurfaceMap(smap.method, smap.config, smap.offset, smap.prior, hgmm=smap.hgmm,
-                     gp=field_, gp_points=gpp,
+                     gp=field_, gp_points=gpp, gp_normals=gpn,
                      seed_points=surface_seeds(Scan(points=all_points), ctx.cfg),
-                     summary=smap.summary, far=smap.far, up=smap.up,
+                     summary=smap.summary, far=far, up=smap.up,
                      variance_coef=smap.variance_coef)
     return {"smap": out, "n_refit": n_refit}
 
@@ -702,8 +752,11 @@ def _info_counts(out, ctx):
 
 def _gmr_counts(out, ctx):
     m = out["gmr_error"]
-    n_gp = int(_gp.select_gp_points(m, ctx.cfg.gp.d_m).sum()) if ctx.method == "gmmgp" else 0
-    return {"rms_error_at_hits": float(np.sqrt(np.mean(m ** 2))), "gp_points": n_gp}
+    out_ = {"rms_error_at_hits": float(np.sqrt(np.mean(m ** 2)))}
+    if ctx.cfg.gp.select_neighbours <= 1:   # else the gp stage's n_points says it
+        out_["gp_points"] = (int(_gp.select_gp_points(m, ctx.cfg.gp.d_m).sum())
+                             if ctx.method == "gmmgp" else 0)
+    return out_
 
 
 #: The recipe table: every stage, the function computing it, what it takes and gives.
@@ -743,7 +796,10 @@ STAGES = {s.name: s for s in (
     Stage("surface", _surface_stage, ("smap",), ("mesh",)),
     Stage("touch", _touch_stage, ("smap", "all_points", "all_origins", "new_points"),
           ("touched", "scan", "prior"), reported=False),
-    Stage("refit", _refit_stage, ("smap", "touched", "gp_points", "gp_normals", "all_points"),
+    Stage("far_update", _far_update_stage, ("smap", "touched", "data"), ("far",),
+          reported=False),
+    Stage("refit", _refit_stage,
+          ("smap", "touched", "gp_points", "gp_normals", "all_points", "far"),
           ("smap", "n_refit"), reported=False),
 )}
 
@@ -754,8 +810,8 @@ RECIPES = {
     "gpis": ("prepare", "constant_prior", "gp"),
     "loggpis": ("prepare", "loggpis"),
 }
-#: The incremental update of a map's GP blocks (the prior is kept).
-UPDATE_RECIPE = ("touch", "prepare", "gmr", "select", "refit")
+#: The incremental update of a map's GP blocks and far field (the prior is kept).
+UPDATE_RECIPE = ("touch", "prepare", "gmr", "select", "far_update", "refit")
 
 
 def run_stages(names, state: dict, ctx: RunContext, *, observer=None,
@@ -900,7 +956,10 @@ def update_map(smap: SurfaceMap, all_points, all_origins, new_points,
     prepared again from all the points (normals need neighbours), GP points are
     selected there (eq. condition1) and each touched block is fitted on the GP
     points in its region; every other block keeps its factorisation
-    (:data:`UPDATE_RECIPE`).
+    (:data:`UPDATE_RECIPE`). The far field's hit points in the touched blocks'
+    regions are replaced by the prepared ones there (its parameters, the map's
+    variance coefficients and the far field elsewhere are kept), and the surface
+    seeds are sought again in all the points.
 
     Returns
     -------

@@ -190,7 +190,7 @@ def synthetic(args):
     first, street = scan_scene("street", density=args.density, seed=0,
                                scene_params=dict(length=args.length))
     t = time.perf_counter()
-    smap = gm.build_map(first)
+    smap = gm.build_map(first, _config(args))
     build = time.perf_counter() - t
     second, _ = scan_scene("street_van", density=args.density, seed=1,
                            scene_params=dict(length=args.length), lane_y=-1.5)
@@ -217,7 +217,7 @@ def kitti(args):
     poses = read_poses(KITTI / "poses_gicp_estimated.txt")
     scans = [read_scan(KITTI / "velodyne" / f"{i:06d}.bin") for i in range(6)]
     t = time.perf_counter()
-    smap = gm.build_map(scans[0])
+    smap = gm.build_map(scans[0], _config(args))
     build = time.perf_counter() - t
     rng = np.random.default_rng(args.seed)
     rows = []
@@ -256,12 +256,20 @@ def _kitti_half(scan, init, args):
     even = Scan(pts[0::2], origins=None if scan.origins is None else scan.origins[0::2],
                 offset=scan.offset)
     t = time.perf_counter()
-    smap = gm.build_map(even)
+    smap = gm.build_map(even, _config(args))
     build = time.perf_counter() - t
     row, _ = _pair("kitti 000000 odd onto even", smap, pts[1::2], init, np.eye(4),
                    noise=0.02, max_dist=1.0, target_pts=pts[0::2], repeat=args.repeat)
     row["map_build_seconds"] = build
     return row
+
+
+def _config(args):
+    """The maps' configuration: the defaults, with ``--set KEY=VALUE`` (a study)."""
+    from check_covariance import _settings
+    from gmmgp_app.config import MappingConfig
+
+    return MappingConfig().replace(_settings(getattr(args, "set", None)))
 
 
 def markdown(rows) -> str:
@@ -315,6 +323,9 @@ def main(argv=None) -> int:
     ap.add_argument("--length", type=float, default=36.0)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a MappingConfig field of every map built here (a study, e.g. "
+                         "gp.select_neighbours=16)")
     ap.add_argument("--no-kitti", action="store_true")
     ap.add_argument("--no-synthetic", action="store_true")
     ap.add_argument("--no-half", dest="half", action="store_false",

@@ -17,7 +17,6 @@ the truth (the synthetic pair) or the pose file (KITTI), iterations, map predict
 from __future__ import annotations
 
 import argparse
-import ast
 import json
 import os
 import sys
@@ -90,14 +89,9 @@ def main(argv=None) -> int:
     ap.add_argument("--tag", default="")
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
     args = ap.parse_args(argv)
-    import gmmgp_app.check as check
-    from scripts.profile_check import _kitti, _synthetic
+    from scripts.profile_check import _kitti, _synthetic, set_check_constants
 
-    for item in args.set:
-        name, _, value = item.partition("=")
-        if not hasattr(check, name):
-            ap.error(f"gmmgp_app.check has no constant {name!r}")
-        setattr(check, name, ast.literal_eval(value))
+    set_check_constants(ap, args.set)
     if not args.no_synthetic:
         smap, moved, T = _synthetic(args.cache)
         sweep("synthetic", smap, moved, np.eye(4), T, 0.01, args.starts, args.dt, args.dr,

@@ -75,6 +75,24 @@ def _map(cache: Path, name, build):
     return smap
 
 
+def _settings(items) -> dict:
+    """``["gp.select_neighbours=16", ...]`` -> {key: int, float, bool or string}."""
+    out = {}
+    for it in items or ():
+        k, eq, v = it.partition("=")
+        if not eq:
+            raise SystemExit(f"--set expects KEY=VALUE, found {it!r}")
+        for conv in (int, float):
+            try:
+                out[k] = conv(v)
+                break
+            except ValueError:
+                continue
+        else:
+            out[k] = {"true": True, "false": False}.get(v.lower(), v)
+    return out
+
+
 def pairs(a):
     """(name, map, scan points, init, truth, noise) for the pairs asked for."""
     import gmmgp_app as gm
@@ -89,9 +107,11 @@ def pairs(a):
     def on(kind):
         return want is None or kind in want
 
-    for kind, length, cfgf in (("bench", 36.0, lambda h: MappingConfig().replace({"hgmm.seed": h})),
+    extra = _settings(a.set)  # --set: map settings of a study (maps kept in their own --maps)
+    for kind, length, cfgf in (("bench", 36.0, lambda h: MappingConfig().replace(
+                                   {"hgmm.seed": h, **extra})),
                                ("test", 20.0, lambda h: concrete(MappingConfig()).replace(
-                                   {"far.enabled": False, "hgmm.seed": h}))):
+                                   {"far.enabled": False, "hgmm.seed": h, **extra}))):
         if not on(kind):
             continue
         for h in a.hseeds:
@@ -124,14 +144,14 @@ def pairs(a):
         init = dT @ P
         pts = scan.points
         if on("kitti"):
-            smap = _map(cache, "kitti0", lambda: gm.build_map(scan))
+            smap = _map(cache, "kitti0", lambda: gm.build_map(scan, MappingConfig().replace(extra)))
             yield "kitti self", smap, pts, init, np.eye(4), 0.02
         if on("half"):
             from gmmgp_app.types import Scan
 
             org = None if scan.origins is None else scan.origins[0::2]
             even = Scan(pts[0::2], origins=org, offset=scan.offset)
-            smap = _map(cache, "kitti0_even", lambda: gm.build_map(even))
+            smap = _map(cache, "kitti0_even", lambda: gm.build_map(even, MappingConfig().replace(extra)))
             yield "kitti half", smap, pts[1::2], init, np.eye(4), 0.02
     for k in a.half_scans if KITTI.is_dir() else ():
         # another scan's halves, in that scan's own frame: the guess is the perturbation
@@ -142,7 +162,7 @@ def pairs(a):
         pts = scan.points
         org = None if scan.origins is None else scan.origins[0::2]
         even = Scan(pts[0::2], origins=org, offset=scan.offset)
-        smap = _map(cache, f"kitti{k}_even", lambda: gm.build_map(even))
+        smap = _map(cache, f"kitti{k}_even", lambda: gm.build_map(even, MappingConfig().replace(extra)))
         yield f"kitti half {k}", smap, pts[1::2], dT, np.eye(4), 0.02
 
 
@@ -302,6 +322,9 @@ def main(argv=None) -> int:
     ap.add_argument("--half-scans", type=int, nargs="*", default=[],
                     help="also these KITTI scans' odd points onto the maps of their even "
                          "points (each in its own frame)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a MappingConfig field of every map built (a study's maps: give "
+                         "them their own --maps directory)")
     ap.add_argument("--reuse-var", action="store_true",
                     help="the dense stage's later iterations take its first one's variance "
                          "(check._REUSE_DENSE_VAR, a study)")

@@ -65,27 +65,12 @@ def main(argv=None) -> int:
     import gmmgp_app as gm
     from gmmgp_app.check import check_scan
     from gmmgp_app.datasets import read_scan
-    from gmmgp_app.datasets.kitti import read_poses
-    from scripts.bench_check import KITTI, _diff, _rot
+    from scripts.bench_check import KITTI, _diff
+    from scripts.profile_check import cached_map, kitti_pairs
 
-    poses = read_poses(KITTI / "poses_gicp_estimated.txt")
-    rng = np.random.default_rng(0)  # bench_check's perturbations (its --seed 0)
-    inits = []
-    for i in range(6):
-        P = np.eye(4)
-        P[:3] = poses[i]
-        u, a = rng.normal(size=3), rng.normal(size=3)
-        dT = np.eye(4)
-        dT[:3, :3] = _rot(a, 2.0)
-        dT[:3, 3] = 0.3 * u / np.linalg.norm(u)
-        inits.append((dT @ P, P))
-    if args.map and Path(args.map).exists():
-        smap = gm.load_map(args.map)
-    else:
-        smap = gm.build_map(read_scan(KITTI / "velodyne" / "000000.bin"))
-        if args.map:
-            smap.save(args.map)
-            smap = gm.load_map(args.map)  # a freshly loaded map, as the CLI has it
+    inits = kitti_pairs()
+    smap = cached_map(args.map or None,   # built and saved there if absent
+                      lambda: gm.build_map(read_scan(KITTI / "velodyne" / "000000.bin")))
     for i in (int(v) for v in args.scans.split(",")):
         scan = read_scan(KITTI / "velodyne" / f"{i:06d}.bin")
         init, P = inits[i]

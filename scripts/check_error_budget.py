@@ -40,6 +40,15 @@ deg x 1e-3 (x is the street's axis), translation at the points' weighted centre 
     PYTHONPATH=$PWD .venv/bin/python scripts/check_error_budget.py --scene street2
     PYTHONPATH=$PWD .venv/bin/python scripts/check_error_budget.py --decompose
     PYTHONPATH=$PWD .venv/bin/python scripts/check_error_budget.py --foot --cache out/maps
+
+``--final`` (bench pair, or ``--map DIR``): the same at the truth for the field the
+registration's last stage fits (check._surface_correction: the GP field's mean plus the
+blended mean's difference where the blend's variance is the smaller, with the GP
+field's gradient and variance): the step from the truth, its map part (noise-free
+residuals) and noise part, and the map part split by face orientation (weight share,
+weighted mean residual, share of those points the correction reaches).
+
+    PYTHONPATH=$PWD .venv/bin/python scripts/check_error_budget.py --final --map DIR
 """
 
 from __future__ import annotations
@@ -69,7 +78,14 @@ def main(argv=None) -> int:
     ap.add_argument("--decompose", action="store_true",
                     help="split the error into map bias, noise and the robust loss's fixed "
                          "point (see above)")
+    ap.add_argument("--final", action="store_true",
+                    help="the last stage's field (GP mean + surface correction): the step "
+                         "from the truth, its map and noise parts, the map part by face")
+    ap.add_argument("--map", default=None,
+                    help="--foot / --final: this saved map instead of the bench map")
     args = ap.parse_args(argv)
+    if args.final:
+        return final(args)
     if args.foot:
         return foot(args)
     if args.decompose:
@@ -248,6 +264,9 @@ def _bench_map(args):
     import gmmgp_app as gm
     from gmmgp_app.synth import scan_scene
 
+    if getattr(args, "map", None):
+        return gm.load_map(args.map)
+
     if args.cache:
         path = Path(args.cache) / f"street{args.length:g}_default"
         if path.exists():
@@ -341,6 +360,73 @@ def foot(args) -> int:
                              "xi": np.r_[1e3 * xi[:3], 1e3 * np.degrees(xi[3:])],
                              "extra": f"{wc[sel].sum() / wc.sum():.2f}, "
                                       f"{1e3 * np.average(mc[sel], weights=wc[sel]):+.2f}"})
+        print(f"  seed {seed}: done", file=sys.stderr, flush=True)
+    return _print_rows(rows, args.out)
+
+
+def final(args) -> int:
+    """The ``--final`` table (see the module docstring): the registration's last stage's
+    residuals, the GP field's mean plus the surface correction (check._surface_correction:
+    the blended mean minus the GP field's where the blend's variance is the smaller),
+    with the GP field's gradient and variance, at the truth."""
+    from gmmgp_app.check import (_factors_here, _normal_matrix, _share_counts,
+                                 _surface_correction, _weights)
+
+    smap = _bench_map(args)
+    params = dict(length=args.length)
+    n2 = args.noise ** 2
+    rows = []
+
+    def field(y):
+        m, var, g = smap.predict(y, return_grad=True, far=False)
+        corr = _surface_correction(smap, y, m, var, g)
+        return m + (0.0 if corr is None else corr), var, g, m
+
+    def W(y, r, var, g):
+        n_share, cell = _share_counts(y, 1.0, return_cells=True)
+        fac = _factors_here(y, r, var, g, n2, 0.1, cell)
+        return _weights(r, var, n2, np.sqrt(var) < 0.1, 4.685, "tukey", n_share, fac)[0]
+
+    for seed in (1, 2, 3):
+        yn, yc = _drive_pair(args, params, seed, smap.offset)
+        rn, vn, gn, mgn = field(yn)
+        rc, vc, gc, mgc = field(yc)
+        wn = W(yn, rn, vn, gn)
+        base, _, pivot = _one_step(yn, rn, gn, wn)
+        rows.append({"seed": seed, "what": "step from the truth, noisy (last stage's field)",
+                     "xi": base})
+        rows.append({"seed": seed, "what": "  map part (noise-free residuals, noisy weights)",
+                     "xi": _one_step(yn, rc, gn, wn)[0]})
+        rows.append({"seed": seed, "what": "  noise part", "xi": _one_step(yn, rn - rc, gn, wn)[0]})
+        rows.append({"seed": seed, "what": "  map part, GP field alone (no correction)",
+                     "xi": _one_step(yn, mgc, gn, wn)[0]})
+        wc = W(yc, rc, vc, gc)
+        rows.append({"seed": seed, "what": "step from the truth, noise-free drive",
+                     "xi": _one_step(yc, rc, gc, wc)[0]})
+        # which faces carry the map's part: the noise-free residuals' score split by the
+        # gradient's dominant axis and sign, through the normal matrix; with the noisy
+        # drive's points, gradient and weights (the map part above) and with the
+        # noise-free drive's own
+        for label, yy, gg, ww in (("map part (noisy weights)", yn, gn, wn),
+                                  ("noise-free drive", yc, gc, wc)):
+            ax = np.argmax(np.abs(gg), axis=1)
+            sg = np.sign(gg[np.arange(len(gg)), ax])
+            J, Hc, _ = _normal_matrix(yy, gg, ww, rc, pivot)
+            Hinv = np.linalg.inv(Hc)
+            for a, name in enumerate("xyz"):
+                for sgn in (1, -1):
+                    sel = (ax == a) & (sg == sgn) & (ww > 0)
+                    if not sel.any():
+                        continue
+                    bk = -(J[sel] * (ww[sel] * rc[sel])[:, None]).sum(0)
+                    xi = Hinv @ bk
+                    rows.append({"seed": seed,
+                                 "what": f"{label} from faces {'+' if sgn > 0 else '-'}{name} "
+                                         f"(weight share, weighted mean r mm, corrected share)",
+                                 "xi": np.r_[1e3 * xi[:3], 1e3 * np.degrees(xi[3:])],
+                                 "extra": f"{ww[sel].sum() / ww.sum():.2f}, "
+                                          f"{1e3 * np.average(rc[sel], weights=ww[sel]):+.2f}, "
+                                          f"{np.mean(rc[sel] != mgc[sel]):.2f}"})
         print(f"  seed {seed}: done", file=sys.stderr, flush=True)
     return _print_rows(rows, args.out)
 

@@ -37,18 +37,36 @@ FACADES = (("y = -8 (18 m, normal +y)", -8.0, np.array([0.0, 1.0, 0.0])),
            ("y = +8 (9-15 m, normal -y)", 8.0, np.array([0.0, -1.0, 0.0])))
 
 
-def bench_map(path, density=0.1, length=36.0, **scan_kw):
+def bench_map(path, density=0.1, length=36.0, settings=None, **scan_kw):
     import gmmgp_app as gm
+    from gmmgp_app.config import MappingConfig
     from gmmgp_app.synth import scan_scene
 
     if path and Path(path).exists():
         return gm.load_map(path)
     first, _ = scan_scene("street", density=density, seed=0,
                           scene_params=dict(length=length), **scan_kw)
-    smap = gm.build_map(first)
+    smap = gm.build_map(first, MappingConfig().replace(settings or {}))
     if path:
         smap.save(path)
     return smap
+
+
+def parse_settings(items) -> dict:
+    """``["gp.select_neighbours=16", ...]`` -> {key: number or string}."""
+    out = {}
+    for it in items:
+        k, _, v = it.partition("=")
+        if not _:
+            raise SystemExit(f"--set expects KEY=VALUE, found {it!r}")
+        try:
+            out[k] = int(v)
+        except ValueError:
+            try:
+                out[k] = float(v)
+            except ValueError:
+                out[k] = {"true": True, "false": False}.get(v.lower(), v)
+    return out
 
 
 def plane_points(scene, pts, y0, n, labels=None):
@@ -100,7 +118,19 @@ def components(smap):
         "GMR prior": lambda x: smap.prior.predict(x, return_grad=True),
         "far field (IMLS)": far_field,
         "blend (predict)": lambda x: smap.predict(x, return_grad=True),
+        "last stage (GP + correction)": lambda x: last_stage(smap, x),
     }
+
+
+def last_stage(smap, x):
+    """The field the registration's last stage fits (check._surface_correction): the GP
+    field's mean plus the blended mean's difference where the blended variance is the
+    smaller, with the GP field's variance and gradient."""
+    from gmmgp_app.check import _surface_correction
+
+    m, var, g = smap.predict(x, return_grad=True, far=False)
+    corr = _surface_correction(smap, x, m, var, g)
+    return (m if corr is None else m + corr), var, g
 
 
 def data_offsets(smap, first_scan, scene, y0, n, region):
@@ -140,6 +170,7 @@ def weighted_summary(smap, second, scene):
     fac = _factors_here(y, m, var, g, n2, 0.1, cell)
     w, _ = _weights(m, var, n2, np.sqrt(var) < 0.1, 4.685, "tukey", ns, fac)
     mp = smap.prior.predict(y)[0]
+    mc = last_stage(smap, y)[0]
     tree = cKDTree(smap.gp_points)
     out = {}
     for fname, y0, n in FACADES:
@@ -157,6 +188,8 @@ def weighted_summary(smap, second, scene):
         out[fname] = {"weight_share": float(ww.sum() / w.sum()),
                       "weighted_mean_m_gp_mm": float(1e3 * np.average(m[idx], weights=ww)),
                       "weighted_mean_m_prior_mm": float(1e3 * np.average(mp[idx], weights=ww)),
+                      "weighted_mean_m_last_stage_mm": float(1e3 * np.average(mc[idx],
+                                                                             weights=ww)),
                       "median_std_mm": float(1e3 * np.median(np.sqrt(var[idx]))),
                       "by_distance_to_gp_points": bins}
     return out
@@ -172,18 +205,22 @@ def main(argv=None) -> int:
     ap.add_argument("--data", action="store_true", help="also the data's own offsets")
     ap.add_argument("--weighted", action="store_true",
                     help="only the registration-weighted summary (see weighted_summary)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a MappingConfig field of the map when it is built here "
+                         "(e.g. gp.select_neighbours=16)")
     args = ap.parse_args(argv)
     from gmmgp_app.synth import scan_scene
 
     kw = {} if args.first_noise is None else dict(range_noise=args.first_noise)
-    smap = bench_map(args.map, **kw)
+    smap = bench_map(args.map, settings=parse_settings(args.set), **kw)
     second, scene = scan_scene("street_van", density=0.1, seed=1,
                                scene_params=dict(length=36.0), lane_y=-1.5, range_noise=0.0)
     if args.weighted:
         ws = weighted_summary(smap, second, scene)
         for fname, v in ws.items():
             print(f"{args.map} | {fname} | weight {v['weight_share']:.3f} | GP field "
-                  f"{v['weighted_mean_m_gp_mm']:+.2f} mm | prior "
+                  f"{v['weighted_mean_m_gp_mm']:+.2f} mm | last stage "
+                  f"{v['weighted_mean_m_last_stage_mm']:+.2f} mm | prior "
                   f"{v['weighted_mean_m_prior_mm']:+.2f} mm"
                   f" | std {v['median_std_mm']:.1f} mm | by distance to GP points: "
                   + "; ".join(f"{k}: {b['median_delta_mm']:+.2f} mm (w {b['weight_share']:.4f})"

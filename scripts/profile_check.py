@@ -63,20 +63,26 @@ def _phase_seconds(prof) -> dict:
     return out
 
 
-def _kitti(cache):
+def cached_map(path, build):
+    """The map saved at ``path`` (a folder) when it exists, else ``build()``, saved there
+    and loaded again (a freshly loaded map, as the CLI has it) when ``path`` is given."""
     import gmmgp_app as gm
-    from gmmgp_app.datasets import read_scan
+
+    if path is not None and Path(path).exists():
+        return gm.load_map(path)
+    smap = build()
+    if path is not None:
+        smap.save(path)
+        smap = gm.load_map(path)
+    return smap
+
+
+def kitti_pairs() -> dict:
+    """KITTI scan i (0-5) -> (start, pose): the pose file's estimate perturbed by 0.3 m
+    and 2 deg, bench_check's seeded perturbations (its --seed 0)."""
     from gmmgp_app.datasets.kitti import read_poses
     from scripts.bench_check import KITTI, _rot
 
-    path = Path(cache) / "kitti0" if cache else None
-    if path is not None and path.exists():
-        smap = gm.load_map(path)
-    else:
-        smap = gm.build_map(read_scan(KITTI / "velodyne" / "000000.bin"))
-        if path is not None:
-            smap.save(path)
-            smap = gm.load_map(path)
     poses = read_poses(KITTI / "poses_gicp_estimated.txt")
     rng = np.random.default_rng(0)  # bench_check's perturbations (its --seed 0)
     pairs = {}
@@ -88,7 +94,31 @@ def _kitti(cache):
         dT[:3, :3] = _rot(a, 2.0)
         dT[:3, 3] = 0.3 * u / np.linalg.norm(u)
         pairs[i] = (dT @ P, P)
-    return smap, pairs, lambda i: read_scan(KITTI / "velodyne" / f"{i:06d}.bin").points
+    return pairs
+
+
+def set_check_constants(ap, items) -> None:
+    """``--set NAME=VALUE``: set module constants of gmmgp_app.check (Python literals)."""
+    import ast
+
+    import gmmgp_app.check as check
+
+    for item in items:
+        name, _, value = item.partition("=")
+        if not hasattr(check, name):
+            ap.error(f"gmmgp_app.check has no constant {name!r}")
+        setattr(check, name, ast.literal_eval(value))
+
+
+def _kitti(cache):
+    import gmmgp_app as gm
+    from gmmgp_app.datasets import read_scan
+    from scripts.bench_check import KITTI
+
+    smap = cached_map(Path(cache) / "kitti0" if cache else None,
+                      lambda: gm.build_map(read_scan(KITTI / "velodyne" / "000000.bin")))
+    return smap, kitti_pairs(), \
+        lambda i: read_scan(KITTI / "velodyne" / f"{i:06d}.bin").points
 
 
 def _synthetic(cache):
@@ -96,15 +126,8 @@ def _synthetic(cache):
     from gmmgp_app.synth import scan_scene
     from scripts.bench_check import _rot
 
-    path = Path(cache) / "synth" if cache else None
     first, _ = scan_scene("street", density=0.1, seed=0, scene_params=dict(length=36.0))
-    if path is not None and path.exists():
-        smap = gm.load_map(path)
-    else:
-        smap = gm.build_map(first)
-        if path is not None:
-            smap.save(path)
-            smap = gm.load_map(path)
+    smap = cached_map(Path(cache) / "synth" if cache else None, lambda: gm.build_map(first))
     second, _ = scan_scene("street_van", density=0.1, seed=1, scene_params=dict(length=36.0),
                            lane_y=-1.5)
     T = np.eye(4)
@@ -170,15 +193,7 @@ def main(argv=None) -> int:
                     help="set a module constant of gmmgp_app.check first (a Python literal), "
                          "e.g. --set REUSE_NEIGHBOURS=False")
     args = ap.parse_args(argv)
-    import ast
-
-    import gmmgp_app.check as check
-
-    for item in args.set:
-        name, _, value = item.partition("=")
-        if not hasattr(check, name):
-            ap.error(f"gmmgp_app.check has no constant {name!r}")
-        setattr(check, name, ast.literal_eval(value))
+    set_check_constants(ap, args.set)
     rows = []
     if args.scans:
         smap, pairs, points = _kitti(args.cache)

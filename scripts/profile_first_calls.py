@@ -36,6 +36,8 @@ import threading
 import time
 from pathlib import Path
 
+from _proc import parse_command, time_stages
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
@@ -100,21 +102,7 @@ def install(kernels: Acc, loads: Acc, stages: Acc):
                 loads.add(self._name, time.perf_counter() - t, time.thread_time() - c)
 
     caching.Cache.load_overload = load_overload
-    started = {}
-    fanout = pipeline.FanoutObserver
-    orig_start, orig_stage = fanout.on_stage_start, fanout.on_stage
-
-    def on_stage_start(self, name):
-        started[name] = (time.perf_counter(), time.process_time())
-        return orig_start(self, name)
-
-    def on_stage(self, name, payload):
-        if name in started:
-            t0, c0 = started.pop(name)
-            stages.add(name, time.perf_counter() - t0, time.process_time() - c0)
-        return orig_stage(self, name, payload)
-
-    fanout.on_stage_start, fanout.on_stage = on_stage_start, on_stage
+    time_stages(stages.add)
     orig_extract = pipeline.SurfaceMap.extract_surface
 
     def extract_surface(self, *a, **k):
@@ -160,8 +148,6 @@ def _by_run(acc: dict, run: int) -> dict:
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    ours, cli = (argv[:argv.index("--")], argv[argv.index("--") + 1:]) if "--" in argv \
-        else (argv, [])
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("json", help="write the figures here")
@@ -172,9 +158,7 @@ def main(argv=None) -> int:
     ap.add_argument("--mmap-threshold", type=int, metavar="BYTES",
                     help="diagnostic: the run fixes glibc's mmap threshold at BYTES instead "
                          "of 128 KiB (0: glibc's dynamic default)")
-    args = ap.parse_args(ours)
-    if not cli or "--out" not in cli:
-        ap.error("give the gmmgp command after '--' with --out, e.g. -- run SCAN --out DIR -q")
+    args, cli = parse_command(ap, argv, need_out=True)
     t_start = time.perf_counter()
     import gmmgp_app.cli as climod
     from warm_cache import CompileClock

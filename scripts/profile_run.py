@@ -19,68 +19,33 @@ from __future__ import annotations
 
 import argparse
 import json
-import resource
 import sys
-import threading
 import time
 from pathlib import Path
+
+from _proc import Sampler, hook_stage_events, maxrss_mb, parse_command
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
-def rss_mb() -> float:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
-
-
-class Sampler(threading.Thread):
-    def __init__(self, period: float):
-        super().__init__(daemon=True)
-        self.period = period
-        self.samples = []          # (t, rss MB)
-        self.stop = threading.Event()
-
-    def run(self):
-        while not self.stop.is_set():
-            self.samples.append((time.perf_counter(), rss_mb()))
-            time.sleep(self.period)
-
-
 def main(argv=None) -> int:
     if argv is None:
         argv = sys.argv[1:]
-    ours, cli = (argv[:argv.index("--")], argv[argv.index("--") + 1:]) if "--" in argv \
-        else (argv, [])
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", help="write the segments here")
     ap.add_argument("--period", type=float, default=0.01, help="RSS sampling period (s)")
     ap.add_argument("--tracemalloc", action="store_true",
                     help="also report the traced (Python + numpy) peak")
-    args = ap.parse_args(ours)
-    if not cli:
-        ap.error("give the gmmgp command after '--', e.g. -- run SCAN --out DIR -q")
+    args, cli = parse_command(ap, argv)
 
-    from gmmgp_app import pipeline
     from gmmgp_app.cli import main as gmmgp_main
 
     marks = [(time.perf_counter(), "start", time.process_time())]
-    orig_start, orig_stage = pipeline.FanoutObserver.on_stage_start, pipeline.FanoutObserver.on_stage
-
-    def on_stage_start(self, name):
-        marks.append((time.perf_counter(), f"{name}>", time.process_time()))
-        return orig_start(self, name)
-
-    def on_stage(self, name, payload):
-        marks.append((time.perf_counter(), f"<{name}", time.process_time()))
-        return orig_stage(self, name, payload)
-
-    pipeline.FanoutObserver.on_stage_start = on_stage_start
-    pipeline.FanoutObserver.on_stage = on_stage
+    hook_stage_events(
+        lambda name: marks.append((time.perf_counter(), f"{name}>", time.process_time())),
+        lambda name: marks.append((time.perf_counter(), f"<{name}", time.process_time())))
     if args.tracemalloc:
         import tracemalloc
         tracemalloc.start()
@@ -98,7 +63,7 @@ def main(argv=None) -> int:
         segs.append({"from": a, "to": b, "seconds": t1 - t0, "cpu_seconds": c1 - c0,
                      "rss_start_mb": before[-1] if before else None,
                      "rss_peak_mb": max(inside) if inside else None})
-    maxrss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    maxrss = maxrss_mb()
     print(f"{'segment':<28}{'s':>8}{'cpu s':>8}{'RSS start':>11}{'RSS peak':>10}")
     for s in segs:
         if s["seconds"] < 0.005:

@@ -21,10 +21,11 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import sys
 import time
 from pathlib import Path
+
+from _proc import maxrss_mb, parse_command, time_stages
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -64,17 +65,13 @@ class Parts:
 def main(argv=None) -> int:
     t_start, c_start = time.perf_counter(), time.process_time()
     argv = sys.argv[1:] if argv is None else argv
-    ours, cli = (argv[:argv.index("--")], argv[argv.index("--") + 1:]) if "--" in argv \
-        else (argv, [])
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("json", help="write the parts here")
     ap.add_argument("--stub-surface", metavar="MESH.npz",
                     help="return this mesh (vertices, faces, vertex_variance) instead of "
                          "extracting the surface")
-    args = ap.parse_args(ours)
-    if not cli:
-        ap.error("give the gmmgp command after '--', e.g. -- run SCAN --out DIR -q")
+    args, cli = parse_command(ap, argv)
     parts = Parts()
     t, c = time.perf_counter(), time.process_time()
     import gmmgp_app.cli as climod
@@ -113,27 +110,13 @@ def main(argv=None) -> int:
 
         pipeline.SurfaceMap.extract_surface = stored_mesh
     parts.wrap(pipeline.SurfaceMap, "extract_surface", "surface (extract_surface)")
-    started = {}
-    fanout = pipeline.FanoutObserver
-    orig_start, orig_stage = fanout.on_stage_start, fanout.on_stage
-
-    def on_stage_start(self, name):
-        started[name] = (time.perf_counter(), time.process_time())
-        return orig_start(self, name)
-
-    def on_stage(self, name, payload):
-        if name in started:
-            t0, c0 = started.pop(name)
-            parts.add("stage " + name, time.perf_counter() - t0, time.process_time() - c0)
-        return orig_stage(self, name, payload)
-
-    fanout.on_stage_start, fanout.on_stage = on_stage_start, on_stage
+    time_stages(lambda name, wall, cpu: parts.add("stage " + name, wall, cpu))
     t, c = time.perf_counter(), time.process_time()
     rc = climod.main(cli)
     parts.add("cli.main", time.perf_counter() - t, time.process_time() - c)
     parts.add("process (from this script's start)", time.perf_counter() - t_start,
               time.process_time() - c_start)
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    rss = maxrss_mb()
     print(f"{'part':<46}{'wall s':>8}{'CPU s':>8}{'calls':>6}")
     for k, (w, cpu, n) in parts.acc.items():
         print(f"{k:<46}{w:8.3f}{cpu:8.3f}{n:6d}")

@@ -237,6 +237,30 @@ def test_single_tile_equals_build_map(street):
         assert np.abs(x - y).max() == 0, np.abs(x - y).max()
 
 
+def test_tiles_resolve_auto_values_from_their_own_points(street, tiled):
+    """What README's tiling section says: each tile resolves the "auto" fields from the
+    points it trains on (so a streamed build, which never holds the whole scan, equals
+    an in-memory one); here the tiles' spacings differ, so do their lengths, and the
+    stitched mesh takes their median voxel."""
+    from gmmgp_app.pipeline import resolve_config
+    from gmmgp_app.tiling.geometry import members, split_into_tiles, union_points
+
+    scan, _ = street
+    parts = split_into_tiles(scan, tiled.spec)
+    voxels = []
+    for key, tile in tiled.tiles.items():
+        pts, org = union_points([(parts[m].points, parts[m].origins)
+                                 for m in members(tiled.owners, key)])
+        own = resolve_config(gm.MappingConfig(), gm.Scan(points=pts, origins=org))[0]
+        for sec, name in (("surface", "voxel_size"), ("gp", "length_scale"),
+                          ("gp", "block_size"), ("far", "kernel_floor")):
+            assert getattr(getattr(tile.config, sec), name) == \
+                getattr(getattr(own, sec), name), (key, name)
+        voxels.append(own.surface.voxel_size)
+    assert len(set(voxels)) > 1
+    assert tiled.surface_voxel() == float(np.median(voxels))
+
+
 def test_smooth_blend_has_no_seam(street, tiled):
     """Across the tile border x = 24 m the stitched mean is continuous."""
     scan, sdf = street

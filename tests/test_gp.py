@@ -9,7 +9,8 @@ from sklearn.mixture import GaussianMixture as SkGMM
 from gmmgp_app.config import GPConfig, concrete
 from gmmgp_app.stages.gmr import GMRField
 from gmmgp_app.stages.gp import (ConstantPrior, GPError, LocalGPField, fit_block,
-                                 fit_local_gps, select_gp_points)
+                                 fit_local_gps, neighbourhood_residual,
+                                 select_gp_points)
 from gmmgp_app.stages.kernels import matern32_joint
 from gmmgp_app.stages.octree import BlockGrid, OctreeError
 from gmmgp_app.types import GaussianMixture
@@ -191,6 +192,35 @@ def test_jitter_raised_when_cholesky_fails():
     assert fit.jitter_raised >= 1 and fit.jitter > 0
     np.testing.assert_allclose(fit.L @ fit.L.T, matern32_joint(X, X, 0.1)
                                + fit.jitter * np.eye(12), atol=1e-9)
+
+
+def test_neighbourhood_selection_keeps_a_misfitted_patch_whole_and_unbiased():
+    """A plane z = 0 whose prior sits 12 mm behind it on one half (x < 0) and on it on the
+    other; hits with 6 mm noise, d_m = 6 mm. Each point's own residual (eq. condition1)
+    keeps a truncated sample of the misfitted half (its points lie on the free side: the
+    noise that adds to the miss) and noise outliers of the fitted half; the mean over 16
+    neighbours keeps the misfitted half whole (its mean offset the data's, about 0) and
+    nothing of the fitted half."""
+    rng = np.random.default_rng(3)
+    n = 4000
+    xy = rng.uniform(-1.0, 1.0, size=(n, 2))
+    z = 0.006 * rng.normal(size=n)                  # the hits' noise along the normal
+    pts = np.c_[xy, z]
+    bias = np.where(xy[:, 0] < 0, 0.012, 0.0)       # prior's zero level 12 mm behind
+    m = z + bias                                    # prior mean at the hits (free side +)
+    own = select_gp_points(m, 0.006)
+    near = select_gp_points(neighbourhood_residual(pts, m, 16), 0.006)
+    left = xy[:, 0] < -0.1
+    right = xy[:, 0] > 0.1
+    assert own[left].mean() < 0.9 and own[right].mean() > 0.2
+    assert z[own & left].mean() > 0.001            # the truncated sample: free side
+    assert near[left].mean() > 0.99 and near[right].mean() < 0.01
+    assert abs(z[near & left].mean()) < 0.0005
+    np.testing.assert_array_equal(neighbourhood_residual(pts, m, 1), m)
+    with pytest.raises(GPError, match="k >= 1"):
+        neighbourhood_residual(pts, m, 0)
+    with pytest.raises(GPError, match="one prior mean per hit point"):
+        neighbourhood_residual(pts, m[:-1], 4)
 
 
 def test_select_gp_points():
@@ -561,3 +591,37 @@ def test_capped_selection_is_the_block_by_block_draw():
     assert field.info["n_capped_blocks"] > 2
     np.testing.assert_array_equal(field._flat()["X"], pts[np.concatenate(sel)])
     np.testing.assert_array_equal(np.diff(field._flat()["ptr"]), [len(s) for s in sel])
+
+
+def test_cholesky_crout_four_rows_at_a_time_is_row_by_row_bit_for_bit():
+    """The block fitter's Cholesky (rows below the diagonal four at a time) gives the
+    one-row-at-a-time Crout loop exactly, for sizes with every remainder, and reports a
+    matrix that is not positive definite."""
+    import math
+
+    from gmmgp_app.stages.gp import _cholesky_crout
+
+    def crout_rows(K, ep):
+        m = len(K)
+        L = np.zeros((m, m))
+        for c in range(m):
+            for r in range(c, m):
+                t = float(K[r, c]) + (ep if r == c else 0.0)
+                for k in range(c):
+                    t -= float(L[r, k]) * float(L[c, k])
+                if r == c:
+                    if not t > 0.0:
+                        return None
+                    L[c, c] = math.sqrt(t)
+                else:
+                    L[r, c] = t / L[c, c]
+        return L
+
+    rng = np.random.default_rng(3)
+    for m in (1, 2, 4, 5, 7, 8, 11, 16, 23):
+        A = rng.normal(size=(m, m))
+        K = A @ A.T + 1e-3 * np.eye(m)
+        Lb = np.zeros((m, m))
+        assert _cholesky_crout(K, 1e-9, Lb)
+        np.testing.assert_array_equal(np.tril(Lb), crout_rows(K, 1e-9))
+    assert not _cholesky_crout(-np.eye(6), 0.0, np.zeros((6, 6)))

@@ -319,3 +319,90 @@ def test_save_in_background_writes_what_save_writes(sphere, tmp_path):
     with pytest.raises(OSError):
         smap.save_in_background(tmp_path / "file" / "map").result()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+# ---------------------------------------------------------------- update_map
+
+
+def _grid_points(lo, hi, h):
+    u, v = (np.arange(a, b + 1e-9, h) for a, b in zip(lo, hi))
+    U, V = np.meshgrid(u, v, indexing="ij")
+    return U.ravel(), V.ravel()
+
+
+@pytest.fixture(scope="module")
+def floor_and_wall():
+    """A 4 m x 4 m floor (z = 0) and a wall face x = 3 m (1 <= y <= 3, z <= 1.2 m) seen
+    from (2, 2, 1.5), 4 cm spacing, 2 mm range noise: the floor alone, then the wall."""
+    rng = np.random.default_rng(0)
+    u, v = _grid_points((0.0, 0.0), (4.0, 4.0), 0.04)
+    floor = np.column_stack([u, v, 0.002 * rng.standard_normal(len(u))])
+    u, v = _grid_points((1.0, 0.02), (3.0, 1.2), 0.04)
+    wall = np.column_stack([3.0 + 0.002 * rng.standard_normal(len(u)), u, v])
+    return floor, wall, np.array([2.0, 2.0, 1.5])
+
+
+def test_update_map_rebuilds_the_far_field_of_the_new_points(floor_and_wall, tmp_path):
+    """A GP-only update with a new wall: the far field votes from the wall's points too,
+    so 0.1-0.4 m in front of the wall (beyond the GP's reach, where the kept floor prior
+    says 0.5-0.9 m) the updated map predicts the distance to the wall like a map built
+    from all the points; far from the wall nothing changes; the map keeps its far field's
+    vote and its variance coefficients, and saves and loads what it predicts with."""
+    from gmmgp_app.pipeline import update_map
+
+    floor, wall, o = floor_and_wall
+    cfg = gm.MappingConfig().replace("far.vote", "sphere")
+    every = np.vstack([floor, wall])
+    origins = np.tile(o, (len(every), 1))
+    base = gm.build_map(gm.Scan(points=floor, origins=origins[:len(floor)]), cfg)
+    base.variance_coef = tuple(0.5 * np.asarray(base.resolved_variance_coef()))  # as saved
+    whole = gm.build_map(gm.Scan(points=every, origins=origins), cfg)
+    u, v = _grid_points((0.4, 0.5), (1.4, 3.5), 0.25)
+    far_q = np.column_stack([u, v, np.full(len(u), 0.3)])
+    before = base.predict(far_q)
+    upd, n_refit = update_map(base, every, origins, wall)
+    assert n_refit > 0
+    g = np.meshgrid(np.linspace(2.6, 2.9, 4), np.linspace(1.5, 2.5, 5),
+                    np.linspace(0.5, 0.9, 3), indexing="ij")
+    q = np.column_stack([a.ravel() for a in g])
+    truth = 3.0 - q[:, 0]                     # nearer the wall than the floor
+    mean = upd.predict(q)[0]
+    assert np.abs(mean - whole.predict(q)[0]).max() < 2e-3    # measured 0.3 mm
+    assert np.abs(mean - truth).max() < 5e-3                   # measured 1.8 mm
+    assert np.abs(upd.far.predict(q)[0] - truth).max() < 5e-3
+    # far from the wall (k nearest hit points unchanged) the field is bitwise the same
+    for a, b in zip(before, upd.predict(far_q)):
+        np.testing.assert_array_equal(a, b)
+    assert upd.far.vote == "sphere" and upd.far.params() == base.far.params()
+    assert upd.resolved_variance_coef() == base.variance_coef
+    assert upd.gp_normals.shape == upd.gp_points.shape
+    assert np.allclose(np.linalg.norm(upd.gp_normals, axis=1), 1.0)
+    assert len(upd.far.points) > len(base.far.points)
+    # the seeds cover the wall: the surface is sought there
+    assert (np.abs(upd.seed_points[:, 0] - 3.0) < 0.05).sum() > 0
+    loaded = gm.load_map(upd.save(tmp_path / "upd"))
+    for a, b in zip(upd.predict(q), loaded.predict(q)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_select_neighbours_selects_on_the_neighbourhoods_mean_residual(sphere):
+    """gp.select_neighbours k > 1 (an opt-in study switch): the select stage keeps the hit
+    points whose k nearest hits' mean prior residual exceeds d_m (with select_rule 'both'
+    and their own residual too); k = 1 is eq. condition1."""
+    from gmmgp_app.pipeline import RunContext, run_stages
+    from gmmgp_app.stages.gp import neighbourhood_residual
+
+    cfg = gm.MappingConfig().replace({"gp.d_m": 0.002})
+    state = run_stages(["prepare", "hgmm", "gmr", "select"], {"scan": sphere[0]},
+                       RunContext(cfg))
+    pts, m = state["data"].points, state["gmr_error"]
+    np.testing.assert_array_equal(state["gp_points"], pts[np.abs(m) > 0.002])
+    cfg8 = cfg.replace({"gp.select_neighbours": 8})
+    state8 = run_stages(["select"], dict(state), RunContext(cfg8))
+    want = np.abs(neighbourhood_residual(pts, m, 8)) > 0.002
+    np.testing.assert_array_equal(state8["gp_points"], pts[want])
+    assert 0 < want.sum() and not np.array_equal(want, np.abs(m) > 0.002)
+    both = run_stages(["select"], dict(state),
+                      RunContext(cfg8.replace({"gp.select_rule": "both"})))
+    np.testing.assert_array_equal(both["gp_points"], pts[want & (np.abs(m) > 0.002)])
+    assert len(both["gp_points"]) < min(want.sum(), (np.abs(m) > 0.002).sum())

@@ -217,3 +217,37 @@ def test_first_of_rows_is_uniques_first_index():
     huge = np.array([[0, 0, 0], [2 ** 40, 0, 0], [0, 2 ** 40, 5], [0, 0, 0]], np.int64)
     np.testing.assert_array_equal(_first_of_rows(huge),
                                   np.unique(huge, axis=0, return_index=True)[1])
+
+
+def test_neighbourhood_covariances_equal_numpy_expressions():
+    """The compiled neighbourhood covariance gives numpy's batched expressions bit for
+    bit (masked mean, centred and masked differences, einsum, counts): on a mm-quantised
+    cloud (ties at the m-th distance), a sparse one (fewer than m neighbours within the
+    radius) and isolated points (one neighbour: the point itself)."""
+    from gmmgp_app.stages.prepare import _TIE_EXTRA, _TIE_TOL, _neighbourhood_covariances
+
+    def numpy_cov(points, q, dist, idx, m):
+        kth = dist[:, m - 1:m] * (1.0 + _TIE_TOL)
+        found = np.isfinite(dist) & (dist <= kth)
+        count = found.sum(axis=1)
+        nb = points[np.where(found, idx, q[:, None])]
+        w = found[..., None].astype(np.float64)
+        mean = (nb * w).sum(axis=1) / np.maximum(count, 1)[:, None]
+        diff = (nb - mean[:, None, :]) * w
+        return np.einsum("cki,ckj->cij", diff, diff) / np.maximum(count, 1)[:, None, None], \
+            count
+
+    rng = np.random.default_rng(5)
+    grid = np.round(rng.uniform(-0.3, 0.3, (4000, 3)) * [1, 1, 0.05], 3) + [1e3, -2e3, 5.0]
+    sparse = rng.uniform(-5, 5, (3000, 3))
+    lonely = np.array([[0.0, 0, 0], [10, 0, 0], [0, 10, 0], [10, 10, 0.0]])
+    for pts, radius, m in ((grid, 0.05, 20), (sparse, 0.6, 12), (lonely, 1.0, 3)):
+        k = min(m + _TIE_EXTRA, len(pts))
+        m = min(m, len(pts))
+        q = np.sort(rng.choice(len(pts), min(len(pts), 700), replace=False))
+        dist, idx = cKDTree(pts).query(pts[q], k=k, distance_upper_bound=radius, workers=1)
+        want_cov, want_count = numpy_cov(pts, q, dist, idx, m)
+        cov, count = _neighbourhood_covariances(pts, q, dist, idx, m)
+        np.testing.assert_array_equal(count, want_count)
+        assert np.array_equal(cov, want_cov)
+    assert (want_count == 1).all()

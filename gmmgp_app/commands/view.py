@@ -1,7 +1,12 @@
-"""``gmmgp view``: the interactive desktop app (:mod:`gmmgp_app.viz.gui`)."""
+"""``gmmgp view``: the interactive desktop app (:mod:`gmmgp_app.viz.gui`).
+
+The app's modules are imported when the command runs, not when the command line's
+parser is built: its options come from the light :mod:`gmmgp_app.viz` package.
+"""
 
 from __future__ import annotations
 
+from ..viz import add_view_arguments
 from .options import add_command, add_config_options, load_config
 
 EXAMPLES = """examples:
@@ -18,8 +23,6 @@ EXAMPLES = """examples:
 
 
 def add_parser(subparsers):
-    from ..viz.gui import add_view_arguments
-
     p = add_command(subparsers, "view", help="open the interactive desktop app",
                     epilog=EXAMPLES)
     add_view_arguments(p)

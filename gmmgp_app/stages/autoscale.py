@@ -158,7 +158,7 @@ def measure_scan(points, origins=None, *, tree: Optional[cKDTree] = None,
     else:
         idx = np.arange(n)
     tree = cKDTree(pts, balanced_tree=False) if tree is None else tree
-    d, nb = tree.query(pts[idx], k=_K + 1)
+    d, nb = tree.query(pts[idx], k=_K + 1, workers=-1)    # same neighbours, on threads
     # the nearest *distinct* neighbour: duplicated points are common in merged scans
     nn = np.where(d[:, 1:] > 0, d[:, 1:], np.inf).min(axis=1)
     nn = nn[np.isfinite(nn)]

@@ -505,6 +505,43 @@ def _group_logprob(X, a, b, means, pchol, logconst, logw, lp, tmp):
             lp[k] += tmp[k]
 
 
+@njit(cache=True, inline="always")
+def _group_logprob4(X, a, b, means, pchol, logconst, logw, lp):
+    """:func:`_group_logprob` for D = 4 (the mapper's rows): the same operations in the
+    same order (each component's mean and factor read once for the group's rows, the
+    differences taken once per row), so the same bits."""
+    K = means.shape[0]
+    for k in range(K):
+        m0, m1, m2, m3 = means[k, 0], means[k, 1], means[k, 2], means[k, 3]
+        p00 = pchol[k, 0, 0]
+        p10, p11 = pchol[k, 1, 0], pchol[k, 1, 1]
+        p20, p21, p22 = pchol[k, 2, 0], pchol[k, 2, 1], pchol[k, 2, 2]
+        p30, p31, p32, p33 = pchol[k, 3, 0], pchol[k, 3, 1], pchol[k, 3, 2], pchol[k, 3, 3]
+        lc = logconst[k]
+        acc = -(b - a - 1) * logw[k]
+        for n in range(a, b):
+            d0 = X[n, 0] - m0
+            d1 = X[n, 1] - m1
+            d2 = X[n, 2] - m2
+            d3 = X[n, 3] - m3
+            y0 = 0.0 + p00 * d0
+            y1 = (0.0 + p10 * d0) + p11 * d1
+            y2 = ((0.0 + p20 * d0) + p21 * d1) + p22 * d2
+            y3 = (((0.0 + p30 * d0) + p31 * d1) + p32 * d2) + p33 * d3
+            maha = (((0.0 + y0 * y0) + y1 * y1) + y2 * y2) + y3 * y3
+            acc += lc - 0.5 * maha
+        lp[k] = acc
+
+
+@njit(cache=True, inline="always")
+def _group_lp(X, a, b, means, pchol, logconst, logw, lp, tmp):
+    """:func:`_group_logprob`, through :func:`_group_logprob4` when D = 4."""
+    if X.shape[1] == 4:
+        _group_logprob4(X, a, b, means, pchol, logconst, logw, lp)
+    else:
+        _group_logprob(X, a, b, means, pchol, logconst, logw, lp, tmp)
+
+
 @njit(cache=True, nogil=True)
 def group_log_likelihood(X, gptr, means, pchol, logconst, logw):
     """Per-group log-likelihood ``log sum_k pi_k prod_n N(x_n | k)``, (G,)."""
@@ -514,7 +551,7 @@ def group_log_likelihood(X, gptr, means, pchol, logconst, logw):
     lp = np.empty(K)
     tmp = np.empty(K)
     for g in range(G):
-        _group_logprob(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp, tmp)
+        _group_lp(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp, tmp)
         out[g] = _lse(lp)
     return out
 
@@ -528,7 +565,7 @@ def assign_groups(X, gptr, means, pchol, logconst, logw):
     lp = np.empty(K)
     tmp = np.empty(K)
     for g in range(G):
-        _group_logprob(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp, tmp)
+        _group_lp(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp, tmp)
         best = 0
         for k in range(1, K):
             if lp[k] > lp[best]:
@@ -550,36 +587,61 @@ def accumulate_groups(X, gptr, means, pchol, logconst, logw):
     worst, worst_i : lowest group log-likelihood and the first row of that group
     """
     G = gptr.shape[0] - 1
+    K = means.shape[0]
+    return _accumulate_groups_into(X, gptr, means, pchol, logconst, logw, np.empty((K, G)))
+
+
+@njit(cache=True, inline="always")
+def _group_resp(lp, RT, g):
+    """Group ``g``'s log-likelihood (log-sum-exp of its ``lp``) and responsibilities
+    ``RT[k, g]`` (0.0 where ``t < LOG_RESP_SKIP``: exp(t) < RESP_FLOOR; a NaN t still
+    goes to exp)."""
+    lse = _lse(lp)
+    for k in range(lp.shape[0]):
+        t = lp[k] - lse
+        RT[k, g] = 0.0 if t < LOG_RESP_SKIP else np.exp(t)
+    return lse
+
+
+@njit(cache=True, nogil=True)
+def _accumulate_groups_into(X, gptr, means, pchol, logconst, logw, RT):
+    """:func:`accumulate_groups` with the scratch ``RT`` (K, G) (kept by
+    :func:`em_loop_groups` across iterations): first every group's log-likelihood and
+    responsibilities (``RT[k, g]``, 0.0 where ``t < LOG_RESP_SKIP``), then each
+    component's statistics over the groups in order (:func:`_group_stats_task4`: the
+    sums in registers, not read and written back per row). Every sum is the one row
+    by row would take, in the same order: the same bits."""
+    G = gptr.shape[0] - 1
     K, D = means.shape
+    lp = np.empty(K)
+    tmp = np.empty(K)
+    ll = 0.0
+    worst = np.inf
+    worst_i = -1
+    # the branch outside the loop: inside, the generic path's code slows the D = 4 one
+    if D == 4:
+        for g in range(G):
+            _group_logprob4(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp)
+            lse = _group_resp(lp, RT, g)
+            ll += lse
+            if lse < worst:
+                worst = lse
+                worst_i = gptr[g]
+    else:
+        for g in range(G):
+            _group_logprob(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp, tmp)
+            lse = _group_resp(lp, RT, g)
+            ll += lse
+            if lse < worst:
+                worst = lse
+                worst_i = gptr[g]
     nk = np.zeros(K)
     gk = np.zeros(K)
     sx = np.zeros((K, D))
     sxx = np.zeros((K, D, D))
-    lp = np.empty(K)
-    tmp = np.empty(K)
-    diff = np.empty(D)
-    ll = 0.0
-    worst = np.inf
-    worst_i = -1
-    for g in range(G):
-        a, b = gptr[g], gptr[g + 1]
-        _group_logprob(X, a, b, means, pchol, logconst, logw, lp, tmp)
-        lse = _lse(lp)
-        ll += lse
-        if lse < worst:
-            worst = lse
-            worst_i = a
-        for k in range(K):
-            t = lp[k] - lse
-            if t < LOG_RESP_SKIP:
-                continue    # exp(t) < RESP_FLOOR (a NaN t still goes to exp)
-            r = np.exp(t)
-            if r < RESP_FLOOR:
-                continue
-            gk[k] += r
-            nk[k] += r * (b - a)
-            for n in range(a, b):
-                _add_row_stats(X, n, means, k, r, sx, sxx, diff)
+    isplit = _stats_split(D)
+    for task in range(2 * K):
+        _group_stats_one(X, gptr, means, RT, task, isplit, nk, gk, sx, sxx)
     return nk, gk, sx, sxx, ll, worst, worst_i
 
 
@@ -603,16 +665,19 @@ def _group_resp_parallel(X, gptr, means, pchol, logconst, logw, RT, LSE):
     G = gptr.shape[0] - 1
     K = means.shape[0]
     nch = (G + GROUP_CHUNK - 1) // GROUP_CHUNK
+    D = X.shape[1]
     for c in prange(nch):
         lp = np.empty(K)
         tmp = np.empty(K)
-        for g in range(c * GROUP_CHUNK, min(G, (c + 1) * GROUP_CHUNK)):
-            _group_logprob(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp, tmp)
-            lse = _lse(lp)
-            LSE[g] = lse
-            for k in range(K):
-                t = lp[k] - lse
-                RT[k, g] = 0.0 if t < LOG_RESP_SKIP else np.exp(t)
+        if D == 4:
+            for g in range(c * GROUP_CHUNK, min(G, (c + 1) * GROUP_CHUNK)):
+                _group_logprob4(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp)
+                LSE[g] = _group_resp(lp, RT, g)
+        else:
+            for g in range(c * GROUP_CHUNK, min(G, (c + 1) * GROUP_CHUNK)):
+                _group_logprob(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp,
+                               tmp)
+                LSE[g] = _group_resp(lp, RT, g)
 
 
 @njit(cache=True, nogil=True)
@@ -734,24 +799,38 @@ def _group_stats_task4(X, gptr, means, Rk, k, part, nk, gk, sx, sxx):
         sxx[k, 3, 3] = q33
 
 
+@njit(cache=True, inline="always")
+def _stats_split(D):
+    """Rows [0, isplit) of sxx go with sx to part 0 of a component's statistics, the
+    rest to part 1: about half of the D + D (D + 1) / 2 sums each (D = 4: 7 and 7)."""
+    isplit = 0
+    while isplit < D and 2 * (D + (isplit + 1) * (isplit + 2) // 2) <= D + D * (D + 1) // 2:
+        isplit += 1
+    return isplit
+
+
+@njit(cache=True, inline="always")
+def _group_stats_one(X, gptr, means, RT, task, isplit, nk, gk, sx, sxx):
+    """Task ``task`` of phase 2: tasks 0..K-1 are part 0 of component ``task``,
+    K..2K-1 part 1 of component ``task - K``."""
+    K, D = means.shape
+    part = task // K
+    k = task % K
+    if D == 4:
+        _group_stats_task4(X, gptr, means, RT[k], k, part, nk, gk, sx, sxx)
+    else:
+        _group_stats_task(X, gptr, means, RT[k], k, part, isplit, nk, gk, sx, sxx)
+
+
 @njit(cache=True, parallel=True)
 def _group_stats_parallel(X, gptr, means, RT, nk, gk, sx, sxx):
     """Phase 2: the statistics of :func:`accumulate_groups` from ``RT`` (K, G), each
     summed over the groups in order by the one task that owns it (see above)."""
     K, D = means.shape
-    # rows [0, isplit) of sxx go with sx to part 0, the rest to part 1: about half
-    # of the D + D (D + 1) / 2 sums each (D = 4: 7 and 7)
-    isplit = 0
-    while isplit < D and 2 * (D + (isplit + 1) * (isplit + 2) // 2) <= D + D * (D + 1) // 2:
-        isplit += 1
+    isplit = _stats_split(D)
     # tasks 0..K-1 are part 0, K..2K-1 part 1: with two threads each takes one part
     for task in prange(2 * K):
-        part = task // K
-        k = task % K
-        if D == 4:
-            _group_stats_task4(X, gptr, means, RT[k], k, part, nk, gk, sx, sxx)
-        else:
-            _group_stats_task(X, gptr, means, RT[k], k, part, isplit, nk, gk, sx, sxx)
+        _group_stats_one(X, gptr, means, RT, task, isplit, nk, gk, sx, sxx)
 
 
 @njit(cache=True)
@@ -805,7 +884,7 @@ def em_loop_groups(X, gptr, weights, means, covs, max_iter, tol, reg_covar, min_
     worst_i = -1
     row_w = np.empty(K)
     G = gptr.shape[0] - 1
-    RT = np.empty((K, G if parallel else 0))
+    RT = np.empty((K, G))
     LSE = np.empty(G if parallel else 0)
     for it in range(max_iter):
         bad = component_terms(weights, covs, pchol, logconst)
@@ -817,8 +896,8 @@ def em_loop_groups(X, gptr, weights, means, covs, max_iter, tol, reg_covar, min_
             nk, gk, sx, sxx, ll, worst, worst_i = accumulate_groups_parallel(
                 X, gptr, means, pchol, logconst, logw, RT, LSE)
         else:
-            nk, gk, sx, sxx, ll, worst, worst_i = accumulate_groups(X, gptr, means, pchol,
-                                                                    logconst, logw)
+            nk, gk, sx, sxx, ll, worst, worst_i = _accumulate_groups_into(
+                X, gptr, means, pchol, logconst, logw, RT)
         lb = ll / N
         if not np.isfinite(lb):
             return it, False, 1, -1, lb, worst_i

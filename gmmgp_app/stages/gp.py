@@ -31,6 +31,7 @@ __all__ = [
     "BlockFit",
     "LocalGPField",
     "select_gp_points",
+    "neighbourhood_residual",
     "fit_block",
     "predict_block",
     "fit_local_gps",
@@ -117,6 +118,50 @@ def select_gp_points(prior_mean_at_hits, d_m: float) -> np.ndarray:
     if not (d_m >= 0 and math.isfinite(d_m)):
         raise GPError(f"Expected d_m >= 0, found {d_m}; use e.g. 0.02 m.")
     return np.abs(m) > d_m
+
+
+def neighbourhood_residual(points, prior_mean_at_hits, k: int) -> np.ndarray:
+    """Mean of the prior's residual over each hit point's ``k`` nearest hit points
+    (itself included): what the opt-in selection ``GPConfig.select_neighbours``
+    compares with d_m in place of each point's own residual (paper eq. condition1).
+    Not in the paper.
+
+    Why: condition1 on a noisy point's own residual keeps, where the prior misses a
+    surface by about d_m, only the points whose noise adds to the miss: a truncated,
+    biased sample of the surface (the bench street's far facade: GP points 0.6-1.3 mm
+    on the street side, docs/check.md Session 6), and a sparse one, between whose
+    points the GP field is the prior. Averaged over ``k`` neighbours the noise drops by
+    about sqrt(k) and the decision is the prior's error at that place: every point of
+    a misfitted patch is kept, none of a fitted one.
+
+    Parameters
+    ----------
+    points : (P, 3) array_like
+        Hit points (the prepared training hits).
+    prior_mean_at_hits : (P,) array_like
+        Prior mean at ``points`` (their true distance is 0).
+    k : int
+        Neighbours averaged, >= 1 (1: the residuals themselves; at most P are used).
+
+    Returns
+    -------
+    (P,) float64 array.
+    """
+    from scipy.spatial import cKDTree
+
+    pts = _xyz(points, "hit points")
+    m = np.asarray(prior_mean_at_hits, dtype=np.float64)
+    if m.shape != (len(pts),):
+        raise GPError(f"Expected one prior mean per hit point ({len(pts)}), found shape "
+                      f"{m.shape}.")
+    if int(k) != k or k < 1:
+        raise GPError(f"Expected a neighbour count k >= 1, found {k}; use e.g. 16 "
+                      "(or 1 for each point's own residual).")
+    k = min(int(k), len(pts))
+    if k <= 1:
+        return m.copy()
+    _, idx = cKDTree(pts).query(pts, k=k)
+    return m[idx].mean(axis=1)
 
 
 # -------------------------------------------------------------- one block
@@ -336,21 +381,7 @@ def _fit_blocks(X, sp, T, ptr, loff, a, value_noise, gradient_noise, jitter, max
         raised = 0
         while True:
             ep = rel * scale
-            ok = True
-            for c in range(m):                      # Cholesky-Crout, row-major
-                for r_ in range(c, m):
-                    t = K[r_, c] + (ep if r_ == c else 0.0)
-                    for k2 in range(c):
-                        t -= Lb[r_, k2] * Lb[c, k2]
-                    if r_ == c:
-                        if not t > 0.0:
-                            ok = False
-                            break
-                        Lb[c, c] = math.sqrt(t)
-                    else:
-                        Lb[r_, c] = t / Lb[c, c]
-                if not ok:
-                    break
+            ok = _cholesky_crout(K, ep, Lb)
             if ok:
                 break
             rel = max(rel * 10.0, 1e-12)
@@ -379,6 +410,51 @@ def _fit_blocks(X, sp, T, ptr, loff, a, value_noise, gradient_noise, jitter, max
             for c in range(r_ + 1, m):
                 t -= Lb[c, r_] * alpha[4 * s0 + c]
             alpha[4 * s0 + r_] = t / Lb[r_, r_]
+
+
+@nb.njit(cache=True, inline="always")
+def _cholesky_crout(K, ep, Lb):
+    """Lower Cholesky factor of ``K + ep I`` (lower triangle of ``K`` read) into ``Lb``,
+    column by column (Crout), each entry ``K[r, c] - sum_k Lb[r, k] Lb[c, k]`` taken
+    with k ascending; False (``Lb`` partly written) when a pivot is not positive.
+
+    The rows below the diagonal are done four at a time: their sums are independent
+    chains of the same operations, which the processor overlaps instead of waiting on
+    one subtraction after another (the same bits as one row at a time).
+    """
+    m = K.shape[0]
+    for c in range(m):
+        t = K[c, c] + ep
+        for k2 in range(c):
+            t -= Lb[c, k2] * Lb[c, k2]
+        if not t > 0.0:
+            return False
+        d = math.sqrt(t)
+        Lb[c, c] = d
+        r_ = c + 1
+        while r_ + 4 <= m:
+            t0 = K[r_, c] + 0.0
+            t1 = K[r_ + 1, c] + 0.0
+            t2 = K[r_ + 2, c] + 0.0
+            t3 = K[r_ + 3, c] + 0.0
+            for k2 in range(c):
+                lc = Lb[c, k2]
+                t0 -= Lb[r_, k2] * lc
+                t1 -= Lb[r_ + 1, k2] * lc
+                t2 -= Lb[r_ + 2, k2] * lc
+                t3 -= Lb[r_ + 3, k2] * lc
+            Lb[r_, c] = t0 / d
+            Lb[r_ + 1, c] = t1 / d
+            Lb[r_ + 2, c] = t2 / d
+            Lb[r_ + 3, c] = t3 / d
+            r_ += 4
+        while r_ < m:
+            t = K[r_, c] + 0.0
+            for k2 in range(c):
+                t -= Lb[r_, k2] * Lb[c, k2]
+            Lb[r_, c] = t / d
+            r_ += 1
+    return True
 
 
 def predict_block(fit: BlockFit, xs, sigma_s, length_scale: float, with_grad: bool):

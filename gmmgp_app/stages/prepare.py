@@ -23,6 +23,7 @@ import dataclasses
 import warnings
 from typing import Optional
 
+import numba as nb
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -153,19 +154,62 @@ def estimate_normals(points: np.ndarray, radius: float, max_nn: int,
         q = query[s:s + chunk]
         dist, idx = tree.query(points[q], k=k, distance_upper_bound=bound, workers=-1)
         dist, idx = dist.reshape(len(q), k), idx.reshape(len(q), k)
-        kth = dist[:, m - 1:m] * (1.0 + _TIE_TOL)                # inf when fewer found
-        found = np.isfinite(dist) & (dist <= kth)                # (c, k)
-        count = found.sum(axis=1)
-        nb = points[np.where(found, idx, q[:, None])]             # missing -> the point itself
-        w = found[..., None].astype(np.float64)
-        mean = (nb * w).sum(axis=1) / np.maximum(count, 1)[:, None]
-        diff = (nb - mean[:, None, :]) * w
-        cov = np.einsum("cki,ckj->cij", diff, diff) / np.maximum(count, 1)[:, None, None]
+        cov, count = _neighbourhood_covariances(points, q, dist, idx, m)
         lam, vec = np.linalg.eigh(cov)                           # ascending eigenvalues
         collinear = lam[:, 1] <= _COLLINEAR_RATIO * np.maximum(lam[:, 2], 1e-300)
         normals[s:s + chunk] = vec[:, :, 0]
         valid[s:s + chunk] = (count >= 3) & ~collinear
     return normals, valid
+
+
+@nb.njit(cache=True, parallel=True, nogil=True)
+def _neighbourhood_covariances(points, q, dist, idx, m):
+    """Covariance (c, 3, 3) and size (c,) of each query's neighbourhood (estimate_normals).
+
+    Query ``r`` (point ``q[r]``) has the neighbours ``idx[r]`` at distances ``dist[r]``
+    (ascending, inf past the last found); those within ``(1 + _TIE_TOL)`` of the
+    ``m``-th distance are its neighbourhood (all found ones when fewer than ``m``). The
+    covariance is the biased one about the neighbourhood's mean. Computed as the numpy
+    expressions ``mean = (nb * w).sum(1) / n``, ``diff = (nb - mean) * w``,
+    ``cov = einsum("cki,ckj->cij", diff, diff) / n`` (``w`` 1 for a neighbour, 0 else,
+    ``n = max(count, 1)``) with the same operations in the same order (numpy adds along
+    a middle axis one term after the other), so the same bits, in one pass per query
+    instead of (c, k, 3) temporaries.
+    """
+    c, k = idx.shape
+    cov = np.empty((c, 3, 3))
+    count = np.empty(c, np.int64)
+    for r in nb.prange(c):
+        kth = dist[r, m - 1] * (1.0 + _TIE_TOL)               # inf when fewer found
+        n = 0
+        for j in range(k):
+            if np.isfinite(dist[r, j]) and dist[r, j] <= kth:
+                n += 1
+        count[r] = n
+        nd = float(max(n, 1))
+        mean = np.empty(3)
+        for d in range(3):
+            s = 0.0
+            for j in range(k):
+                found = np.isfinite(dist[r, j]) and dist[r, j] <= kth
+                p = idx[r, j] if found else q[r]              # missing -> the point itself
+                t = points[p, d] * (1.0 if found else 0.0)
+                s = t if j == 0 else s + t
+            mean[d] = s / nd
+        diff = np.empty((k, 3))
+        for j in range(k):
+            found = np.isfinite(dist[r, j]) and dist[r, j] <= kth
+            p = idx[r, j] if found else q[r]
+            w = 1.0 if found else 0.0
+            for d in range(3):
+                diff[j, d] = (points[p, d] - mean[d]) * w
+        for a in range(3):
+            for b in range(3):
+                s = 0.0
+                for j in range(k):
+                    s += diff[j, a] * diff[j, b]
+                cov[r, a, b] = s / nd
+    return cov, count
 
 
 def orient_normals(points: np.ndarray, normals: np.ndarray,

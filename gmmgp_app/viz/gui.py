@@ -42,6 +42,7 @@ from .gui_script import ScriptRunner, load_script
 from .gui_layers import (LAYERS, STAGE_LAYERS, layer_geometry, scene_view,
                          layer_parts, materials, set_lighting)
 from .gui_tuning import run_record
+from . import add_view_arguments   # the app's options (gmmgp view's)
 from ..config import concrete, is_auto
 
 __all__ = ["add_view_arguments", "open_view", "ViewerApp", "ViewerError", "run_app"]
@@ -63,38 +64,6 @@ LEGEND_CELLS = 24
 
 
 # --------------------------------------------------------------------------- options
-def add_view_arguments(parser) -> None:
-    """The app's options (``gmmgp view`` adds the shared configuration options)."""
-    import argparse
-
-    parser.add_argument("target", help="scan file, saved map folder (map/), a 'gmmgp run' "
-                        "output folder (single or tiled map) or a 'gmmgp check' output "
-                        "folder")
-    parser.add_argument("--voxel-size", type=float, default=0.1, metavar="M",
-                        help="marching-cubes voxel of the surface in metres (default 0.1; "
-                             "the map's 0.05 is sharper but about 4x slower)")
-    parser.add_argument("--size", default="1600x1000", metavar="WxH",
-                        help="window size in pixels (default 1600x1000)")
-    parser.add_argument("--stage", default=None, choices=STAGES,
-                        help="stage shown first (default: the last one computed)")
-    parser.add_argument("--screenshot", metavar="PNG",
-                        help="render the stage once to this PNG and exit, no window (default "
-                             "stage: the last; a scan is mapped first)")
-    parser.add_argument("--level", type=int, default=0,
-                        help="HGMM level of the ellipsoids shown (with --stage hgmm)")
-    parser.add_argument("--compare", action="append", default=[], metavar="KEY=VALUE",
-                        help="with --screenshot: map again with this setting (repeatable, "
-                             "e.g. hgmm.split_threshold=0.03) and draw the first run beside "
-                             "the second")
-    parser.add_argument("--segment", type=int, default=None, metavar="N",
-                        help="with --screenshot of a check result: frame change segment N "
-                             "(1 = the largest), drawn red")
-    parser.add_argument("--script", metavar="JSON",
-                        help="run these steps after the first computation (automation and "
-                             "screenshots; see gmmgp_app.viz.gui_script)")
-    parser.add_argument("--no-3d", action="store_true", help=argparse.SUPPRESS)  # tests
-
-
 def open_view(args, cfg) -> int:
     """Open the app on ``args.target`` with ``cfg``; the exit code once the window closes.
 

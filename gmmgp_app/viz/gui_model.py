@@ -26,6 +26,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from . import STAGES   # the stages the app shows (in the light package: the CLI's parser)
 from ..config import MappingConfig
 from ..types import HierarchicalGMM, Scan, SurfaceMesh, TrainingSet
 
@@ -33,8 +34,6 @@ __all__ = ["STAGES", "STAGE_LABELS", "ViewerError", "StageResults",
            "ViewerModel", "first_affected_stage", "wait_for_frame", "FRAME_WAIT_S",
            "ProgressThrottle"]
 
-#: Stages the app shows, in pipeline order; "surface" is marching cubes on the final field.
-STAGES = ("scan", "prepare", "hgmm", "gmr", "gp", "surface")
 STAGE_LABELS = {"scan": "Scan", "prepare": "Prepared rows", "hgmm": "HGMM",
                 "gmr": "GMR error", "gp": "GP points", "surface": "Surface"}
 #: The pipeline stages behind each shown stage (gmmgp recipe, then the map and its mesh).
