@@ -21,8 +21,8 @@ given back, so each field batch's heap temporaries were faulted in again in the 
 batch. :func:`fix_mmap_threshold` keeps up to 32 MiB free at the heap's top
 (:func:`release_free_memory` still returns it) and maps blocks of 4 MiB or more (a
 field batch's 1-4 MiB arrays: coordinates, block cover, features, come from the heap):
-the street's run takes ~0.3M faults instead of ~0.88M and ~2 CPU-s less, at +20 MB of
-peak RSS (docs/speed.md "Session 11 (speed-16w)").
+the street's run takes ~0.3M faults instead of ~0.9M and ~1.2 CPU-s (7 %) less, at
++20 MiB of peak RSS (docs/speed.md "Session 11 (speed-16w)").
 """
 
 from __future__ import annotations
