@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_peers import mesh_metrics  # noqa: E402
+from bench_peers import mesh_metrics, read_ref_mesh  # noqa: E402
 from surface_voxel_study import boundary_fraction, load_case  # noqa: E402
 
 from gmmgp_app.evaluation import Reference, sample_mesh_surface  # noqa: E402
@@ -80,7 +80,7 @@ def binned(v, f, tree, ref, n_samples: int, seed: int) -> dict:
     s = sample_mesh_surface(v, f, n_samples, np.random.default_rng(seed))
     d_s = tree.query(s, k=1, workers=1)[0]
     b_s = np.searchsorted(BINS, d_s)
-    acc = np.abs(ref(s, signed=False)) if ref is not None else d_s
+    acc = np.abs(ref.sdf(s)) if ref is not None else d_s
     out = {}
     for i, name in enumerate(BIN_NAMES):
         sel = b_s == i
@@ -96,10 +96,38 @@ def binned(v, f, tree, ref, n_samples: int, seed: int) -> dict:
     return out
 
 
+def local_voxel_estimate(v, f, pts, tree, base: float, caps=(1.0, 1.5, 2.5, 4.0),
+                         k: int = 8) -> dict:
+    """Faces a mesh would have with a voxel from the local spacing, estimated from this one.
+
+    The local spacing at a face is the radius of its nearest scan point's ``k`` nearest
+    neighbours relative to that radius's median over the scan's points (where h_t comes
+    from: ratio 1 is the spacing h_t is set by, the dense ground near a LiDAR); the local
+    voxel is ``base * clip(ratio, 1, cap)`` (``base``: this mesh's voxel, e.g. 0.6 h_t),
+    and a face stands for ``(base / local voxel)^2`` faces of the local mesh (faces go as
+    area / voxel^2). Returned per cap: the estimated face count and its ratio to this mesh's.
+    """
+    rng = np.random.default_rng(0)
+    sub = pts[rng.choice(len(pts), min(len(pts), 100_000), replace=False)]
+    r_med = float(np.median(tree.query(sub, k=k + 1, workers=1)[0][:, -1]))
+    cen = v[f].mean(axis=1)
+    _, i = tree.query(cen, k=1, workers=1)
+    r_pt = tree.query(pts[i], k=k + 1, workers=1)[0][:, -1]
+    ratio = r_pt / r_med
+    out = {"ratio_quantiles_10_50_90": [float(x) for x in np.quantile(ratio, [0.1, 0.5, 0.9])]}
+    for cap in caps:
+        w = 1.0 / np.clip(ratio, 1.0, cap) ** 2
+        out[f"cap{cap:g}"] = {"faces_est": float(w.sum()), "faces_ratio": float(w.mean())}
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("cases", nargs="+", help="TAG=MAP_DIR:SCAN.npz:REF.ply (REF may be empty)")
+    ap.add_argument("cases", nargs="*", help="TAG=MAP_DIR:SCAN.npz:REF.ply (REF may be empty)")
+    ap.add_argument("--score", action="append", default=[],
+                    help="TAG=MESH:SCAN.npz:REF.ply: only score an existing mesh (.ply, or a "
+                         ".npz with vertices and faces, e.g. bench_peers' VDBFusion mesh)")
     ap.add_argument("--voxels", default="0.6,0.8,1.0,1.5", help="voxels in units of h_t")
     ap.add_argument("--extents", default="0.6", help="extent cells in units of h_t "
                     "(0.6: the map's own)")
@@ -110,7 +138,26 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     from scipy.spatial import cKDTree
 
-    res = {"settings": vars(args), "cases": {}}
+    res = {"settings": vars(args), "cases": {}, "scored": {}}
+    for spec in args.score:
+        tag, _, rest = spec.partition("=")
+        mp, scan, refp = rest.split(":")
+        if mp.endswith(".npz"):
+            with np.load(mp) as z:
+                v, f = np.asarray(z["vertices"], np.float64), np.asarray(z["faces"], np.int64)
+        else:
+            mesh = _surface.read_mesh_ply(mp)
+            v, f = mesh.vertices, mesh.faces
+        pts = np.asarray(np.load(scan)["points"], np.float64)
+        ref_mesh = read_ref_mesh(refp) if refp else None
+        tree = cKDTree(pts)
+        ref = Reference.from_mesh(*ref_mesh) if ref_mesh is not None else None
+        res["scored"][tag] = {"mesh": mp, "faces": int(len(f)),
+                              "metrics": mesh_metrics(v, f, pts, ref_mesh, args.samples, 0),
+                              "bins": binned(v, f, tree, ref, args.samples, 1),
+                              "boundary_edge_frac": boundary_fraction(f)}
+        print(f"scored {tag}", file=sys.stderr, flush=True)
+        Path(args.out).write_text(json.dumps(res, indent=1))
     for case in args.cases:
         tag, m, pts, ref_mesh, ht = load_case(case)
         pts = np.asarray(pts, np.float64)
@@ -139,6 +186,9 @@ def main(argv=None) -> int:
                     r["metrics"] = mesh_metrics(v, mesh.faces, pts, ref_mesh, args.samples, 0)
                     r["bins"] = binned(v, mesh.faces, tree, ref, args.samples, 1)
                     r["boundary_edge_frac"] = boundary_fraction(mesh.faces)
+                    if fac == min(float(x) for x in args.voxels.split(",")):
+                        r["local_voxel_estimate"] = local_voxel_estimate(
+                            v, mesh.faces, pts, tree, fac * ht)
                 rc["runs"].append(r)
                 print(f"{tag} voxel {fac:g} h_t extent {g:g} h_t: cpu {r['surface_cpu_s']:.1f} s "
                       f"faces {r['faces']:,} load {r['load_avg'][0]:.1f}", file=sys.stderr,
