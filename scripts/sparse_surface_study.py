@@ -135,7 +135,8 @@ def main(argv=None) -> int:
     ap.add_argument("--samples", type=int, default=200_000)
     ap.add_argument("--trims", default="", help="also score each mesh with the faces whose "
                     "centroid lies further than T m from the nearest scan point removed "
-                    "(comma-separated T; a post-hoc emulation of a cap on the fill)")
+                    "(comma-separated T, or 'reach': the extent's reach; a post-hoc emulation of a cap "
+                    "on the fill)")
     ap.add_argument("--no-metrics", action="store_true", help="timing only")
     ap.add_argument("--out", required=True, help="JSON of every result (rewritten per mesh)")
     args = ap.parse_args(argv)
@@ -189,10 +190,11 @@ def main(argv=None) -> int:
                     r["metrics"] = mesh_metrics(v, mesh.faces, pts, ref_mesh, args.samples, 0)
                     r["bins"] = binned(v, mesh.faces, tree, ref, args.samples, 1)
                     r["boundary_edge_frac"] = boundary_fraction(mesh.faces)
-                    for t in (float(x) for x in args.trims.split(",") if x.strip()):
+                    for tt in (x.strip() for x in args.trims.split(",") if x.strip()):
+                        t = reach if tt == "reach" else float(tt)
                         d = tree.query(v[mesh.faces].mean(axis=1), k=1, workers=1)[0]
                         ft = mesh.faces[d <= t]
-                        r[f"trim_{t:g}"] = {
+                        r["trim_reach" if tt == "reach" else f"trim_{t:g}"] = {
                             "faces": int(len(ft)),
                             "metrics": mesh_metrics(v, ft, pts, ref_mesh, args.samples, 0),
                             "bins": binned(v, ft, tree, ref, args.samples, 1),
