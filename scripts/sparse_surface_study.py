@@ -135,8 +135,8 @@ def main(argv=None) -> int:
     ap.add_argument("--samples", type=int, default=200_000)
     ap.add_argument("--trims", default="", help="also score each mesh with the faces whose "
                     "centroid lies further than T m from the nearest scan point removed "
-                    "(comma-separated T, or 'reach': the extent's reach; a post-hoc emulation of a cap "
-                    "on the fill)")
+                    "(comma-separated T, or 'reach': the extent's reach; 'seeds': the reach from the "
+                    "seeds rather than the scan points; a post-hoc emulation of a cap on the fill)")
     ap.add_argument("--no-metrics", action="store_true", help="timing only")
     ap.add_argument("--out", required=True, help="JSON of every result (rewritten per mesh)")
     args = ap.parse_args(argv)
@@ -191,10 +191,18 @@ def main(argv=None) -> int:
                     r["bins"] = binned(v, mesh.faces, tree, ref, args.samples, 1)
                     r["boundary_edge_frac"] = boundary_fraction(mesh.faces)
                     for tt in (x.strip() for x in args.trims.split(",") if x.strip()):
-                        t = reach if tt == "reach" else float(tt)
-                        d = tree.query(v[mesh.faces].mean(axis=1), k=1, workers=1)[0]
+                        t = reach if tt in ("reach", "seeds") else float(tt)
+                        c0 = cpu_seconds()
+                        if tt == "seeds":   # as a stage would: the seeds' tree, the reach
+                            d = cKDTree(seeds + m.offset).query(
+                                v[mesh.faces].mean(axis=1), k=1, workers=1)[0]
+                        else:
+                            d = tree.query(v[mesh.faces].mean(axis=1), k=1, workers=1)[0]
                         ft = mesh.faces[d <= t]
-                        r["trim_reach" if tt == "reach" else f"trim_{t:g}"] = {
+                        trim_cpu = cpu_seconds() - c0
+                        r["trim_reach" if tt == "reach" else "trim_seeds" if tt == "seeds"
+                          else f"trim_{t:g}"] = {
+                            "cpu_s": trim_cpu,
                             "faces": int(len(ft)),
                             "metrics": mesh_metrics(v, ft, pts, ref_mesh, args.samples, 0),
                             "bins": binned(v, ft, tree, ref, args.samples, 1),
