@@ -24,6 +24,11 @@ pass') the map is meshed with its own lattice field and settings otherwise, and 
   mesh; for KITTI the distance to the scan, which is the bin's own distance);
 - the boundary-edge fraction (holes' rims).
 
+``--trims`` also scores each mesh with the faces further than T from the scan (or the
+reach, from the scan points or from the seeds, the latter timed) removed: an emulation of
+a cap on how far coarse cells carry the mesh. ``--score`` scores an existing mesh (e.g.
+bench_peers' VDBFusion ``mesh.npz``) with the same metrics and bins.
+
 The seeds of an extent other than the map's own are recomputed from the scan's points
 (``stages.surface.surface_seeds``); the map's own extent uses the map's stored seeds.
 """
