@@ -16,13 +16,6 @@ from importlib import import_module
 # numba's TBB layer refuses the TBB that Open3D's wheels bring (too old) and warns on
 # every parallel kernel; OpenMP is what it would fall back to anyway.
 os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")
-# OpenMP's idle threads sleep as soon as a parallel kernel ends instead of spinning
-# (libgomp spins up to ~300,000 rounds, several ms, after every region): the spinning
-# took the cores from the other threads of a run (HGMM fits in a pool, the map write,
-# the surface's overlap) and from other processes: a street run used ~2.5 CPU-s less
-# with no slower stage (docs/speed.md "Session 11 (speed-16x)"). Read by libgomp when
-# numba first loads it; a value set by the user is kept.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 __version__ = "0.1.0"
 
