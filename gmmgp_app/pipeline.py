@@ -314,7 +314,8 @@ class SurfaceMap:
         ``s_seed``, the seeds' median spacing). With the automatic e = 0.6 h_t that is
         ``(sqrt(3) / 2) 0.6 h_t + s_seed``, a length of the data: meshing coarser does not
         follow fins further from the data (a coarse cell once followed is meshed whole:
-        faces are not trimmed to the reach, docs/speed.md 'Seventh pass').
+        faces are not trimmed to the reach, docs/speed.md 'Seventh pass', unless
+        ``surface.trim_to_reach`` is on).
         None (the voxel's own rule) for a map without seeds or a concrete voxel."""
         v = self.config.surface.extent_cell
         if is_auto(v):  # a map made before the extent cell: its voxel's

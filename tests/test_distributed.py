@@ -1188,6 +1188,41 @@ def test_streamed_tiled_surface_with_projection_is_the_whole_lattice_mesh(street
     assert np.array_equal(_face_set(whole), _face_set(parts))
 
 
+def test_streamed_tiled_surface_trimmed_to_the_reach_is_the_whole_lattice_mesh(tiled):
+    """With surface.trim_to_reach on, the region-by-region mesh is still the whole
+    lattice's (each region's seeds reach a margin beyond its box, wider than the reach),
+    and the whole mesh's faces are the untrimmed mesh's within the reach of the stitched
+    seeds (brute-force distances)."""
+    import dataclasses
+
+    from gmmgp_app.tiling.mesh import streamed_surface_mesh
+
+    full = tiled.extract_surface(voxel_size=0.2)
+    old = tiled.config
+    tiled.config = dataclasses.replace(
+        old, surface=dataclasses.replace(old.surface, trim_to_reach=True))
+    try:
+        whole = tiled.extract_surface(voxel_size=0.2)
+        parts = streamed_surface_mesh(tiled, voxel_size=0.2)
+    finally:
+        tiled.config = old
+    seeds = tiled.stitched_seeds()
+    reach = tiled.surface_reach(seeds)
+    c = full.vertices[full.faces].mean(axis=1)
+    d = np.concatenate([np.sqrt(((c[i:i + 256, None] - seeds[None]) ** 2).sum(-1).min(1))
+                        for i in range(0, len(c), 256)])
+    within = d <= reach
+    assert (~within).sum() > 10 and within.sum() > 2000
+    kept = type(full)(full.vertices, full.faces[within], full.vertex_variance)
+    assert len(whole.faces) == within.sum()
+    assert np.array_equal(_face_set(whole), _face_set(kept))
+    assert len(parts.vertices) == len(whole.vertices)
+    ow, op = (np.lexsort(m.vertices.T[::-1]) for m in (whole, parts))
+    assert np.array_equal(whole.vertices[ow], parts.vertices[op])
+    assert np.array_equal(whole.vertex_variance[ow], parts.vertex_variance[op])
+    assert np.array_equal(_face_set(whole), _face_set(parts))
+
+
 def test_chunked_quantile_is_numpys_quantile_bit_for_bit():
     """The PLY colour scale's percentile, computed a chunk at a time (no array of every
     vertex variance), equals np.quantile exactly: skewed, tied, tiny and NaN inputs."""

@@ -783,3 +783,82 @@ def test_map_meshes_serially_by_default_and_the_same_with_the_overlap(box_scene)
     assert seen == [False, True]
     assert len(serial.faces) > 1000
     _assert_same_mesh(serial, over)
+
+
+def _tilted_plane(x):
+    n = np.array([-0.3, 0.1, 1.0]) / np.linalg.norm([-0.3, 0.1, 1.0])
+    return x @ n - 0.013, 1e-4 * (1.0 + x[:, 0] ** 2 + 0.5 * x[:, 1])
+
+
+def _nearest_seed_distance(x, seeds):
+    """Brute force: every point's distance to its nearest seed."""
+    return np.concatenate([np.sqrt(((x[s:s + 256, None] - seeds[None]) ** 2).sum(-1).min(1))
+                           for s in range(0, len(x), 256)])
+
+
+@pytest.mark.parametrize("overlap", [False, True])
+def test_trim_to_reach_keeps_exactly_the_faces_within_the_reach(overlap):
+    # A disc of seeds on a tilted plane meshed at a coarse voxel: the followed cells
+    # are meshed whole, so faces spill up to a cell diagonal beyond the reach. With the
+    # trim no face's centroid lies further than the reach from a seed (brute force), and
+    # the faces within it are the untrimmed mesh's (same corners, same order, same
+    # variances); without it (the default) the mesh is the untrimmed one bit for bit.
+    rng = np.random.default_rng(3)
+    uv = rng.uniform(-0.5, 0.5, size=(3000, 2))
+    uv = uv[np.hypot(uv[:, 0], uv[:, 1]) < 0.5]
+    n = np.array([-0.3, 0.1, 1.0]) / np.linalg.norm([-0.3, 0.1, 1.0])
+    a = np.cross(n, [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(n, a)
+    seeds = uv[:, :1] * a + uv[:, 1:] * b + 0.013 * n
+    h, reach = 0.1, 0.04
+    kw = dict(voxel_size=h, reach=reach, block_cells=4, batch=501, overlap=overlap)
+    full = extract_surface(_tilted_plane, seeds, **kw)
+    default = extract_surface(_tilted_plane, seeds, trim_to_reach=False, **kw)
+    _assert_same_mesh(full, default)
+    trimmed = extract_surface(_tilted_plane, seeds, trim_to_reach=True, **kw)
+
+    d_full = _nearest_seed_distance(full.vertices[full.faces].mean(axis=1), seeds)
+    within = d_full <= reach
+    assert within.sum() > 100 and (~within).sum() > 5, "the coarse voxel must spill"
+    d = _nearest_seed_distance(trimmed.vertices[trimmed.faces].mean(axis=1), seeds)
+    assert d.max() <= reach
+    np.testing.assert_array_equal(trimmed.vertices[trimmed.faces],
+                                  full.vertices[full.faces[within]])
+    np.testing.assert_array_equal(trimmed.vertex_variance[trimmed.faces],
+                                  full.vertex_variance[full.faces[within]])
+    # no vertex left without a face, and each keeps its own variance
+    assert np.array_equal(np.unique(trimmed.faces), np.arange(len(trimmed.vertices)))
+    np.testing.assert_array_equal(trimmed.vertex_variance,
+                                  _tilted_plane(trimmed.vertices)[1])
+
+
+def test_trim_to_reach_is_off_by_default_and_a_maps_mesh_obeys_it(box_scene):
+    # The config field is off by default (the map's mesh is the untrimmed one bit for
+    # bit); on, the map's mesh at a coarse voxel has no face beyond its reach from the
+    # seeds, and its faces are those of the untrimmed mesh within the reach.
+    import dataclasses
+
+    import gmmgp_app as gm
+
+    assert gm.MappingConfig().surface.trim_to_reach is False
+    _, scan = box_scene
+    smap = gm.build_map(scan, gm.MappingConfig())
+    h = 1.7 * smap.config.surface.voxel_size
+    full = smap.extract_surface(h)
+    from gmmgp_app.stages import surface as S
+    old = S.extract_surface(smap.predict, smap.seed_points, voxel_size=h,
+                            reach=smap.surface_reach(), predict_mean=smap.lattice_mean,
+                            overlap=False)
+    _assert_same_mesh(full, old)
+    smap.config = dataclasses.replace(
+        smap.config, surface=dataclasses.replace(smap.config.surface, trim_to_reach=True))
+    trimmed = smap.extract_surface(h)
+    seeds, reach = smap.seed_points, smap.surface_reach()
+    d_full = _nearest_seed_distance(full.vertices[full.faces].mean(axis=1), seeds)
+    within = d_full <= reach
+    assert (~within).sum() > 0 and within.sum() > 1000
+    d = _nearest_seed_distance(trimmed.vertices[trimmed.faces].mean(axis=1), seeds)
+    assert d.max() <= reach
+    np.testing.assert_array_equal(trimmed.vertices[trimmed.faces],
+                                  full.vertices[full.faces[within]])

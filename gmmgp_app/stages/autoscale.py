@@ -46,7 +46,11 @@ reach). Coarser voxels with that reach (0.8-1.2 h_t) mesh the street 2-4x faster
 equal accuracy, but are 6-15 % less accurate on the held-out demo and KITTI, with the
 vertices projected onto the map's zero level (``surface.project_steps``) as without
 (the extra surface lies further from the data), so the voxel stays 0.6 h_t
-(docs/speed.md, "Fourth pass" and "Seventh pass").
+(docs/speed.md, "Fourth pass" and "Seventh pass"). That extra surface is the coarse
+cells' spill beyond the reach (a followed cell is meshed whole); the opt-in
+``surface.trim_to_reach`` drops the faces beyond the reach, with which 1.0 h_t meshes
+the demo and the street at about half the surface CPU and the default's accuracy
+(docs/speed.md, "Session 11 (speed-16y)").
 """
 
 from __future__ import annotations

@@ -28,6 +28,7 @@ from . import _distinct
 from ..types import SurfaceMesh
 
 __all__ = ["extract_surface", "surface_seeds", "mesh_field", "project_vertices",
+           "faces_within_reach",
            "check_surface_grid", "check_grid_size", "std_colour_max", "variance_colors",
            "write_mesh_ply", "write_mesh_obj", "read_mesh_ply", "estimate_grid_nodes", "GridTooLargeError"]
 
@@ -140,7 +141,8 @@ def mesh_field(predict: Callable, seeds: np.ndarray, cfg, voxel_size: Optional[f
     """:func:`extract_surface` with the voxel, std cut and vertex projection of ``cfg``
     (SurfaceConfig) unless given: the one place where a map's surface settings are
     resolved. ``project`` (the field's ``predict(xyz, return_grad=True)``) is used only
-    when ``cfg.project_steps`` > 0. ``lattice`` (``block_cells``, ``dilate``) goes to
+    when ``cfg.project_steps`` > 0, and the faces beyond the reach are dropped when
+    ``cfg.trim_to_reach`` is true. ``lattice`` (``block_cells``, ``dilate``) goes to
     :func:`extract_surface` as is (a tiled map's regions share the whole map's).
     ``overlap`` (off here: worker threads started at every call raised the peak RSS of
     processes that mesh many times, see ``SurfaceMap.extract_surface``) as in
@@ -151,7 +153,9 @@ def mesh_field(predict: Callable, seeds: np.ndarray, cfg, voxel_size: Optional[f
                            max_std=cfg.max_std if max_std is None else max_std,
                            progress=progress, reach=reach, predict_mean=predict_mean,
                            project=project if steps > 0 else None, project_steps=max(steps, 1),
-                           project_clamp=project_clamp(cfg), overlap=overlap, **lattice)
+                           project_clamp=project_clamp(cfg), overlap=overlap,
+                           trim_to_reach=bool(getattr(cfg, "trim_to_reach", False)),
+                           **lattice)
 
 
 def project_steps(cfg) -> int:
@@ -171,7 +175,8 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
                     predict_mean: Optional[Callable] = None,
                     project: Optional[Callable] = None, project_steps: int = 1,
                     project_clamp: float = 0.5, timings: Optional[dict] = None,
-                    wall_timings: Optional[dict] = None, overlap: bool = True) -> SurfaceMesh:
+                    wall_timings: Optional[dict] = None, overlap: bool = True,
+                    trim_to_reach: bool = False) -> SurfaceMesh:
     """Zero level set of a field as a triangle mesh with per-vertex variance.
 
     The lattice is evaluated only where the surface is: starting from the cells
@@ -235,6 +240,12 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
         bit for bit as with ``overlap=False`` (everything in the calling thread, in
         order) provided ``predict`` and ``project`` give each point the same values
         whatever batch it is in (the map's fields do: tests/test_surface.py).
+    trim_to_reach : bool
+        Drop the faces whose centroid lies further than ``reach`` from every seed
+        (:func:`faces_within_reach`), after the ``max_std`` cut, with the vertices no
+        face uses any more: a followed cell is meshed whole, so a coarse voxel's cells
+        reach up to a cell diagonal beyond ``reach``. The faces kept are the untrimmed
+        mesh's, in its order (off: the untrimmed mesh).
 
     Returns
     -------
@@ -268,7 +279,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     try:
         return _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress,
                         reach, predict_mean, project, project_steps, project_clamp, tick,
-                        *(pools or (None, None)), cKDTree, marching_cubes)
+                        *(pools or (None, None)), cKDTree, marching_cubes, trim_to_reach)
     finally:
         for p in pools:
             p.shutdown(wait=True, cancel_futures=True)
@@ -276,11 +287,11 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
 
 def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, reach,
              predict_mean, project, project_steps, project_clamp, tick, pool, tree_pool,
-             cKDTree, marching_cubes) -> SurfaceMesh:
+             cKDTree, marching_cubes, trim_to_reach=False) -> SurfaceMesh:
     """:func:`extract_surface` after its checks; ``pool`` (one worker thread, or None
     for the serial path) evaluates the fields beside the rest (one call at a time: a
     map's field is not called from two threads at once), ``tree_pool`` builds the
-    seeds' tree."""
+    seeds' tree (kept to the end with ``trim_to_reach``)."""
     follow_pool = pool if FOLLOW_PIPELINED else None
     if pool is not None:          # sliding midpoint: faster, same answers
         tree_job = tree_pool.submit(cKDTree, seeds, balanced_tree=False)
@@ -323,8 +334,10 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
     node_keys, values = lattice.keys, lattice.values    # hash table: key -1 = empty slot
     # memory: only the node values go on
     if tree is None:
-        tree_job.result()         # built (unused when nothing was followed)
-    del tree, followed, frontier, lattice
+        tree = tree_job.result()  # built (unused when nothing was followed)
+    if not trim_to_reach:
+        tree = None
+    del followed, frontier, lattice
     new = None
 
     tick("follow")
@@ -435,9 +448,27 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
     if max_std is not None:
         bad = np.sqrt(np.maximum(var, 0)) > max_std
         faces = faces[~bad[faces].any(1)]
+    if trim_to_reach:
+        faces = faces[faces_within_reach(verts, faces, tree, reach, batch)]
+    del tree
     verts, faces, var = _drop_unused(verts, faces, var)
     tick("final")
     return SurfaceMesh(verts, faces, var)
+
+
+def faces_within_reach(verts: np.ndarray, faces: np.ndarray, seeds_tree, reach: float,
+                       chunk: int = 65_536) -> np.ndarray:
+    """(F,) True for the faces whose centroid lies within ``reach`` (m) of a seed, the
+    seeds in ``seeds_tree`` (a ``cKDTree``): the surface is sought no further than the
+    reach from a seed (:func:`surface_reach`), but a followed cell is meshed whole.
+    ``chunk`` faces at a time (the centroids' temporaries)."""
+    keep = np.empty(len(faces), bool)
+    bound = np.nextafter(float(reach), np.inf)   # the query's bound is strict
+    for s in range(0, len(faces), chunk):
+        c = verts[faces[s:s + chunk]].mean(axis=1)
+        d = seeds_tree.query(c, k=1, distance_upper_bound=bound, workers=-1)[0]
+        keep[s:s + chunk] = d <= reach
+    return keep
 
 
 def _variance(predict: Callable, verts: np.ndarray, batch: int) -> np.ndarray:
