@@ -484,13 +484,14 @@ class SurfaceConfig:
         None, "Cut away surface where the predicted standard deviation exceeds this.",
         0.0, 1000.0, unit="m", optional=True)
     trim_to_reach: bool = _f(
-        False, "Drop the mesh faces whose centroid lies further than the reach "
+        True, "Drop the mesh faces whose centroid lies further than the reach "
         "(sqrt(3)/2) e + s_seed from every seed (e: extent_cell, s_seed: the seeds' median "
         "spacing), so that a coarse voxel's cells, once followed and meshed whole, do not "
-        "spill surface beyond where it is sought; false: followed cells are meshed whole.",
+        "spill surface beyond where it is sought; false: followed cells are meshed whole "
+        "(maps saved before this field load with false).",
         source="docs/speed.md 'Session 11 (speed-16y)': with a 1.0 h_t voxel it halves the "
         "surface CPU at the 0.6 h_t voxel's accuracy (scripts/sparse_surface_study.py "
-        "--trims seeds)")
+        "--trims seeds); on by default with the 1.0 h_t automatic voxel since session 11")
 
 
 @dataclass(frozen=True)

@@ -421,6 +421,10 @@ def load_map(directory) -> SurfaceMap:
     if isinstance(far_cfg, dict) and "vote" not in far_cfg:
         # saved before eq. sphere_vote: its far field votes with tangent planes (eq. rimls)
         far_cfg["vote"] = "plane"
+    surf_cfg = cfg_dict.setdefault("surface", {})
+    if isinstance(surf_cfg, dict) and "trim_to_reach" not in surf_cfg:
+        # saved before surface.trim_to_reach: the map is meshed as it was (cells whole)
+        surf_cfg["trim_to_reach"] = False
     cfg = MappingConfig.from_dict(cfg_dict)
     hgmm = _hgmm_from_arrays(arrays) if "hgmm/leaves/weights" in arrays else None
     gp_arrays = {k[3:]: v for k, v in arrays.items() if k.startswith("gp/")}
@@ -1139,6 +1143,7 @@ PLY_FACE = _surface.PLY_FACE
 project_steps = _surface.project_steps
 project_clamp = _surface.project_clamp
 surface_reach = _surface.surface_reach
+centroids_within_reach = _surface.centroids_within_reach
 std_colour_max = _surface.std_colour_max
 variance_colors = _surface.variance_colors
 write_mesh_ply = _surface.write_mesh_ply

@@ -211,8 +211,9 @@ def test_map_surface_reach_is_the_extent_cells_whatever_the_voxel(sphere_map):
     assert smap.surface_reach() == surface_reach(smap.seed_points, ext)
     far_mean = lambda x: smap.far.components(x)["mean"]  # noqa: E731
     a = smap.extract_surface()
+    trim = smap.config.surface.trim_to_reach       # on by default (session 11)
     b = extract_surface(smap.predict, smap.seed_points, vox, reach=smap.surface_reach(),
-                        predict_mean=far_mean)
+                        predict_mean=far_mean, trim_to_reach=trim)
     for x, y in ((a, b),):
         np.testing.assert_array_equal(x.vertices, y.vertices)
         np.testing.assert_array_equal(x.faces, y.faces)
@@ -221,7 +222,8 @@ def test_map_surface_reach_is_the_extent_cells_whatever_the_voxel(sphere_map):
     # (predict_mean is predict's mean)
     smap.config = sphere_map.config.replace({"surface.lattice_field": "map"})
     c = smap.extract_surface()
-    d = extract_surface(smap.predict, smap.seed_points, vox, reach=smap.surface_reach())
+    d = extract_surface(smap.predict, smap.seed_points, vox, reach=smap.surface_reach(),
+                        trim_to_reach=trim)
     np.testing.assert_array_equal(c.vertices, d.vertices)
     np.testing.assert_array_equal(c.faces, d.faces)
     np.testing.assert_array_equal(c.vertex_variance, d.vertex_variance)
@@ -235,7 +237,8 @@ def test_map_surface_reach_is_the_extent_cells_whatever_the_voxel(sphere_map):
     e = smap.extract_surface()
     f = extract_surface(smap.predict, smap.seed_points, vox, reach=smap.surface_reach(),
                         predict_mean=far_mean, project=smap._predict_with_grad,
-                        project_steps=1, project_clamp=smap.config.surface.project_clamp)
+                        project_steps=1, project_clamp=smap.config.surface.project_clamp,
+                        trim_to_reach=trim)
     np.testing.assert_array_equal(e.vertices, f.vertices)
     np.testing.assert_array_equal(e.faces, f.faces)
     np.testing.assert_array_equal(e.vertex_variance, f.vertex_variance)

@@ -833,17 +833,21 @@ def test_trim_to_reach_keeps_exactly_the_faces_within_the_reach(overlap):
                                   _tilted_plane(trimmed.vertices)[1])
 
 
-def test_trim_to_reach_is_off_by_default_and_a_maps_mesh_obeys_it(box_scene):
-    # The config field is off by default (the map's mesh is the untrimmed one bit for
-    # bit); on, the map's mesh at a coarse voxel has no face beyond its reach from the
-    # seeds, and its faces are those of the untrimmed mesh within the reach.
+def test_trim_to_reach_is_on_by_default_and_a_maps_mesh_obeys_it(box_scene):
+    # The config field is on by default (session 11); off, the map's mesh is the
+    # untrimmed one bit for bit; on, the map's mesh at a coarse voxel has no face beyond
+    # its reach from the seeds, and its faces are those of the untrimmed mesh within the
+    # reach.
     import dataclasses
 
     import gmmgp_app as gm
 
-    assert gm.MappingConfig().surface.trim_to_reach is False
+    assert gm.MappingConfig().surface.trim_to_reach is True
     _, scan = box_scene
     smap = gm.build_map(scan, gm.MappingConfig())
+    on = smap.config
+    smap.config = dataclasses.replace(
+        on, surface=dataclasses.replace(on.surface, trim_to_reach=False))
     h = 1.7 * smap.config.surface.voxel_size
     full = smap.extract_surface(h)
     from gmmgp_app.stages import surface as S
@@ -851,8 +855,7 @@ def test_trim_to_reach_is_off_by_default_and_a_maps_mesh_obeys_it(box_scene):
                             reach=smap.surface_reach(), predict_mean=smap.lattice_mean,
                             overlap=False)
     _assert_same_mesh(full, old)
-    smap.config = dataclasses.replace(
-        smap.config, surface=dataclasses.replace(smap.config.surface, trim_to_reach=True))
+    smap.config = on
     trimmed = smap.extract_surface(h)
     seeds, reach = smap.seed_points, smap.surface_reach()
     d_full = _nearest_seed_distance(full.vertices[full.faces].mean(axis=1), seeds)

@@ -32,7 +32,7 @@ value noise                  ``sigma^2``
 gradient noise               ``(2 sigma / r_n)^2`` clipped to [1e-4, 0.05]: the angle
                              error of a PCA normal from noise sigma over radius r_n
 GP prior scale ``c``         1 (the GMR's ``sigma_p``, eq. kernel2)
-surface voxel                ``0.6 h_t``
+surface voxel                ``1.0 h_t``, faces beyond the reach trimmed
 surface extent cell ``e``    ``0.6 h_t``
 HGMM ``reg_covar``           ``(0.004 s)^2`` (1e-6 m^2 at s = 0.25 m)
 GMR ``far_growth_floor``     ``1.2 s``
@@ -42,15 +42,14 @@ far field kernel floor       ``h_t`` (see :mod:`.farfield`)
 The surface is sought from one scan point per cell of e / 2 and followed at most
 ``(sqrt(3) / 2) e + s_seed`` from a seed point (``s_seed``: the seeds' median spacing;
 ``SurfaceMap.surface_reach``), e = 0.6 h_t whatever the voxel (the old 0.6 h_t voxel's
-reach). Coarser voxels with that reach (0.8-1.2 h_t) mesh the street 2-4x faster at
-equal accuracy, but are 6-15 % less accurate on the held-out demo and KITTI, with the
-vertices projected onto the map's zero level (``surface.project_steps``) as without
-(the extra surface lies further from the data), so the voxel stays 0.6 h_t
-(docs/speed.md, "Fourth pass" and "Seventh pass"). That extra surface is the coarse
-cells' spill beyond the reach (a followed cell is meshed whole); the opt-in
-``surface.trim_to_reach`` drops the faces beyond the reach, with which 1.0 h_t meshes
-the demo and the street at about half the surface CPU and the default's accuracy
-(docs/speed.md, "Session 11 (speed-16y)").
+reach). Coarser voxels with that reach were 6-15 % less accurate on the held-out demo
+and KITTI (docs/speed.md, "Fourth pass" and "Seventh pass"): a followed cell is meshed
+whole, and a coarse cell spills surface beyond the reach, further from the data. With
+those faces dropped (``surface.trim_to_reach``, on by default since session 11) the
+1.0 h_t voxel meshes at about half the 0.6 h_t voxel's surface CPU: street accuracy
+mean / RMSE 4.05 / 6.89 -> 3.78 / 6.36 mm, within 1 cm 87.1 -> 86.3 %; the held-out demo
+8.26 / 14.54 -> 8.39 / 14.99 mm, 68.2 -> 66.6 % (docs/speed.md "Session 11 (speed-16y)"
+and its speed-16z paragraph). Maps saved before keep their voxel and mesh untrimmed.
 """
 
 from __future__ import annotations
@@ -71,8 +70,9 @@ __all__ = ["ScanScale", "AutoScaleError", "measure_scan", "auto_values", "resolv
 
 #: The automatic surface voxel in units of h_t, and the reason printed with it
 #: (docs/speed.md "Seventh pass").
-SURFACE_VOXEL = 0.6
-SURFACE_VOXEL_REASON = "0.6 h_t"
+SURFACE_VOXEL = 1.0
+SURFACE_VOXEL_REASON = ("1.0 h_t, faces beyond the reach trimmed (surface.trim_to_reach): "
+                        "the 0.6 h_t voxel's accuracy at half its CPU")
 
 #: Hit points trained on before the voxel subset starts (about 2 s of prepare + HGMM
 #: per 100k points here).

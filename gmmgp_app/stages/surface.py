@@ -463,12 +463,18 @@ def faces_within_reach(verts: np.ndarray, faces: np.ndarray, seeds_tree, reach: 
     reach from a seed (:func:`surface_reach`), but a followed cell is meshed whole.
     ``chunk`` faces at a time (the centroids' temporaries)."""
     keep = np.empty(len(faces), bool)
-    bound = np.nextafter(float(reach), np.inf)   # the query's bound is strict
     for s in range(0, len(faces), chunk):
-        c = verts[faces[s:s + chunk]].mean(axis=1)
-        d = seeds_tree.query(c, k=1, distance_upper_bound=bound, workers=-1)[0]
-        keep[s:s + chunk] = d <= reach
+        keep[s:s + chunk] = centroids_within_reach(verts[faces[s:s + chunk]].mean(axis=1),
+                                                   seeds_tree, reach)
     return keep
+
+
+def centroids_within_reach(c: np.ndarray, seeds_tree, reach: float) -> np.ndarray:
+    """(n,) True for the face centroids ``c`` (n, 3) within ``reach`` (m) of a seed in
+    ``seeds_tree`` (the test of :func:`faces_within_reach`)."""
+    bound = np.nextafter(float(reach), np.inf)   # the query's bound is strict
+    d = seeds_tree.query(c, k=1, distance_upper_bound=bound, workers=-1)[0]
+    return d <= reach
 
 
 def _variance(predict: Callable, verts: np.ndarray, batch: int) -> np.ndarray:

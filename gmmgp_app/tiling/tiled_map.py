@@ -297,7 +297,8 @@ class TiledMap:
         return w > 0
 
     def extract_surface(self, voxel_size: Optional[float] = None, max_std=None,
-                        progress=None, reach: Optional[float] = None, seeds=None):
+                        progress=None, reach: Optional[float] = None, seeds=None,
+                        trim_to_reach: Optional[bool] = None):
         """Marching cubes on the stitched field (seamless: one field, one lattice);
         ``seeds`` (where the surface is sought) default to :meth:`stitched_seeds` (a
         viewer's tile piece passes its tile's own), ``reach`` to :meth:`surface_reach`
@@ -306,14 +307,21 @@ class TiledMap:
         vertices' mean and variance with :meth:`predict`, as
         :meth:`SurfaceMap.extract_surface` does for one map; with the tiled config's
         ``surface.project_steps`` > 0 the vertices take Newton steps onto
-        :meth:`predict`'s zero level (its stitched gradient)."""
+        :meth:`predict`'s zero level (its stitched gradient). ``trim_to_reach`` overrides
+        the config's ``surface.trim_to_reach`` (a viewer's piece meshes untrimmed and trims
+        against every tile's seeds)."""
+        import dataclasses
+
         from ..pipeline import mesh_field
 
+        cfg = self.config.surface
+        if trim_to_reach is not None:
+            cfg = dataclasses.replace(cfg, trim_to_reach=bool(trim_to_reach))
         if seeds is None:
             seeds = self.stitched_seeds()
         if voxel_size is None:
             voxel_size = self.surface_voxel()
-        return mesh_field(self.predict, seeds, self.config.surface, voxel_size, max_std,
+        return mesh_field(self.predict, seeds, cfg, voxel_size, max_std,
                           progress, self.surface_reach(seeds) if reach is None else reach,
                           predict_mean=self.lattice_mean,
                           project=lambda x: self.predict(x, return_grad=True))

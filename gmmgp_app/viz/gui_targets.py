@@ -28,6 +28,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from ..pipeline import centroids_within_reach
 from ..types import GaussianMixture, HGMMLevel, HierarchicalGMM, Scan, SurfaceMesh
 
 __all__ = ["CheckView", "TiledView", "is_result_folder", "read_check", "read_run_mesh",
@@ -133,6 +134,7 @@ class TiledView:
         self.tmap = tmap
         self.pieces: dict = {}  # key -> TilePiece, in load order
         self._reach = None  # the stitched surface's reach (m), found at the first load
+        self._trim_tree = None  # every tile's seeds, with surface.trim_to_reach
 
     @property
     def keys(self) -> list:
@@ -179,7 +181,14 @@ class TiledView:
         if self._reach is None and mesh:
             # the stitched surface's reach (TiledMap.extract_surface), the same for
             # every piece so that the pieces are that surface face for face
-            self._reach = self.tmap.surface_reach(self.tmap.stitched_seeds())
+            stitched = self.tmap.stitched_seeds()
+            self._reach = self.tmap.surface_reach(stitched)
+            # with surface.trim_to_reach the stitched surface keeps the faces within the
+            # reach of any tile's seed: a piece, followed from its own seeds, is trimmed
+            # against all of them
+            if self.tmap.config.surface.trim_to_reach:
+                from scipy.spatial import cKDTree
+                self._trim_tree = cKDTree(stitched)
         todo = [tuple(k) for k in keys if tuple(k) not in self.pieces]
         for i, key in enumerate(todo):
             t = self.tmap.tiles[key]
@@ -187,14 +196,23 @@ class TiledView:
             seeds = seeds[self._in_squares(seeds[:, :2], key)]
             m = None
             if mesh and len(seeds):
-                full = self.tmap.extract_surface(voxel_size, reach=self._reach, seeds=seeds)
-                m = _crop_faces(full, lambda c, k=key: self._in_squares(c[:, :2], k))
+                full = self.tmap.extract_surface(voxel_size, reach=self._reach, seeds=seeds,
+                                                 trim_to_reach=False)
+                m = _crop_faces(full, lambda c, k=key: self._keeps(c, k))
             gp = np.asarray(t.gp_points, float)
             self.pieces[key] = TilePiece(key, seeds, gp[self._in_squares(gp[:, :2], key)]
                                          if len(gp) else gp.reshape(0, 3), t.hgmm, m)
             if progress is not None:
                 progress(i + 1, len(todo))
         return todo
+
+    def _keeps(self, c: np.ndarray, key) -> np.ndarray:
+        """(n,) True for the face centroids ``c`` that tile ``key``'s piece keeps: in its
+        squares and, with the trim, within the reach of a seed."""
+        keep = self._in_squares(c[:, :2], key)
+        if self._trim_tree is not None:
+            keep &= centroids_within_reach(c, self._trim_tree, self._reach)
+        return keep
 
     def merged(self) -> dict:
         """The loaded tiles as StageResults fields: scan (seeds), hgmm, gp_points, mesh."""
