@@ -102,13 +102,17 @@ def main(argv=None) -> int:
     known = inspect.signature(extract).parameters
     if "wall_timings" in known:
         extra["wall_timings"] = walls
-    if args.serial:
-        if "overlap" not in known:
-            ap.error("--serial: this gmmgp_app's extract_surface has no overlap (serial "
-                     "already)")
-        extra["overlap"] = False
-    # the phases' CPU seconds (the pipeline reaches extract_surface through the module)
-    surface_stage.extract_surface = lambda *a, **kw: extract(*a, timings=phases, **extra, **kw)
+    if "overlap" in known:
+        # the overlap as `gmmgp run` asks for it (the map's extract_surface defaults to
+        # the serial path since session 10), or the serial path with --serial
+        extra["overlap"] = not args.serial
+    elif args.serial:
+        ap.error("--serial: this gmmgp_app's extract_surface has no overlap (serial "
+                 "already)")
+    # the phases' CPU seconds (the pipeline reaches extract_surface through the module);
+    # this script's overlap choice wins over the caller's
+    surface_stage.extract_surface = lambda *a, **kw: extract(*a, timings=phases,
+                                                             **{**kw, **extra})
     for _ in range(max(args.repeat, 1)):
         calls.clear()
         phases.clear()
