@@ -93,6 +93,13 @@ def warm(log=print) -> dict:
 
         rows = np.random.default_rng(0).normal(size=(600, 4))
         fit_gmm(rows, 2, group_ptr=np.arange(0, 601, 3), parallel=True, max_iter=3)
+        # the surface following's corner slots: reached only when the lattice's table is
+        # rehashed with a chunk waiting (the 1.28M-point street's first run compiled it,
+        # 0.23 s; the box never gets there)
+        from gmmgp_app.stages.surface import _corner_slots
+
+        _corner_slots(np.zeros((0, 3), np.int64), np.zeros(3, np.int64),
+                      np.ones(3, np.int64), np.full(8, -1, np.int64))
     out = {"seconds": time.perf_counter() - t0, "compile_seconds": clock.seconds,
            "compiles": clock.count}
     log(f"numba cache warm: {out['seconds']:.1f} s ({out['compiles']} compilations, "
