@@ -37,10 +37,18 @@ def main(argv=None) -> int:
     if not paths:
         print("error: give one or more bench_accuracy.json files", file=sys.stderr)
         return 2
+    runs = {}
+    for p in paths:
+        try:
+            runs[p] = json.loads(Path(p).read_text())["results"]
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            print(f"error: {p} is not a bench_accuracy JSON file ({type(e).__name__}); give "
+                  "the file scripts/bench_accuracy.py --out wrote", file=sys.stderr)
+            return 2
     print("| file | scene | 1 sigma | 2 sigma | LL above baselines | RMSE below plane |")
     print("|---|---|---|---|---|---|")
-    for p in paths:
-        for r in json.loads(Path(p).read_text())["results"]:
+    for p, results in runs.items():
+        for r in results:
             c = bins_in_target(r)
             print(f"| {p} | {r['scene']} | {c['cov1']}/{c['n']} | {c['cov2']}/{c['n']} | "
                   f"{c['ll']}/{c['n']} | {c['rmse']}/{c['n']} |")
