@@ -181,9 +181,11 @@ def _neighbourhood_covariances(points, q, dist, idx, m):
     count = np.empty(c, np.int64)
     for r in nb.prange(c):
         kth = dist[r, m - 1] * (1.0 + _TIE_TOL)               # inf when fewer found
+        found = np.empty(k, np.bool_)                         # the neighbourhood's members
         n = 0
         for j in range(k):
-            if np.isfinite(dist[r, j]) and dist[r, j] <= kth:
+            found[j] = np.isfinite(dist[r, j]) and dist[r, j] <= kth
+            if found[j]:
                 n += 1
         count[r] = n
         nd = float(max(n, 1))
@@ -191,16 +193,14 @@ def _neighbourhood_covariances(points, q, dist, idx, m):
         for d in range(3):
             s = 0.0
             for j in range(k):
-                found = np.isfinite(dist[r, j]) and dist[r, j] <= kth
-                p = idx[r, j] if found else q[r]              # missing -> the point itself
-                t = points[p, d] * (1.0 if found else 0.0)
+                p = idx[r, j] if found[j] else q[r]           # missing -> the point itself
+                t = points[p, d] * (1.0 if found[j] else 0.0)
                 s = t if j == 0 else s + t
             mean[d] = s / nd
         diff = np.empty((k, 3))
         for j in range(k):
-            found = np.isfinite(dist[r, j]) and dist[r, j] <= kth
-            p = idx[r, j] if found else q[r]
-            w = 1.0 if found else 0.0
+            p = idx[r, j] if found[j] else q[r]
+            w = 1.0 if found[j] else 0.0
             for d in range(3):
                 diff[j, d] = (points[p, d] - mean[d]) * w
         for a in range(3):
