@@ -28,7 +28,6 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from ..pipeline import centroids_within_reach
 from ..types import GaussianMixture, HGMMLevel, HierarchicalGMM, Scan, SurfaceMesh
 
 __all__ = ["CheckView", "TiledView", "is_result_folder", "read_check", "read_run_mesh",
@@ -211,6 +210,8 @@ class TiledView:
         squares and, with the trim, within the reach of a seed."""
         keep = self._in_squares(c[:, :2], key)
         if self._trim_tree is not None:
+            from ..pipeline import centroids_within_reach
+
             keep &= centroids_within_reach(c, self._trim_tree, self._reach)
         return keep
 
