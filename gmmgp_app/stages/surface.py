@@ -490,11 +490,12 @@ def _vertex_values(predict: Callable, project: Optional[Callable], verts: np.nda
                    threads: Optional[Callable] = None):
     """The vertex pass of the serial path on any run of the stitched vertices: the
     projected points (None without ``project``) and ``predict``'s variance, ``batch``
-    points per call. A map's field gives a point the same values in any batch of two
-    points or more, but not alone (its eq. calibrated_var takes a matrix-vector product,
-    which numpy computes another way for one row: the last bits of the variance differ);
-    so a run of one point (when ``batch`` > 1) is evaluated as a pair of copies, and the
-    serial pass's own lone last vertex is evaluated alone by the caller.
+    points per call. A field may give a point alone other values than in a batch (the
+    map's did until eq. calibrated_var's features were summed column by column,
+    ``farfield._features_dot``; now it gives the same in any batch): so a run of one
+    point (when ``batch`` > 1) is evaluated as a pair of copies, and the serial pass's
+    own lone last vertex is evaluated alone by the caller, which keeps the overlapped
+    mesh the serial one for such a field too (tests/test_surface.py).
 
     ``threads() -> int``, asked before each batch: the numba threads of this thread
     for it. The fields' kernels give each point the same
