@@ -16,6 +16,21 @@ def shared_data() -> Path:
 
 
 @pytest.fixture(scope="session")
+def load_script():
+    """``load(name) -> module``: ``scripts/<name>.py`` imported under its own module name
+    (``<name>_under_test``), for tests of a script's functions."""
+    import importlib.util
+
+    def load(name: str):
+        spec = importlib.util.spec_from_file_location(
+            f"{name}_under_test", Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py")
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        return mod
+    return load
+
+
+@pytest.fixture(scope="session")
 def box_scene(tmp_path_factory):
     """A small scanned synthetic box (scan_scene("box", density=0.03)): a folder with
     its ``scan.npz`` and exact ``mesh.ply``, and the Scan. Tests write only below

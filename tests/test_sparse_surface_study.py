@@ -4,23 +4,14 @@ are the geometry's."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 @pytest.fixture(scope="module")
-def study():
-    spec = importlib.util.spec_from_file_location("sparse_surface_study_under_test",
-                                                  ROOT / "scripts" / "sparse_surface_study.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+def study(load_script):
+    return load_script("sparse_surface_study")
 
 
 def _square(n: int = 200):
