@@ -573,6 +573,23 @@ def test_fit_cache_empties_on_other_rows_or_fit_settings():
 
 
 # ------------------------------------------- session 8: skipped exps, parallel tied E-step
+def _group_lp_loops(X, a, b, means, P, lc, logw) -> list:
+    """Per component, the tied group log-density of rows ``a:b`` (``-(b - a - 1) log w_k``
+    plus each row's ``log N``), plain Python loops in the kernel's order of operations."""
+    K, D = means.shape
+    lp = [-(b - a - 1) * logw[k] for k in range(K)]
+    for n in range(a, b):
+        for k in range(K):
+            maha = 0.0
+            for i in range(D):
+                y = 0.0
+                for j in range(i + 1):
+                    y += P[k, i, j] * (X[n, j] - means[k, j])
+                maha += y * y
+            lp[k] += lc[k] - 0.5 * maha
+    return lp
+
+
 def _tied_e_step_loops(X, gptr, means, P, lc, logw):
     """The tied E-step as the serial kernel computed it before exps were skipped:
     every exp taken (also those that underflow), plain Python loops in the kernel's
@@ -585,16 +602,7 @@ def _tied_e_step_loops(X, gptr, means, P, lc, logw):
     ll, worst, worst_i = 0.0, np.inf, -1
     for g in range(G):
         a, b = int(gptr[g]), int(gptr[g + 1])
-        lp = [-(b - a - 1) * logw[k] for k in range(K)]
-        for n in range(a, b):
-            for k in range(K):
-                maha = 0.0
-                for i in range(D):
-                    y = 0.0
-                    for j in range(i + 1):
-                        y += P[k, i, j] * (X[n, j] - means[k, j])
-                    maha += y * y
-                lp[k] += lc[k] - 0.5 * maha
+        lp = _group_lp_loops(X, a, b, means, P, lc, logw)
         m = max(lp)
         s = 0.0
         for k in range(K):
@@ -664,17 +672,7 @@ def test_group_log_likelihood_and_labels_are_the_loops_bit_for_bit(D):
     X, gptr, means, P, lc, logw = _separated_groups(rng, K=5, D=D)
     want_ll, want_lab = [], []
     for g in range(len(gptr) - 1):
-        a, b = int(gptr[g]), int(gptr[g + 1])
-        lp = [-(b - a - 1) * logw[k] for k in range(5)]
-        for n in range(a, b):
-            for k in range(5):
-                maha = 0.0
-                for i in range(D):
-                    y = 0.0
-                    for j in range(i + 1):
-                        y += P[k, i, j] * (X[n, j] - means[k, j])
-                    maha += y * y
-                lp[k] += lc[k] - 0.5 * maha
+        lp = _group_lp_loops(X, int(gptr[g]), int(gptr[g + 1]), means, P, lc, logw)
         m = max(lp)
         want_ll.append(m + math.log(sum(math.exp(v - m) for v in lp)))
         want_lab.append(int(np.argmax(lp)))
