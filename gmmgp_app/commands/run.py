@@ -83,12 +83,16 @@ def run(args) -> int:
     # unwritable --out is the error to report first
     check_writable(out)
 
-    from .._atomic import atomic_write_text
-    from .._json import jsonable
     from .._memory import fix_mmap_threshold
-    from ..pipeline import FanoutObserver, build_map
 
     fix_mmap_threshold()  # freed temporaries leave the resident set (gmmgp_app/_memory.py)
+    # the scan is read on a second thread while the compute modules import (numba,
+    # scipy: ~0.4 CPU-s of Python holding the GIL; reading is mostly zlib and copies,
+    # which release it); its result, or its error, is taken where it was read before
+    reading = BackgroundRead(args) if spec is None else None
+    from .._atomic import atomic_write_text
+    from .._json import jsonable
+    from ..pipeline import FanoutObserver, build_map
     from ..progress import ConsoleObserver
 
     console = ConsoleObserver(enabled=not args.quiet)
@@ -104,8 +108,11 @@ def run(args) -> int:
     stream, fallback = plan_streaming(args) if spec is not None else (None, None)
     if stream is not None:
         return _run_tiled(args, cfg, spec, None, out, console, t0, 0.0, stream=stream)
-    scan = read_scan_args(args.scan, args)
-    read_s = time.perf_counter() - t0
+    if reading is None:
+        scan = read_scan_args(args.scan, args)
+        read_s = time.perf_counter() - t0
+    else:   # the read's own seconds (it may have begun before t0, during the imports)
+        scan, read_s = reading.result()
     stop = None if args.stage == "all" else args.stage
     tree = resolved = None
     if stop is None and not args.no_mesh and args.method != "loggpis":
@@ -343,6 +350,40 @@ def _write_meshes(smap, out: Path, observer, console, prior_mesh: bool = False) 
     vmax = std_colour_max(meshes.values())
     return [write_mesh_ply(m, out / f"mesh_{k}.ply", offset=smap.offset, vmax=vmax)
             for k, m in meshes.items()]
+
+
+class BackgroundRead:
+    """``read_scan_args(args.scan, args)`` on a daemon thread, started at once;
+    :meth:`result` waits for it and returns ``(scan, seconds)`` or raises the read's
+    own exception (the same one-line error as a read on the calling thread). A daemon
+    thread: an interrupted run does not wait for the read to finish."""
+
+    def __init__(self, args):
+        import threading
+
+        from .. import datasets  # noqa: F401  (imported here: the thread imports nothing)
+
+        self._scan = self._error = None
+        self._seconds = 0.0
+        self._thread = threading.Thread(target=self._read, args=(args,), daemon=True,
+                                        name="gmmgp-read")
+        self._thread.start()
+
+    def _read(self, args) -> None:
+        t = time.perf_counter()
+        try:
+            self._scan = read_scan_args(args.scan, args)
+        except BaseException as exc:  # raised again on the calling thread by result()
+            self._error = exc
+        finally:
+            self._seconds = time.perf_counter() - t
+
+    def result(self) -> tuple:
+        self._thread.join()
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
+        return self._scan, self._seconds
 
 
 class _TaskBar:
