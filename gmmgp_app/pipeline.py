@@ -1003,16 +1003,18 @@ def resolve_config(cfg: MappingConfig, scan: Scan, *, tree=None) -> tuple:
     return _resolve_config(cfg, scan, tree)
 
 
-def scan_tree(scan: Scan):
+def scan_tree(scan: Scan, built=None):
     """The k-d tree of the scan's points, shared by the scale measurement
     (stages/autoscale.py) and the prepare stage; None for a scan prepare refuses (too
-    few or non-finite points: it raises the one-line error)."""
-    from scipy.spatial import cKDTree
+    few or non-finite points: it raises the one-line error). ``built``: that tree made
+    elsewhere (:func:`gmmgp_app._kdtree.points_tree` of ``scan.points``: ``gmmgp run``
+    builds it on its reading thread), returned for a scan that gets one."""
+    from ._kdtree import points_tree
 
     pts = scan.points
     if len(pts) < _prepare.MIN_POINTS or not np.isfinite(pts).all():
         return None
-    return cKDTree(pts, balanced_tree=False)   # sliding midpoint: built ~2x faster, same queries
+    return points_tree(pts) if built is None else built
 
 
 def _resolve_config(cfg: MappingConfig, scan: Scan, tree=None) -> tuple:

@@ -111,16 +111,19 @@ def run(args) -> int:
     if reading is None:
         scan = read_scan_args(args.scan, args)
         read_s = time.perf_counter() - t0
+        tree = None
     else:   # the read's own seconds (it may have begun before t0, during the imports)
-        scan, read_s = reading.result()
+        from ..pipeline import scan_tree
+
+        scan, read_s, built = reading.result()
+        tree = scan_tree(scan, built)   # the thread's tree, for a scan that gets one
     stop = None if args.stage == "all" else args.stage
-    tree = resolved = None
+    resolved = None
     if stop is None and not args.no_mesh and args.method != "loggpis":
         # refuse an impossible grid before fitting and before a cluster starts; the
         # scale measured for it (and its k-d tree of the scan) is build_map's own
-        from ..pipeline import check_surface_grid, scan_tree
+        from ..pipeline import check_surface_grid
 
-        tree = scan_tree(scan) if spec is None else None
         resolved = check_surface_grid(scan, cfg, tree=tree)
     if spec is not None:
         return _run_tiled(args, cfg, spec, scan, out, console, t0, read_s, fallback=fallback)
@@ -353,17 +356,20 @@ def _write_meshes(smap, out: Path, observer, console, prior_mesh: bool = False) 
 
 
 class BackgroundRead:
-    """``read_scan_args(args.scan, args)`` on a daemon thread, started at once;
-    :meth:`result` waits for it and returns ``(scan, seconds)`` or raises the read's
-    own exception (the same one-line error as a read on the calling thread). A daemon
-    thread: an interrupted run does not wait for the read to finish."""
+    """``read_scan_args(args.scan, args)`` on a daemon thread, started at once, then
+    the k-d tree of the points (:func:`gmmgp_app._kdtree.points_tree`, which
+    :func:`gmmgp_app.pipeline.scan_tree` takes); :meth:`result` waits for it and
+    returns ``(scan, read seconds, tree or None)`` or raises the read's own exception
+    (the same one-line error as a read on the calling thread). No tree for points
+    that are not all finite, nor when building it fails: the pipeline then decides
+    as before. A daemon thread: an interrupted run does not wait for it."""
 
     def __init__(self, args):
         import threading
 
         from .. import datasets  # noqa: F401  (imported here: the thread imports nothing)
 
-        self._scan = self._error = None
+        self._scan = self._error = self._tree = None
         self._seconds = 0.0
         self._thread = threading.Thread(target=self._read, args=(args,), daemon=True,
                                         name="gmmgp-read")
@@ -375,15 +381,26 @@ class BackgroundRead:
             self._scan = read_scan_args(args.scan, args)
         except BaseException as exc:  # raised again on the calling thread by result()
             self._error = exc
+            return
         finally:
             self._seconds = time.perf_counter() - t
+        try:
+            pts = self._scan.points
+            if len(pts) and np.isfinite(pts).all():
+                from .._kdtree import points_tree
+
+                self._tree = points_tree(pts)
+        except Exception:       # e.g. memory: scan_tree builds it again, or says why not
+            self._tree = None
 
     def result(self) -> tuple:
         self._thread.join()
         if self._error is not None:
             error, self._error = self._error, None
             raise error
-        return self._scan, self._seconds
+        scan, tree = self._scan, self._tree
+        self._scan = self._tree = None      # the run frees them before meshing
+        return scan, self._seconds, tree
 
 
 class _TaskBar:
