@@ -54,6 +54,16 @@ LOG_RESP_SKIP = -28.0
 # is exp(-744.4); below -745.13 the result rounds to zero): log-sum-exp skips such
 # terms, which adds the same +0.0 they would have added.
 LOG_EXP_ZERO = -746.0
+# Log-sum-exp adds exp(t - m) of every term to a running sum s; once s >= 1 (the
+# largest term adds exp(0) = 1), a term exp(t) < 2^-53 (half an ulp of 1) leaves s
+# unchanged whatever s is: with t < LOG_ABSORBED (exp(-37) = 8.5e-17 < 2^-53 = 1.1e-16)
+# the exp is not taken, and s keeps the same bits.
+LOG_ABSORBED = -37.0
+# Terms before the largest one are added while s < 1; when every one of them (at most
+# LSE_PRE_MAX_K - 1) is below this, their sum p < (K - 1) exp(-42) < 2^-53 and
+# fl(p + 1) = 1: s is exactly 1 after the largest term, as if they were not there.
+LOG_ABSORBED_PRE = -42.0
+LSE_PRE_MAX_K = 64
 EPS10 = 10.0 * np.finfo(np.float64).eps
 
 
@@ -125,18 +135,36 @@ def _row_logprob(X, n, means, pchol, logconst, out):
 
 @njit(cache=True, inline="always")
 def _lse(v):
+    """``m + log(sum_k exp(v[k] - m))``, ``m = max v``, summed in k order; the exps that
+    cannot change the sum's bits are not taken (``LOG_EXP_ZERO``, ``LOG_ABSORBED``,
+    ``LOG_ABSORBED_PRE``) and exp(0) is 1: the bits of every exp taken in order."""
+    K = v.shape[0]
     m = -np.inf
-    for k in range(v.shape[0]):
+    km = -1
+    for k in range(K):
         if v[k] > m:
             m = v[k]
+            km = k
     if m == -np.inf:
         return m
     s = 0.0
-    for k in range(v.shape[0]):
+    start = 0
+    if K <= LSE_PRE_MAX_K and m < np.inf:   # (m = inf: the largest term's t is NaN)
+        tiny = True
+        for k in range(km):
+            if not (v[k] - m < LOG_ABSORBED_PRE):     # a NaN is not tiny
+                tiny = False
+                break
+        if tiny:            # the terms before the largest add nothing to its 1.0
+            s = 1.0
+            start = km + 1
+    for k in range(start, K):
         t = v[k] - m
         if t < LOG_EXP_ZERO:
             continue        # exp(t) == 0.0 exactly (a NaN t still goes to exp)
-        s += np.exp(t)
+        if t < LOG_ABSORBED and s >= 1.0:
+            continue        # exp(t) < 2^-53: s + exp(t) == s
+        s += 1.0 if t == 0.0 else np.exp(t)
     return m + np.log(s)
 
 
@@ -595,11 +623,11 @@ def accumulate_groups(X, gptr, means, pchol, logconst, logw):
 def _group_resp(lp, RT, g):
     """Group ``g``'s log-likelihood (log-sum-exp of its ``lp``) and responsibilities
     ``RT[k, g]`` (0.0 where ``t < LOG_RESP_SKIP``: exp(t) < RESP_FLOOR; a NaN t still
-    goes to exp)."""
+    goes to exp; exp(0) is 1)."""
     lse = _lse(lp)
     for k in range(lp.shape[0]):
         t = lp[k] - lse
-        RT[k, g] = 0.0 if t < LOG_RESP_SKIP else np.exp(t)
+        RT[k, g] = 0.0 if t < LOG_RESP_SKIP else (1.0 if t == 0.0 else np.exp(t))
     return lse
 
 
