@@ -132,8 +132,11 @@ def run(args) -> int:
     with open_executor(workers=args.workers or None, scheduler=args.scheduler,
                        kind="processes" if args.processes else "dask") as executor:
         bar = _TaskBar(console, "GP blocks")
+        # no bar to draw (-q): the GP blocks are fitted in one call instead of 50 (a
+        # parallel region each: their barriers cost ~0.2 CPU-s on the street)
         smap = build_map(scan, cfg, method=args.method, observer=observer, stop_after=stop,
-                         executor=executor, progress=bar, tree=tree, resolved=resolved)
+                         executor=executor, progress=bar if console.enabled else None,
+                         tree=tree, resolved=resolved)
         bar.close()
     # the map keeps what it needs (seeds, GP points): free the scan and its k-d tree
     # (~50 MB on the 1.3M-point street) before meshing
