@@ -937,6 +937,7 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
     # one k-d tree of the scan for the scale measurement and the prepare stage
     state = {"scan": scan, "summary": summary,
              "tree": scan_tree(scan) if tree is None else tree}
+    tree = None     # the state's reference only: the prepare stage frees it
     cfg, summary["auto"] = (resolve_config(cfg, scan, tree=state["tree"]) if resolved is None
                             else (resolved[0], dict(resolved[1])))
     if resolved is not None and len(resolved) > 2:      # check_surface_grid's seeds
