@@ -534,38 +534,59 @@ def _group_logprob(X, a, b, means, pchol, logconst, logw, lp, tmp):
 
 
 @njit(cache=True, inline="always")
-def _group_logprob4(X, a, b, means, pchol, logconst, logw, lp):
-    """:func:`_group_logprob` for D = 4 (the mapper's rows): the same operations in the
-    same order (each component's mean and factor read once for the group's rows, the
-    differences taken once per row), so the same bits."""
+def _soa4(means, pchol, logconst, logw):
+    """The D = 4 components' terms by row, each row contiguous over the components
+    (for :func:`_group_logprob4`): ``Q[0:4]`` the means, ``Q[4:14]`` the precision
+    factor's lower triangle row by row (p00, p10, p11, p20, ..., p33), ``Q[14]``
+    ``logconst``, ``Q[15]`` ``logw``. (16, K)."""
     K = means.shape[0]
+    Q = np.empty((16, K))
     for k in range(K):
-        m0, m1, m2, m3 = means[k, 0], means[k, 1], means[k, 2], means[k, 3]
-        p00 = pchol[k, 0, 0]
-        p10, p11 = pchol[k, 1, 0], pchol[k, 1, 1]
-        p20, p21, p22 = pchol[k, 2, 0], pchol[k, 2, 1], pchol[k, 2, 2]
-        p30, p31, p32, p33 = pchol[k, 3, 0], pchol[k, 3, 1], pchol[k, 3, 2], pchol[k, 3, 3]
-        lc = logconst[k]
-        acc = -(b - a - 1) * logw[k]
-        for n in range(a, b):
-            d0 = X[n, 0] - m0
-            d1 = X[n, 1] - m1
-            d2 = X[n, 2] - m2
-            d3 = X[n, 3] - m3
-            y0 = 0.0 + p00 * d0
-            y1 = (0.0 + p10 * d0) + p11 * d1
-            y2 = ((0.0 + p20 * d0) + p21 * d1) + p22 * d2
-            y3 = (((0.0 + p30 * d0) + p31 * d1) + p32 * d2) + p33 * d3
-            maha = (((0.0 + y0 * y0) + y1 * y1) + y2 * y2) + y3 * y3
-            acc += lc - 0.5 * maha
-        lp[k] = acc
+        for d in range(4):
+            Q[d, k] = means[k, d]
+        t = 4
+        for i in range(4):
+            for j in range(i + 1):
+                Q[t, k] = pchol[k, i, j]
+                t += 1
+        Q[14, k] = logconst[k]
+        Q[15, k] = logw[k]
+    return Q
 
 
 @njit(cache=True, inline="always")
-def _group_lp(X, a, b, means, pchol, logconst, logw, lp, tmp):
-    """:func:`_group_logprob`, through :func:`_group_logprob4` when D = 4."""
+def _group_logprob4(X, a, b, Q, lp):
+    """:func:`_group_logprob` for D = 4 (the mapper's rows), from :func:`_soa4`'s terms:
+    the same operations in the same order for each component (its sum over the
+    group's rows taken row after row), with the components side by side in the inner
+    loop (the compiler computes several at once: independent lanes, the same bits)."""
+    K = Q.shape[1]
+    for k in range(K):
+        lp[k] = -(b - a - 1) * Q[15, k]
+    for n in range(a, b):
+        x0 = X[n, 0]
+        x1 = X[n, 1]
+        x2 = X[n, 2]
+        x3 = X[n, 3]
+        for k in range(K):
+            d0 = x0 - Q[0, k]
+            d1 = x1 - Q[1, k]
+            d2 = x2 - Q[2, k]
+            d3 = x3 - Q[3, k]
+            y0 = 0.0 + Q[4, k] * d0
+            y1 = (0.0 + Q[5, k] * d0) + Q[6, k] * d1
+            y2 = ((0.0 + Q[7, k] * d0) + Q[8, k] * d1) + Q[9, k] * d2
+            y3 = (((0.0 + Q[10, k] * d0) + Q[11, k] * d1) + Q[12, k] * d2) + Q[13, k] * d3
+            maha = (((0.0 + y0 * y0) + y1 * y1) + y2 * y2) + y3 * y3
+            lp[k] += Q[14, k] - 0.5 * maha
+
+
+@njit(cache=True, inline="always")
+def _group_lp(X, a, b, means, pchol, logconst, logw, lp, tmp, Q):
+    """:func:`_group_logprob`, through :func:`_group_logprob4` when D = 4 (``Q``:
+    :func:`_soa4`'s terms)."""
     if X.shape[1] == 4:
-        _group_logprob4(X, a, b, means, pchol, logconst, logw, lp)
+        _group_logprob4(X, a, b, Q, lp)
     else:
         _group_logprob(X, a, b, means, pchol, logconst, logw, lp, tmp)
 
@@ -578,8 +599,9 @@ def group_log_likelihood(X, gptr, means, pchol, logconst, logw):
     out = np.empty(G)
     lp = np.empty(K)
     tmp = np.empty(K)
+    Q = _soa4(means, pchol, logconst, logw) if X.shape[1] == 4 else np.empty((16, 0))
     for g in range(G):
-        _group_lp(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp, tmp)
+        _group_lp(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp, tmp, Q)
         out[g] = _lse(lp)
     return out
 
@@ -592,8 +614,9 @@ def assign_groups(X, gptr, means, pchol, logconst, logw):
     out = np.empty(G, dtype=np.int64)
     lp = np.empty(K)
     tmp = np.empty(K)
+    Q = _soa4(means, pchol, logconst, logw) if X.shape[1] == 4 else np.empty((16, 0))
     for g in range(G):
-        _group_lp(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp, tmp)
+        _group_lp(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp, tmp, Q)
         best = 0
         for k in range(1, K):
             if lp[k] > lp[best]:
@@ -648,8 +671,9 @@ def _accumulate_groups_into(X, gptr, means, pchol, logconst, logw, RT):
     worst_i = -1
     # the branch outside the loop: inside, the generic path's code slows the D = 4 one
     if D == 4:
+        Q = _soa4(means, pchol, logconst, logw)
         for g in range(G):
-            _group_logprob4(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp)
+            _group_logprob4(X, gptr[g], gptr[g + 1], Q, lp)
             lse = _group_resp(lp, RT, g)
             ll += lse
             if lse < worst:
@@ -694,12 +718,13 @@ def _group_resp_parallel(X, gptr, means, pchol, logconst, logw, RT, LSE):
     K = means.shape[0]
     nch = (G + GROUP_CHUNK - 1) // GROUP_CHUNK
     D = X.shape[1]
+    Q = _soa4(means, pchol, logconst, logw) if D == 4 else np.empty((16, 0))
     for c in prange(nch):
         lp = np.empty(K)
         tmp = np.empty(K)
         if D == 4:
             for g in range(c * GROUP_CHUNK, min(G, (c + 1) * GROUP_CHUNK)):
-                _group_logprob4(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp)
+                _group_logprob4(X, gptr[g], gptr[g + 1], Q, lp)
                 LSE[g] = _group_resp(lp, RT, g)
         else:
             for g in range(c * GROUP_CHUNK, min(G, (c + 1) * GROUP_CHUNK)):
