@@ -660,8 +660,9 @@ def _accumulate_groups_into(X, gptr, means, pchol, logconst, logw, RT):
     :func:`em_loop_groups` across iterations): first every group's log-likelihood and
     responsibilities (``RT[k, g]``, 0.0 where ``t < LOG_RESP_SKIP``), then each
     component's statistics over the groups in order (:func:`_group_stats_task4`: the
-    sums in registers, not read and written back per row). Every sum is the one row
-    by row would take, in the same order: the same bits."""
+    sums in registers, not read and written back per row); D = 4 in one pass
+    (:func:`_accumulate_groups4`). Every sum is the one row by row would take, in the
+    same order: the same bits."""
     G = gptr.shape[0] - 1
     K, D = means.shape
     lp = np.empty(K)
@@ -671,14 +672,7 @@ def _accumulate_groups_into(X, gptr, means, pchol, logconst, logw, RT):
     worst_i = -1
     # the branch outside the loop: inside, the generic path's code slows the D = 4 one
     if D == 4:
-        Q = _soa4(means, pchol, logconst, logw)
-        for g in range(G):
-            _group_logprob4(X, gptr[g], gptr[g + 1], Q, lp)
-            lse = _group_resp(lp, RT, g)
-            ll += lse
-            if lse < worst:
-                worst = lse
-                worst_i = gptr[g]
+        return _accumulate_groups4(X, gptr, means, pchol, logconst, logw, RT)
     else:
         for g in range(G):
             _group_logprob(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp, tmp)
@@ -694,6 +688,92 @@ def _accumulate_groups_into(X, gptr, means, pchol, logconst, logw, RT):
     isplit = _stats_split(D)
     for task in range(2 * K):
         _group_stats_one(X, gptr, means, RT, task, isplit, nk, gk, sx, sxx)
+    return nk, gk, sx, sxx, ll, worst, worst_i
+
+
+@njit(cache=True, nogil=True)
+def _accumulate_groups4(X, gptr, means, pchol, logconst, logw, RT):
+    """:func:`_accumulate_groups_into` for D = 4 in one pass over the groups: each
+    group's responsibilities, then its rows added at once (still in the cache) to the
+    statistics of the components it has a share of. Every statistic is the sum
+    :func:`_group_stats_task4` takes (the same products, over the groups and rows in
+    order; here in an array, there in registers): the same bits."""
+    G = gptr.shape[0] - 1
+    K = means.shape[0]
+    lp = np.empty(K)
+    Q = _soa4(means, pchol, logconst, logw)
+    # S[k]: n_k, g_k, sx (4), sxx rows 0-1 (q00 q10 q11), rows 2-3 (q20 .. q33)
+    S = np.zeros((K, 16))
+    ll = 0.0
+    worst = np.inf
+    worst_i = -1
+    for g in range(G):
+        a, b = gptr[g], gptr[g + 1]
+        _group_logprob4(X, a, b, Q, lp)
+        lse = _group_resp(lp, RT, g)
+        ll += lse
+        if lse < worst:
+            worst = lse
+            worst_i = a
+        for k in range(K):
+            r = RT[k, g]
+            if r < RESP_FLOOR:
+                continue
+            m0, m1, m2, m3 = Q[0, k], Q[1, k], Q[2, k], Q[3, k]
+            n_k, g_k = S[k, 0], S[k, 1]
+            s0, s1, s2, s3 = S[k, 2], S[k, 3], S[k, 4], S[k, 5]
+            q00, q10, q11 = S[k, 6], S[k, 7], S[k, 8]
+            q20, q21, q22 = S[k, 9], S[k, 10], S[k, 11]
+            q30, q31, q32, q33 = S[k, 12], S[k, 13], S[k, 14], S[k, 15]
+            g_k += r
+            n_k += r * (b - a)
+            for n in range(a, b):
+                d0 = X[n, 0] - m0
+                d1 = X[n, 1] - m1
+                d2 = X[n, 2] - m2
+                d3 = X[n, 3] - m3
+                s0 += r * d0
+                s1 += r * d1
+                s2 += r * d2
+                s3 += r * d3
+                r0 = r * d0
+                q00 += r0 * d0
+                r1 = r * d1
+                q10 += r1 * d0
+                q11 += r1 * d1
+                r2 = r * d2
+                q20 += r2 * d0
+                q21 += r2 * d1
+                q22 += r2 * d2
+                r3 = r * d3
+                q30 += r3 * d0
+                q31 += r3 * d1
+                q32 += r3 * d2
+                q33 += r3 * d3
+            S[k, 0], S[k, 1] = n_k, g_k
+            S[k, 2], S[k, 3], S[k, 4], S[k, 5] = s0, s1, s2, s3
+            S[k, 6], S[k, 7], S[k, 8] = q00, q10, q11
+            S[k, 9], S[k, 10], S[k, 11] = q20, q21, q22
+            S[k, 12], S[k, 13], S[k, 14], S[k, 15] = q30, q31, q32, q33
+    nk = np.zeros(K)
+    gk = np.zeros(K)
+    sx = np.zeros((K, 4))
+    sxx = np.zeros((K, 4, 4))
+    for k in range(K):
+        nk[k] = S[k, 0]
+        gk[k] = S[k, 1]
+        for i in range(4):
+            sx[k, i] = S[k, 2 + i]
+        sxx[k, 0, 0] = S[k, 6]
+        sxx[k, 1, 0] = S[k, 7]
+        sxx[k, 1, 1] = S[k, 8]
+        sxx[k, 2, 0] = S[k, 9]
+        sxx[k, 2, 1] = S[k, 10]
+        sxx[k, 2, 2] = S[k, 11]
+        sxx[k, 3, 0] = S[k, 12]
+        sxx[k, 3, 1] = S[k, 13]
+        sxx[k, 3, 2] = S[k, 14]
+        sxx[k, 3, 3] = S[k, 15]
     return nk, gk, sx, sxx, ll, worst, worst_i
 
 
