@@ -115,8 +115,8 @@ def run(args) -> int:
     else:   # the read's own seconds (it may have begun before t0, during the imports)
         from ..pipeline import scan_tree
 
-        scan, read_s, built = reading.result()
-        tree = scan_tree(scan, built)   # the thread's tree, for a scan that gets one
+        scan, read_s, tree = reading.result()
+        tree = scan_tree(scan, tree)    # the thread's tree, for a scan that gets one
     stop = None if args.stage == "all" else args.stage
     resolved = None
     if stop is None and not args.no_mesh and args.method != "loggpis":
