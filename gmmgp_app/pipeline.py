@@ -1052,6 +1052,8 @@ def format_auto(record: dict) -> str:
             f"{sc.get('noise', float('nan')):.3g} m):")
     rows = [(k, v) for k, v in record.items() if isinstance(v, dict) and v.get("auto")
             and "." in k]
+    if isinstance(record.get("tiles"), dict):     # a tiled map's, measured tile by tile
+        head += f"\n  ({record['tiles']['reason']})"
     width = max((len(k) for k, _ in rows), default=0)
     return "\n".join([head] + [f"  {k:<{width}} = {v['value']:<10.4g} {v['reason']}"
                                for k, v in rows])

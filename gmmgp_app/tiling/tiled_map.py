@@ -15,6 +15,7 @@ from ..types import Scan, as_up_axis
 from .geometry import (TileSpec, TilingError, members, owners_summary, tile_dirname,
                        union_points, split_into_tiles, tile_owners, warn_if_not_z_up)
 from .store import TileStore
+from .auto import resolve_tiles
 from .tasks import largest_first, map_tiles_to_store, run_tiles
 
 __all__ = ["TiledMap", "build_tiled_map", "load_tiled_map"]
@@ -510,6 +511,11 @@ def build_tiled_map(scan: Scan, cfg: Optional[MappingConfig] = None,
         raise TilingError(f"Expected at least one tile with {spec.min_points} points, found "
                           f"{max((len(t) for t in tiles.values()), default=0)}; use larger "
                           "tiles or lower TileSpec.min_points.")
+    # the "auto" fields resolved once, from the tiles' pooled measurements: every tile
+    # gets the same lengths (tiling/auto.py)
+    cfg, auto = resolve_tiles(cfg, ((members(owners, t[0]), t[1], t[2]) for t in tasks),
+                              spec, len(scan))
+    tasks = [t[:3] + ((cfg, auto) if auto else cfg,) + t[4:] for t in tasks]
     if work_dir is None:
         maps, skipped = run_tiles(executor, tasks, progress)
     else:
@@ -524,7 +530,8 @@ def build_tiled_map(scan: Scan, cfg: Optional[MappingConfig] = None,
                     owners=owners, up=scan.up,
                     summary=dict(n_tiles=len(maps), n_points=len(scan),
                                  absorbed_tiles=owners_summary(owners),
-                                 skipped_tiles={str(k): v for k, v in skipped.items()}))
+                                 skipped_tiles={str(k): v for k, v in skipped.items()},
+                                 auto=auto))
 
 
 
