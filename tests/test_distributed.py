@@ -235,6 +235,14 @@ def test_single_tile_equals_build_map(street):
     a, b = tm.predict(q, return_grad=True), ref.predict(q, return_grad=True)
     for x, y in zip(a, b):
         assert np.abs(x - y).max() == 0, np.abs(x - y).max()
+    # the stitched surface is followed as far from the seeds as the map's (the reach of
+    # the extent cell, not of the voxel) and meshed at its voxel: the same faces
+    assert tm.config == ref.config
+    assert tm.surface_reach(tm.stitched_seeds()) == ref.surface_reach()
+    mt, mr = tm.extract_surface(), ref.extract_surface()
+    assert len(mt.faces) == len(mr.faces) > 100
+    np.testing.assert_allclose(np.sort(mt.vertices, axis=0), np.sort(mr.vertices, axis=0),
+                               rtol=0, atol=1e-9)
 
 
 def test_tiles_share_one_set_of_auto_values_measured_tile_by_tile(street, tiled):

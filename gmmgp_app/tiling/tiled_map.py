@@ -347,10 +347,29 @@ class TiledMap:
     def surface_reach(self, seeds) -> Optional[float]:
         """How far from a seed the stitched surface is followed (m), whatever voxel it
         is meshed at: :func:`stages.surface.surface_reach` of the stitched ``seeds`` at
-        :meth:`surface_voxel` (see :meth:`SurfaceMap.surface_reach`)."""
+        :meth:`extent_cell`, as :meth:`SurfaceMap.surface_reach` for one map."""
         from ..pipeline import surface_reach
 
-        return surface_reach(seeds, self.surface_voxel()) if len(seeds) else None
+        return surface_reach(seeds, self.extent_cell()) if len(seeds) else None
+
+    def extent_cell(self) -> float:
+        """The cell bounding the stitched surface's extent (m, ``surface.extent_cell``):
+        the configured one, or with ``"auto"`` (each tile resolved it from its own
+        points) the median of the tiles' values; the surface voxel for tiles made
+        before the extent cell."""
+        return self._median_extent([t.config.surface for _, t in self.tiles.items()])
+
+    def _median_extent(self, surfaces) -> float:
+        """:meth:`extent_cell` from the tiles' SurfaceConfigs."""
+        from ..config import is_auto
+
+        e = self.config.surface.extent_cell
+        if not is_auto(e):
+            return float(e)
+        cells = [s.extent_cell for s in surfaces if not is_auto(s.extent_cell)]
+        if not cells:
+            return self._median_voxel([s.voxel_size for s in surfaces])
+        return float(np.median(cells))
 
     def surface_voxel(self) -> float:
         """The surface voxel of the stitched mesh (m): the configured one, or with
