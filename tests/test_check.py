@@ -877,3 +877,53 @@ def test_check_after_alignment_reuses_the_far_fields_neighbours(corridor_map, mo
     for name in ("transform", "covariance", "distance", "std", "std_surface", "z", "known",
                  "changed"):
         assert np.array_equal(getattr(res, name), getattr(ref, name), equal_nan=True), name
+
+
+def test_bench_draws_reproducible_pairs_of_the_issues_size(load_script):
+    """scripts/bench_check.py --synthetic-pairs: each drawn misalignment is exactly a
+    0.5 deg rotation and a 5 cm shift, the same draws from the same seed, other draws
+    from another; noise seeds distinct and never the first drive's (0) nor the bench
+    pair's and earlier studies' (1-3)."""
+    bench = load_script("bench_check")
+    pairs = bench.draw_pairs(12, 17)
+    again = bench.draw_pairs(12, 17)
+    other = bench.draw_pairs(12, 18)
+    seeds = [s for s, _ in pairs]
+    assert len(set(seeds)) == 12 and min(seeds) >= 4
+    for (s, T), (s2, T2) in zip(pairs, again):
+        assert s == s2 and np.array_equal(T, T2)
+        angle = np.degrees(np.arccos(np.clip(0.5 * (np.trace(T[:3, :3]) - 1.0), -1.0, 1.0)))
+        assert abs(angle - 0.5) < 1e-9, angle
+        assert abs(np.linalg.norm(T[:3, 3]) - 0.05) < 1e-15
+        assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-15)
+    assert [s for s, _ in other] != seeds
+    axes = np.array([T[:3, 3] for _, T in pairs]) / 0.05
+    assert np.abs(axes.mean(0)).max() < 0.6  # directions spread, not one repeated
+
+
+def test_bench_pairs_summary_medians_percentiles_and_winners(load_script):
+    """The drawn pairs' summary on hand-made errors: medians, numpy's 90th percentile
+    (linear interpolation) and the per-pair winners counted exactly."""
+    bench = load_script("bench_check")
+    rot = {"gmmgp": [1.0, 2.0, 3.0, 4.0], "p2plane": [2.0, 1.0, 5.0, 5.0],
+           "gicp": [3.0, 3.0, 1.0, 6.0]}  # mdeg
+    tr = {"gmmgp": [0.5, 0.5, 0.5, 0.5], "p2plane": [1.0, 0.2, 1.0, 1.0],
+          "gicp": [2.0, 2.0, 2.0, 0.5]}  # mm; pair 3: a tie, the first listed wins
+    rows = [{"pair": "synthetic street", "error_vs_truth": {}}]  # the bench pair: not drawn
+    for i in range(4):
+        rows.append({"pair": f"draw {i}", "draw": i, "error_vs_truth": {
+            m: {"deg": 1e-3 * rot[m][i], "m": 1e-3 * tr[m][i]} for m in rot}})
+    s = bench.pairs_summary(rows)
+    assert s["pairs"] == 4
+    g = s["methods"]["gmmgp"]
+    assert g["rotation_mdeg_median"] == pytest.approx(2.5, abs=1e-12)
+    assert g["rotation_mdeg_p90"] == pytest.approx(3.7, abs=1e-12)  # 3 + 0.7 * (4 - 3)
+    assert g["translation_mm_median"] == pytest.approx(0.5, abs=1e-12)
+    assert s["methods"]["p2plane"]["rotation_mdeg_p90"] == pytest.approx(5.0, abs=1e-12)
+    assert [s["methods"][m]["rotation_best"] for m in bench.METHODS] == [2, 1, 1]
+    assert [s["methods"][m]["translation_best"] for m in bench.METHODS] == [3, 1, 0]
+    assert s["gmmgp_rotation_at_least_as_good_as_the_better_icp"] == 2
+    assert s["gmmgp_translation_at_least_as_good_as_the_better_icp"] == 3
+    assert [p["rotation_winner"] for p in s["per_pair"]] == ["gmmgp", "p2plane", "gicp", "gmmgp"]
+    assert "| gmmgp | 2.50 | 3.70 |" in bench.pairs_markdown(s)
+    assert bench.pairs_summary(rows[:1]) is None
