@@ -214,7 +214,7 @@ def synthetic(args):
     row["map_points"] = int(len(first))
     rows = [row]
     if args.synthetic_pairs > 0:
-        rows += synthetic_pairs(args, smap, first)
+        rows += synthetic_pairs(args, smap, first, street)
     return rows
 
 
@@ -242,17 +242,18 @@ def draw_pairs(n, seed, *, angle_deg=0.5, shift_m=0.05, taken=(0, 1, 2, 3)):
     return out
 
 
-def synthetic_pairs(args, smap, first):
+def synthetic_pairs(args, smap, first, street):
     """``--synthetic-pairs N``: N more second drives through ``street_van`` (lane -1.5,
     the van) with noise seeds and misalignments drawn from ``--pairs-seed``
     (:func:`draw_pairs`), each registered from the identity by every method against
     the bench's map (gmmgp) and the first drive's points (the ICPs), as the bench pair;
-    one run each (``--repeat`` is for the bench pair's timings)."""
+    one run each (``--repeat`` is for the bench pair's timings). ``street``: the first
+    drive's scene (without the van), whose distance says which van points are new."""
     from gmmgp_app.synth import scan_scene
 
     rows = []
     for k, (nseed, T) in enumerate(draw_pairs(args.synthetic_pairs, args.pairs_seed)):
-        second, street = scan_scene("street_van", density=args.density, seed=nseed,
+        second, _ = scan_scene("street_van", density=args.density, seed=nseed,
                                     scene_params=dict(length=args.length), lane_y=-1.5)
         moved = (second.points - T[:3, 3]) @ T[:3, :3]
         row, res = _pair(f"synthetic draw {k} (noise seed {nseed})", smap, moved, np.eye(4),

@@ -409,8 +409,18 @@ def test_second_drive_transform_and_covariance(aligned, drives):
     assert mahal2 < CHI2_6_3SIGMA, mahal2
 
 
+@pytest.fixture(scope="module")
+def default_street_map():
+    """The bench's map: the first drive through the 36 m street, default configuration."""
+    import gmmgp_app as gm
+    from gmmgp_app.synth import scan_scene
+
+    first, street = scan_scene("street", density=0.1, seed=0, scene_params=dict(length=36.0))
+    return gm.build_map(first), street
+
+
 @pytest.mark.slow  # ~25 s: builds the default map of the 36 m street, Open3D ICP and GICP
-def test_default_map_second_drive_meets_the_targets():
+def test_default_map_second_drive_meets_the_targets(default_street_map):
     """The pair of scripts/bench_check.py: first drive through the 36 m street mapped
     with the default configuration (scale-aware values, far field), second drive
     (other lane, noise seed 1, the van) moved by the known transform. The issue's test
@@ -422,16 +432,43 @@ def test_default_map_second_drive_meets_the_targets():
     by scripts/bench_check.py on this pair, not asserted here: point-to-plane is still
     ahead in rotation (0.0018 deg against 0.0020; GICP 0.0023), so the comparison is a
     reported shortfall, not a property the code guarantees."""
-    import gmmgp_app as gm
     from gmmgp_app.synth import scan_scene
 
-    first, street = scan_scene("street", density=0.1, seed=0, scene_params=dict(length=36.0))
-    smap = gm.build_map(first)
+    smap, _ = default_street_map
     second, _ = scan_scene("street_van", density=0.1, seed=1, scene_params=dict(length=36.0),
                            lane_y=-1.5)
     T = _truth()
     moved = _move(second.points, T)
     res = check_scan(Scan(moved), smap, align=True)
+    rot, trans, mahal2, _ = _errors(res, T)
+    assert res.converged and res.degenerate == ()
+    assert rot < 0.01 and trans < 2e-3, (rot, trans)
+    assert mahal2 < CHI2_6_3SIGMA, mahal2
+
+
+@pytest.mark.slow  # ~15 s with the map above: two drives, three registrations
+@pytest.mark.parametrize("draw, nseed, shift", [(1, 21497, 0.0), (0, 84501, -0.06),
+                                                (0, 84501, 0.06)])
+def test_second_drives_whose_coarse_stage_lost_the_street_axis(default_street_map, load_script,
+                                                               draw, nseed, shift):
+    """Second drives of scripts/bench_check.py --synthetic-pairs (draws of its seed 17:
+    noise seed and the issue's 5 cm / 0.5 deg misalignment), from the identity
+    (``shift`` 0) or from the truth moved ``shift`` m along the street. With the coarse stage's Tukey constant at 4.685 they ended 34 mm
+    (draw 1 from the identity), -33 mm and +39 mm (draw 0, 6 cm along the street either
+    way) along the street: the faces across the street lay beyond the biweight's cut-off
+    once the first step had taken out the rotation (check.COARSE_ROBUST_FACTOR). The
+    issue's targets: 2 mm, 0.01 deg, the truth inside the 3-sigma ellipsoid."""
+    from gmmgp_app.synth import scan_scene
+
+    smap, _ = default_street_map
+    seed, T = load_script("bench_check").draw_pairs(10, 17)[draw]
+    assert seed == nseed
+    second, _ = scan_scene("street_van", density=0.1, seed=seed,
+                           scene_params=dict(length=36.0), lane_y=-1.5)
+    S = np.eye(4)
+    S[0, 3] = shift
+    init = None if shift == 0 else S @ T
+    res = check_scan(Scan(_move(second.points, T)), smap, align=True, init=init)
     rot, trans, mahal2, _ = _errors(res, T)
     assert res.converged and res.degenerate == ()
     assert rot < 0.01 and trans < 2e-3, (rot, trans)
