@@ -494,6 +494,10 @@ def _weights(m, var, noise2, known, c_robust, loss="tukey", n_share=1.0, factor=
     the point's cell (:func:`_cell_variance_factors`): where the scan's residuals
     disagree with the map's shape more than elsewhere, the map's variance there is
     taken as ``(var + noise2) factor - noise2``.
+
+    ``bias2`` (per point, >= 0; None: 0): a squared bias of the map's field from the
+    surface's shape there (:func:`_shape_bias_variance`), added to the map's variance in
+    the inverse-variance factor (not in ``z``): ``1 / (var_map + bias2 + noise2 / n_share)``.
     """
     s2 = var + noise2
     z = m / np.sqrt(s2)
@@ -752,9 +756,11 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
                 n_share, cell, index = n_share[keep], cell[keep], index[keep]
         if correct and it == 1:
             knn_kept = knn if knn is not None else ({} if REUSE_NEIGHBOURS else None)
-            corr = _surface_correction(smap, y, m, var, g, keep=knn_kept, rows=index)
-            if BIAS_WEIGHT > 0:
-                bias2 = _bias_variance(smap, y, m, corr)
+            bias_out = {} if SHAPE_BIAS else None
+            corr = _surface_correction(smap, y, m, var, g, keep=knn_kept, rows=index,
+                                       bias_out=bias_out)
+            if SHAPE_BIAS:
+                bias2 = bias_out.get("bias2")
         elif correct and CORRECTION_EVERY_ITERATION:
             corr = _surface_correction(smap, y, m, var, g, keep=knn_kept, rows=index)
         if prune and _REUSE_DENSE_VAR:  # study (docs/check.md, Session 8): off
@@ -917,6 +923,9 @@ INNER_IRLS = 20
 #: (docs/check.md, Session 12). The later stages start within millimetres and keep the
 #: biweight's efficiency.
 COARSE_ROBUST_FACTOR = 2.0
+#: The last stage (with the surface correction) adds the squared bias of the surface's
+#: shape (:func:`_shape_bias_variance`) to the map's variance in its weights.
+SHAPE_BIAS = True
 
 
 def _coarse_to_fine(smap, x, x_dense, T0, frozen, frame, max_iter, kw,
@@ -1043,14 +1052,16 @@ def _information(smap, x, T, *, noise2, known_std, c_robust, loss, share_cell,
     # the residuals the last stage minimised (with its surface correction) and their
     # weights: the covariance's (_register)
     corr = None if last is None else last.get("corr")
+    bias2 = None if last is None else last.get("bias2")
     m_fit, w_fit = m, w
     if corr is not None:
         m_fit = m + corr
         w_fit, _ = _weights(m_fit, var, noise2, np.sqrt(var) < known_std, c_robust, loss,
-                            n_share, factor, last.get("bias2"))
+                            n_share, factor, bias2)
     return dict(y=y, m=m, m_field=m_field, var=var, n_share=n_share, factor=factor, w=w,
                 scale=scale, pivot=pivot, lever=lever, J=J, H=H, D=D, w_geo=w_geo, H_geo=H_geo,
-                corr=corr, m_fit=m_fit, w_fit=w_fit, noise2=noise2)
+                corr=corr, m_fit=m_fit, w_fit=w_fit, noise2=noise2,
+                bias2=bias2 if corr is not None else None)
 
 
 def _finite_information(smap, x, T, info, v, delta, stride: int = 4):
@@ -1540,7 +1551,7 @@ def _predict(smap, y, far: bool = False, near=None, neighbours=None):
         return smap.predict(y, return_grad=True)
 
 
-def _surface_correction(smap, y, m, var, g, keep=None, rows=None):
+def _surface_correction(smap, y, m, var, g, keep=None, rows=None, bias_out=None):
     """Per point, the blended field's mean minus the GP field's at ``y`` (``m, var, g``:
     the GP field there, ``predict(far=False)``) where the blended field's variance is
     the smaller, 0 elsewhere; None when that is 0 everywhere (a map without a far
@@ -1582,7 +1593,8 @@ def _surface_correction(smap, y, m, var, g, keep=None, rows=None):
     the stage's points ``y`` are; the search the correction makes anyway, a few
     neighbours longer) for the check after the registration (:func:`_moved_neighbours`);
     when it holds them already (a stage run again from its solution), the correction's
-    neighbours are found from them instead."""
+    neighbours are found from them instead. ``bias_out`` (a dict, optional): receives
+    ``"bias2"``, :func:`_shape_bias_variance` at ``y`` from the same neighbours."""
     nbrs = None
     if keep is not None and keep:
         nbrs = _moved_neighbours(smap, keep, y, rows)
@@ -1594,29 +1606,43 @@ def _surface_correction(smap, y, m, var, g, keep=None, rows=None):
                         rows=np.arange(len(y)) if rows is None else np.asarray(rows))
             nbrs = (np.ascontiguousarray(found[0][:, :k]), np.ascontiguousarray(found[1][:, :k]))
     blended, var_b = _predict(smap, y, far=True, near=(m, var, g), neighbours=nbrs)[:2]
+    if bias_out is not None:
+        bias_out["bias2"] = _shape_bias_variance(smap, y, nbrs)
     # only where the map says its blended field knows better than its GP field
     corr = np.where(var_b < var, blended - m, 0.0)
     return corr if np.any(corr != 0) else None
 
 
-BIAS_WEIGHT = 0.0
-BIAS_KIND = "spread"
+def _shape_bias_variance(smap, y, neighbours=None):
+    """Per point, the squared bias a smooth field may have at ``y`` from the shape of
+    the surface around it: the far field's neighbours' spread of plane distances (the
+    ``spread2`` of eq. far_var: the kernel-weighted variance of the ``k`` nearest hit
+    points' tangent-plane distances of ``y``) less what the hit points' noise alone gives
+    on a plane (``noise^2``, eq. far_var's sigma), at least 0::
 
+        b^2(y) = max(spread2(y) - sigma^2, 0)
 
-def _bias_variance(smap, y, m, corr):
-    """Study: a bias variance per point for the last stage's weights."""
+    None without a far field (a map without one, a TiledMap) or where it is 0
+    everywhere. ``neighbours``: the far field's ``k`` nearest hit points ``(d, i)`` of
+    ``y`` when the caller has them (:func:`_surface_correction`'s search).
+
+    Why: on a plane the neighbours' tangent planes agree to the noise; within a kernel
+    width of an edge, of a face a few length scales across (a kerb's 15 cm step, a car's
+    side) or of a corner they disagree by about how far the surface departs from one
+    plane there, and that is what every smooth field of the map rounds off (the GMR
+    prior, the GP field at its length scale, the IMLS at its kernel width): on the
+    synthetic street's kerb faces the last stage's field is off by 2-3 mm (docs/check.md,
+    Session 11) where ``sqrt(spread2)`` is about 20 mm (ground 3 mm, the hit points'
+    noise 6 mm). The GP field's variance, which the weights take, says nothing of it
+    (4-9 mm std on the ground, 14-18 mm on the kerb faces). Added to the map's variance in the
+    registration's weights (:func:`_weights`, ``bias2``), it takes such faces at their
+    shape's uncertainty; on the faces that are planes within the kernel it is 0."""
     far = _far_of(smap)
-    if BIAS_KIND == "corr":
-        return BIAS_WEIGHT * (np.zeros(len(y)) if corr is None else corr ** 2)
     if far is None:
         return None
-    c = far.components(y)
-    sp = c["spread2"]
-    if BIAS_KIND == "spread":
-        return BIAS_WEIGHT * np.maximum(sp - far.noise ** 2, 0.0)
-    if BIAS_KIND == "spread_raw":
-        return BIAS_WEIGHT * sp
-    raise ValueError(BIAS_KIND)
+    spread2 = far.components(y, neighbours=neighbours)["spread2"]
+    b2 = np.maximum(spread2 - far.noise ** 2, 0.0)
+    return b2 if np.any(b2 > 0) else None
 
 
 def _far_of(smap):
@@ -1725,7 +1751,8 @@ def _map_error_covariance(info, P, cell):
     under the error model its weights assume: at each point the residual is the map's
     error, shared by all the points of its ``cell`` (the ``share_cell``, m), plus the
     scan's noise, independent from point to point. With ``s_i^2`` the map's variance
-    at the point (times its cell factor, :func:`_weights`), ``w_i`` the weights the
+    at the point (times its cell factor, plus the shape's squared bias where the last
+    stage's weights take it, :func:`_weights`), ``w_i`` the weights the
     solution used and ``J_i`` the Jacobian, the solution's first-order error is
     ``H^+ sum_i w_i J_i e_i`` (``H = sum w_i J_i^T J_i``) and its covariance the sandwich::
 
@@ -1746,6 +1773,8 @@ def _map_error_covariance(info, P, cell):
     Js = J[use] * D[None, :]
     ws = w[use]
     var_map = var[use] if factor is None else (var[use] + noise2) * factor[use] - noise2
+    if info.get("bias2") is not None:  # the shape's bias, as the weights take it
+        var_map = var_map + info["bias2"][use]
     s = np.sqrt(np.maximum(var_map, 0.0))
     _, inv = _cells(y[use], cell, return_inverse=True)
     inv = inv.reshape(-1)

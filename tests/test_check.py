@@ -964,3 +964,61 @@ def test_bench_pairs_summary_medians_percentiles_and_winners(load_script):
     assert [p["rotation_winner"] for p in s["per_pair"]] == ["gmmgp", "p2plane", "gicp", "gmmgp"]
     assert "| gmmgp | 2.50 | 3.70 |" in bench.pairs_markdown(s)
     assert bench.pairs_summary(rows[:1]) is None
+
+
+def _far_map(points, normals, noise=0.005):
+    from types import SimpleNamespace
+
+    from gmmgp_app.stages.farfield import FarField
+
+    return SimpleNamespace(far=FarField(points, normals, rho0=0.05, noise=noise, k=16),
+                           offset=np.zeros(3))
+
+
+def test_shape_bias_is_zero_on_a_plane_and_the_corners_spread_near_an_edge():
+    """check._shape_bias_variance: exactly nothing on a noise-free plane (all tangent
+    planes agree); at a right-angled edge (floor z = 0 and wall x = 0, hit points on a
+    2 cm grid) the neighbours' tangent planes disagree within the far field's reach of the
+    edge (off its bisector, where the two planes' distances are equal) and the bias is
+    positive there, and again exactly 0 where the 16 nearest hit
+    points all lie on the floor; the neighbours passed in give the same values as the
+    far field's own search; no far field, no bias."""
+    from types import SimpleNamespace
+
+    from gmmgp_app.check import _shape_bias_variance
+
+    g = np.arange(-0.5, 0.5001, 0.02)
+    u, v = (a.ravel() for a in np.meshgrid(g, g))
+    floor = np.c_[u, v, np.zeros_like(u)]
+    up = np.tile([0.0, 0.0, 1.0], (len(u), 1))
+    assert _shape_bias_variance(_far_map(floor, up), floor + [0, 0, 0.003]) is None
+    wall = np.c_[np.zeros_like(u), v, u + 0.5]  # x = 0, z from 0 to 1
+    floor_x = floor[floor[:, 0] > 0.0]  # floor on the x > 0 side only
+    pts = np.r_[floor_x, wall[wall[:, 2] > 0.0]]
+    nrm = np.r_[np.tile([0.0, 0.0, 1.0], (len(floor_x), 1)),
+                np.tile([1.0, 0.0, 0.0], (len(pts) - len(floor_x), 1))]
+    smap = _far_map(pts, nrm)
+    q = np.array([[0.04, -0.1, 0.005], [0.03, 0.1, 0.002], [0.3, 0.0, 0.002]])
+    b2 = _shape_bias_variance(smap, q)
+    # near the edge: the floor's and the wall's planes 2.8-3.5 cm apart at the query
+    assert b2[0] > 0.0 and b2[1] > 0.0, b2
+    d, i = smap.far.knn.query(q)
+    assert np.all(nrm[i[2], 2] == 1.0)  # the far query's neighbours: all on the floor
+    assert b2[2] == 0.0
+    assert np.array_equal(_shape_bias_variance(smap, q, (d, i)), b2)
+    assert _shape_bias_variance(SimpleNamespace(far=None), q) is None
+
+
+def test_weights_take_the_shape_bias_as_map_variance():
+    """_weights with ``bias2``: the inverse-variance factor 1 / (var + bias2 + noise2 / n)
+    exactly, z (and so the robust weights) unchanged."""
+    from gmmgp_app.check import _weights
+
+    m = np.array([0.001, -0.002, 0.0005, 0.003])
+    var = np.array([4e-5, 9e-5, 1e-5, 2e-5])
+    b2 = np.array([0.0, 1e-4, 3e-4, 0.0])
+    n = np.array([1.0, 10.0, 100.0, 5.0])
+    w0, s0 = _weights(m, var, 1e-4, np.ones(4, bool), 4.685, "tukey", n)
+    w1, s1 = _weights(m, var, 1e-4, np.ones(4, bool), 4.685, "tukey", n, None, b2)
+    assert s0 == s1
+    assert np.allclose(w1 * (var + b2 + 1e-4 / n), w0 * (var + 1e-4 / n), rtol=1e-14, atol=0)
