@@ -40,7 +40,11 @@ noise seeds; Open3D point-to-plane ICP 0.0018 deg). A density normalisation (wei
 ``1 / (n_i s_i^2 + noise^2)``, each cell one vote) was worse (step from the truth
 0.0049-0.0053 deg). Counting over 6 m cells was as good there but moved two KITTI
 scans 0.04 deg from the pose file and both Open3D peers (1 m: within their spread);
-see docs/check.md and scripts/check_error_budget.py.
+see docs/check.md and scripts/check_error_budget.py. In the last stage (the blended
+field's mean, :func:`_surface_correction`) the map's variance in these weights also
+carries the squared bias a smooth field has from the surface's shape there
+(:func:`_shape_bias_variance`: the far field's neighbours' spread of tangent-plane
+distances beyond their noise, 0 on planes, large at edges and small faces).
 
 Parametrisation: each step is a left perturbation in the map frame about a pivot
 ``c`` (the weighted centroid of the aligned points)::
