@@ -4,15 +4,15 @@ A tiled map resolves its ``"auto"`` fields once, from the whole scan, so that ev
 (and a tile mapped again by :meth:`TiledMap.update`) has the same lengths, noises and
 surface voxel, and the stitched mesh one voxel. The whole scan is never in memory in a
 streamed build, so the scan is measured tile by tile: each tile samples the points whose
-core square it owns (:func:`~gmmgp_app.stages.autoscale.sample_scale`; its overlap margin
+core square it owns (``pipeline.sample_scale``; its overlap margin
 only gives neighbours) in proportion to their share of the scan, and the pooled samples
-give the scan's spacing and noise (:func:`~gmmgp_app.stages.autoscale.pool_scale`). The
+give the scan's spacing and noise (``pipeline.resolve_pooled``). The
 in-memory build measures the same tiles the same way, so both give the same values.
 
-The training budget is per tile (each tile trains on at most about
-:data:`~gmmgp_app.stages.autoscale.TRAIN_BUDGET` points, as an untiled map does): the
-lengths follow the spacing of the largest tile's training subset (:func:`tile_budget`),
-and a scan whose tiles all hold fewer points than the budget keeps all of them.
+The training budget is per tile (each tile trains on at most about the 100k points an
+untiled map does): the lengths follow the spacing of the largest tile's training subset
+(``pipeline.resolve_pooled``), and a scan whose tiles all hold fewer points than the
+budget keeps all of them.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ import numpy as np
 
 from .geometry import TileSpec
 
-__all__ = ["owned_mask", "resolve_tiles", "tile_budget"]
+__all__ = ["owned_mask", "resolve_tiles"]
 
 
 def owned_mask(points: np.ndarray, spec: TileSpec, keys) -> np.ndarray:
@@ -35,17 +35,6 @@ def owned_mask(points: np.ndarray, spec: TileSpec, keys) -> np.ndarray:
     for k in keys:
         mine |= (core[:, 0] == k[0]) & (core[:, 1] == k[1])
     return mine
-
-
-def tile_budget(n_points: int, n_largest_tile: int) -> int:
-    """The training points of a scan of ``n_points`` mapped in tiles whose largest holds
-    ``n_largest_tile`` (overlap included): each tile trains on at most about
-    ``TRAIN_BUDGET`` points, so the scan's budget is that many per largest tile; the
-    lengths then follow the largest tile's training subset (``h_t = h max(1,
-    sqrt(n_largest / TRAIN_BUDGET))``, :func:`~gmmgp_app.stages.autoscale.auto_values`)."""
-    from ..stages.autoscale import TRAIN_BUDGET
-
-    return max(TRAIN_BUDGET, int(round(TRAIN_BUDGET * n_points / max(n_largest_tile, 1))))
 
 
 def resolve_tiles(cfg, parts: Iterable, spec: TileSpec, n_total: int) -> tuple:
@@ -60,29 +49,23 @@ def resolve_tiles(cfg, parts: Iterable, spec: TileSpec, n_total: int) -> tuple:
     ``n_total``: the scan's number of points (each owned by one tile). A scan too small
     or degenerate to measure gets the urban values, as an untiled map.
     """
-    from ..config import concrete
-    from ..stages.autoscale import (AutoScaleError, auto_field_names, pool_scale, resolve_config,
-                                    sample_scale)
+    from ..pipeline import has_auto_fields, resolve_pooled, sample_scale
 
-    if not auto_field_names(cfg):
+    if not has_auto_fields(cfg):
         return cfg, {}
-    samples, largest, n_parts = [], None, 0
-    try:
-        for keys, pts, org in parts:
-            n_parts += 1
-            mine = owned_mask(pts, spec, keys)
-            if mine.any():
-                samples.append(sample_scale(pts, org, owned=mine, n_total=n_total))
-            if largest is None or len(pts) > len(largest):
-                largest = pts
-        scale = pool_scale(samples)
-        budget = tile_budget(scale.n_points, len(largest))
-        cfg, record = resolve_config(cfg, largest, scale=scale, budget=budget)
-    except AutoScaleError as exc:
-        return concrete(cfg), {"fallback": f"urban values ({exc})"}
-    record["tiles"] = {
-        "value": n_parts, "auto": False,
-        "reason": (f"measured on the points each of the {n_parts} tiles owns, pooled; "
-                   f"the lengths follow the largest tile's training subset "
-                   f"({len(largest)} points, budget {budget} for the scan)")}
+    samples, largest, n_parts = [], np.zeros((0, 3)), 0
+    for keys, pts, org in parts:
+        n_parts += 1
+        mine = owned_mask(pts, spec, keys)
+        if mine.any() and len(pts) > 16:
+            samples.append(sample_scale(pts, org, owned=mine, n_total=n_total))
+        if len(pts) > len(largest):
+            largest = pts
+    cfg, record, budget = resolve_pooled(cfg, samples, largest, n_total)
+    if "fallback" not in record:
+        record["tiles"] = {
+            "value": n_parts, "auto": False,
+            "reason": (f"measured tile by tile: the points each of the {n_parts} tiles "
+                       f"owns, pooled; lengths for the largest tile's training subset "
+                       f"({len(largest)} points)")}
     return cfg, record
