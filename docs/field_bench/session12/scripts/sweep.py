@@ -1,0 +1,135 @@
+#!/usr/bin/env python
+"""Session 12 (field-15s): variance candidates for the sphere vote with the resampling
+features of resample_features.py, fitted (eq. variance_quantile_fit) on FIT scenes and
+scored on the bench six, the held-out four and (``--train``) the training sixteen, as
+session 10's sphere_sweep.py (whose loading, fit and scoring this reuses) and
+scripts/bench_bins.py count.
+
+    PYTHONPATH=$PWD python docs/field_bench/session12/scripts/sweep.py FIT CANDIDATES \
+        [--train] [--cache /tmp/field-15s/calib]
+
+CANDIDATES: comma-separated ``FEATURES`` (``base5`` or extras joined by ``+``): session
+10's extras (curv, delta, shrink, ssph, lnoise, ...) and
+  jk   log((jack_s + sigma^2 / 16) / h^2)   the sphere vote's jackknife variance
+  jk0  log((jack_s + 1e-6 h^2) / h^2)
+  hs   log((half_s + sigma^2 / 16) / h^2)   split-half disagreement (three partitions)
+  jkp  log((jack_p + sigma^2 / 16) / h^2)   the plane vote's jackknife variance
+  jkr  log((jack_s + sigma^2 / 16) / (jack_p + sigma^2 / 16))
+  xsp  (no column) drop the spread feature (base5's third)
+A leading ``plane:`` scores the plane-vote caches instead, ``proj:`` the sphere vote of
+projected points (eq. point_projection), ``pplane:`` the plane vote of projected points.
+"""
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "session10" / "scripts"))
+import sphere_sweep as SS  # noqa: E402
+
+FV, B = SS.FV, SS.B
+NEW = ("jk", "jk0", "hs", "jkp", "jkr", "xsp")
+_old_extra = SS.extra
+_old_design = SS.design
+_res = {}
+
+
+def resample(d):
+    key = id(d)
+    if key not in _res:
+        _res[key] = dict(np.load(d["_res_path"]))
+    return _res[key]
+
+
+def extra(d, which):
+    h2, s2 = d["h"] ** 2, d["noise"] ** 2
+    cols = [_old_extra(d, [w for w in which if w not in NEW])]
+    if any(w in NEW for w in which):
+        r = resample(d)
+    for w in which:
+        if w == "jk":
+            cols.append(np.log((r["jack_s"] + s2 / 16) / h2)[:, None])
+        elif w == "jk0":
+            cols.append(np.log((r["jack_s"] + 1e-6 * h2) / h2)[:, None])
+        elif w == "hs":
+            cols.append(np.log((r["half_s"] + s2 / 16) / h2)[:, None])
+        elif w == "jkp":
+            cols.append(np.log((r["jack_p"] + s2 / 16) / h2)[:, None])
+        elif w == "jkr":
+            cols.append(np.log((r["jack_s"] + s2 / 16) / (r["jack_p"] + s2 / 16))[:, None])
+    return np.hstack(cols)
+
+
+def design(d, which):
+    X = _old_design(d, which)
+    if "xsp" in which:
+        X = np.delete(X, 2, axis=1)
+    return X
+
+
+SS.extra = extra
+SS.design = design
+_old_fit = SS.fit
+KAPPA_AWARE = [False]
+
+
+def fit(cases, which, tau=0.68, per_scene=4000):
+    """sphere_sweep.fit, or with ``@k`` after a candidate the kappa-aware target
+    log(max(e^2 - kappa exp(-r^2/l^2) d^2, 1e-30 h^2) / h^2): the quantile of the whole
+    variance h^2 exp(X t) + kappa d^2 (a query whose error the kappa term covers is
+    covered whatever X t)."""
+    if not KAPPA_AWARE[0]:
+        return _old_fit(cases, which, tau, per_scene)
+    X, Y = [], []
+    rng = np.random.default_rng(0)
+    for d in cases:
+        t = FV.terms(d)
+        keep = (t["w_b"] == 0) & (t["w_e"] == 0)
+        if len(cases) > 2 and keep.sum() > per_scene:
+            idx = rng.choice(np.flatnonzero(keep), per_scene, replace=False)
+            keep = np.zeros_like(keep)
+            keep[idx] = True
+        h2 = d["h"] ** 2
+        e2 = np.maximum((d["y"] - d["mean"]) ** 2 - t["kap"], 1e-30 * h2)[keep]
+        X.append(design(d, which)[keep])
+        Y.append(np.log(e2 / h2))
+    return SS.F.fit_variance_quantile(np.concatenate(X), np.concatenate(Y), tau)
+
+
+SS.fit = fit
+
+
+#: cache tags of a candidate's ``VOTE:`` prefix -> the map's overrides
+TAGS = {"plane": [], "sphere": ["far.vote=sphere"],
+        "proj": ["far.vote=sphere", "far.project_points=true"],
+        "pplane": ["far.project_points=true"]}
+
+
+def main():
+    args = [a for a in sys.argv[1:] if not a.startswith("--")]
+    if "--cache" in sys.argv:
+        SS.CACHE = Path(sys.argv[sys.argv.index("--cache") + 1])
+        args = [a for a in args if a != str(SS.CACHE)]
+    else:
+        SS.CACHE = Path("/tmp/field-15s/calib")
+    def load(name, tag):
+        ov = TAGS[tag]
+        d = FV.scene_case(name, 0, SS.CACHE, ov)
+        t = "".join(f"_{o.replace('=', '-')}" for o in ov)
+        d["_res_path"] = SS.CACHE / f"{name}_seed0{t}_resample.npz"
+        return d
+
+    SS.load = load
+    fit_on = args[0]
+    cands = [c if ":" in c else "sphere:" + c for c in args[1].split(",")]
+    for c in cands:
+        KAPPA_AWARE[0] = c.endswith("@k")
+        if KAPPA_AWARE[0]:
+            print("(kappa-aware fit)")
+        sys.argv = [sys.argv[0], fit_on, c.removesuffix("@k")] + \
+            (["--train"] if "--train" in sys.argv else [])
+        SS.main()
+
+
+if __name__ == "__main__":
+    main()
