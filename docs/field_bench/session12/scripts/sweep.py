@@ -13,8 +13,11 @@ CANDIDATES: comma-separated ``FEATURES`` (``base5`` or extras joined by ``+``): 
   jk   log((jack_s + sigma^2 / 16) / h^2)   the sphere vote's jackknife variance
   jk0  log((jack_s + 1e-6 h^2) / h^2)
   hs   log((half_s + sigma^2 / 16) / h^2)   split-half disagreement (three partitions)
+  hp   log((half_p + sigma^2 / 16) / h^2)   the same for the plane vote
   jkp  log((jack_p + sigma^2 / 16) / h^2)   the plane vote's jackknife variance
   jkr  log((jack_s + sigma^2 / 16) / (jack_p + sigma^2 / 16))
+  nnb  log((sigma^2 tanh(r sigma / h^2)^2 + sigma^2 / 16) / h^2), the scale of the
+       nearest-neighbour selection bias (selection strength r sigma / h^2)
   xsp  (no column) drop the spread feature (base5's third)
 A leading ``plane:`` scores the plane-vote caches instead, ``proj:`` the sphere vote of
 projected points (eq. point_projection), ``pplane:`` the plane vote of projected points.
@@ -28,14 +31,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "session10" / "scri
 import sphere_sweep as SS  # noqa: E402
 
 FV, B = SS.FV, SS.B
-NEW = ("jk", "jk0", "hs", "jkp", "jkr", "xsp")
+NEW = ("jk", "jk0", "hs", "hp", "jkp", "jkr", "xsp", "nnb")
 _old_extra = SS.extra
 _old_design = SS.design
 _res = {}
 
 
 def resample(d):
-    key = id(d)
+    key = str(d["_res_path"])  # not id(d): ids are reused once a scene's dict is freed
     if key not in _res:
         _res[key] = dict(np.load(d["_res_path"]))
     return _res[key]
@@ -44,15 +47,20 @@ def resample(d):
 def extra(d, which):
     h2, s2 = d["h"] ** 2, d["noise"] ** 2
     cols = [_old_extra(d, [w for w in which if w not in NEW])]
-    if any(w in NEW for w in which):
+    if any(w in NEW and w != "nnb" for w in which):
         r = resample(d)
     for w in which:
-        if w == "jk":
+        if w == "nnb":  # the nearest-neighbour selection bias's scale: sigma tanh(r sigma / h^2)
+            b = d["noise"] * np.tanh(d["r"] * d["noise"] / h2)
+            cols.append(np.log((b * b + s2 / 16) / h2)[:, None])
+        elif w == "jk":
             cols.append(np.log((r["jack_s"] + s2 / 16) / h2)[:, None])
         elif w == "jk0":
             cols.append(np.log((r["jack_s"] + 1e-6 * h2) / h2)[:, None])
         elif w == "hs":
             cols.append(np.log((r["half_s"] + s2 / 16) / h2)[:, None])
+        elif w == "hp":
+            cols.append(np.log((r["half_p"] + s2 / 16) / h2)[:, None])
         elif w == "jkp":
             cols.append(np.log((r["jack_p"] + s2 / 16) / h2)[:, None])
         elif w == "jkr":
@@ -113,6 +121,18 @@ def main():
     else:
         SS.CACHE = Path("/tmp/field-15s/calib")
     def load(name, tag):
+        if tag.startswith("foot") or tag.startswith("reproj") or tag.startswith("loo"):
+            path = SS.CACHE / f"{name}_seed0_far.vote-sphere_{tag}.npz"
+            if not path.exists():
+                import foot_vote
+                np.savez(path, **(foot_vote.foot_case(SS.CACHE, name, int(tag[4:]))
+                                  if tag.startswith("foot") else
+                                  foot_vote.loo_case(SS.CACHE, name, cap=float(tag[3:]) if tag[3:]
+                                                     else None) if tag.startswith("loo") else
+                                  foot_vote.reproject_case(SS.CACHE, name, int(tag[6:]))))
+            d = {k: (v.item() if v.ndim == 0 else v) for k, v in np.load(path).items()}
+            d["_res_path"] = None
+            return d
         ov = TAGS[tag]
         d = FV.scene_case(name, 0, SS.CACHE, ov)
         t = "".join(f"_{o.replace('=', '-')}" for o in ov)
