@@ -131,5 +131,31 @@ def main():
         print(s, flush=True)
 
 
-if __name__ == "__main__":
+if __name__ == "__main__" and "--loo" not in sys.argv:
     main()
+
+
+def loo_features(far_npz, cap=3.0):
+    """:func:`features` for the leave-self-out vote (foot_vote.loo_case): neighbours by the
+    raw hit points, votes from their leave-self-out projections (moves above ``cap``
+    sigma not made). Written as ``<stem>_loo<cap>_resample.npz`` by ``--loo``."""
+    from foot_vote import leave_self_out_projection
+    f = np.load(far_npz)
+    pts, nrm, q = f["points"], f["normals"], f["q"]
+    k = int(f["k"])
+    d, i = GridKNN(pts, k).query(q)
+    p2 = leave_self_out_projection(pts, nrm, float(f["rho0"]), k, cap=cap * float(f["noise"]))
+    hs, hp, js, jp = _resample(q, d, i, p2, nrm, float(f["rho0"]), float(f["growth"]),
+                               float(f["robust_scale"]), int(f["robust_iterations"]),
+                               PARTS[:, :k])
+    return dict(half_s=hs, half_p=hp, jack_s=js, jack_p=jp)
+
+
+if __name__ == "__main__" and "--loo" in sys.argv:
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    for n in sys.argv[2].split(","):
+        c = Path(sys.argv[1])
+        out = c / f"{n}_seed0_far.vote-sphere_loo3_resample.npz"
+        if not out.exists():
+            np.savez(out, **loo_features(c / f"{n}_seed0_far.vote-sphere_far.npz"))
+        print(n, flush=True)

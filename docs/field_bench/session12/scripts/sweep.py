@@ -19,6 +19,8 @@ CANDIDATES: comma-separated ``FEATURES`` (``base5`` or extras joined by ``+``): 
   nnb  log((sigma^2 tanh(r sigma / h^2)^2 + sigma^2 / 16) / h^2), the scale of the
        nearest-neighbour selection bias (selection strength r sigma / h^2)
   xsp  (no column) drop the spread feature (base5's third)
+``@k`` after a candidate: the kappa-aware fit (:func:`fit`); ``@h``: the same with the
+split-half variance hs added to the model at weight 1 (:func:`variance`).
 A leading ``plane:`` scores the plane-vote caches instead, ``proj:`` the sphere vote of
 projected points (eq. point_projection), ``pplane:`` the plane vote of projected points.
 """
@@ -98,13 +100,26 @@ def fit(cases, which, tau=0.68, per_scene=4000):
             keep = np.zeros_like(keep)
             keep[idx] = True
         h2 = d["h"] ** 2
-        e2 = np.maximum((d["y"] - d["mean"]) ** 2 - t["kap"], 1e-30 * h2)[keep]
+        extra_v = t["kap"] + (resample(d)["half_s"] if ADD_HS[0] else 0.0)
+        e2 = np.maximum((d["y"] - d["mean"]) ** 2 - extra_v, 1e-30 * h2)[keep]
         X.append(design(d, which)[keep])
         Y.append(np.log(e2 / h2))
     return SS.F.fit_variance_quantile(np.concatenate(X), np.concatenate(Y), tau)
 
 
 SS.fit = fit
+ADD_HS = [False]
+_old_variance = SS.variance
+
+
+def variance(d, coef, which):
+    """sphere_sweep.variance, plus with ``@h`` the split-half estimate of the vote's own
+    variance added at its theoretical weight 1 (v = h^2 exp(X t) + kappa d^2 + hs)."""
+    v = _old_variance(d, coef, which)
+    return v + resample(d)["half_s"] if ADD_HS[0] else v
+
+
+SS.variance = variance
 
 
 #: cache tags of a candidate's ``VOTE:`` prefix -> the map's overrides
@@ -131,7 +146,7 @@ def main():
                                                      else None) if tag.startswith("loo") else
                                   foot_vote.reproject_case(SS.CACHE, name, int(tag[6:]))))
             d = {k: (v.item() if v.ndim == 0 else v) for k, v in np.load(path).items()}
-            d["_res_path"] = None
+            d["_res_path"] = SS.CACHE / f"{name}_seed0_far.vote-sphere_{tag}_resample.npz"
             return d
         ov = TAGS[tag]
         d = FV.scene_case(name, 0, SS.CACHE, ov)
@@ -143,10 +158,11 @@ def main():
     fit_on = args[0]
     cands = [c if ":" in c else "sphere:" + c for c in args[1].split(",")]
     for c in cands:
-        KAPPA_AWARE[0] = c.endswith("@k")
+        KAPPA_AWARE[0] = c.endswith("@k") or c.endswith("@h")
+        ADD_HS[0] = c.endswith("@h")
         if KAPPA_AWARE[0]:
-            print("(kappa-aware fit)")
-        sys.argv = [sys.argv[0], fit_on, c.removesuffix("@k")] + \
+            print("(kappa-aware fit" + (", + hs additive)" if ADD_HS[0] else ")"))
+        sys.argv = [sys.argv[0], fit_on, c.removesuffix("@k").removesuffix("@h")] + \
             (["--train"] if "--train" in sys.argv else [])
         SS.main()
 
