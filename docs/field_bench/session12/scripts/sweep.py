@@ -29,6 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
+from gmmgp_app.stages import farfield as F
+from gmmgp_app.stages.unseen import UnseenMixture
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "session10" / "scripts"))
 import sphere_sweep as SS  # noqa: E402
 
@@ -104,7 +107,11 @@ def fit(cases, which, tau=0.68, per_scene=4000):
         e2 = np.maximum((d["y"] - d["mean"]) ** 2 - extra_v, 1e-30 * h2)[keep]
         X.append(design(d, which)[keep])
         Y.append(np.log(e2 / h2))
-    return SS.F.fit_variance_quantile(np.concatenate(X), np.concatenate(Y), tau)
+    coef = SS.F.fit_variance_quantile(np.concatenate(X), np.concatenate(Y), tau)
+    if T_CORE[0]:
+        T_CORE[1] = fit_nu(cases, coef, which)
+        print(f"(t core: nu = {T_CORE[1]:.2f})")
+    return coef
 
 
 SS.fit = fit
@@ -120,6 +127,126 @@ def variance(d, coef, which):
 
 
 SS.variance = variance
+#: ``@t`` after a candidate: a Student-t core for the observed queries (both unseen widths
+#: 0) with its central 68.27 % half-width at the reported sigma (the 1-sigma coverage is
+#: unchanged; the 95.45 % interval and the log density follow the t), nu by maximum
+#: likelihood on the FIT scenes' observed queries; ``@T``: t components in eq.
+#: unseen_mixture everywhere (:class:`TMixture`), nu fitted the same way
+T_CORE = [False, None]
+_old_score = SS.score
+Q1 = 0.5 + 0.6826894921370859 / 2
+
+
+def fit_nu(cases, coef, which):
+    """nu of the t core by maximum likelihood of the standardised errors z = e / sigma of
+    the observed queries, the t scaled so that P(|T| <= 1) = 0.6827."""
+    from scipy import stats
+    from scipy.optimize import minimize_scalar
+    z = []
+    for d in cases:
+        t = FV.terms(d)
+        keep = (t["w_b"] == 0) & (t["w_e"] == 0)
+        z.append((np.abs(d["y"] - d["mean"]) / np.sqrt(variance(d, coef, which)))[keep])
+    z = np.concatenate(z)
+
+    def nll(lognu):
+        nu = np.exp(lognu)
+        s = 1.0 / stats.t.ppf(Q1, nu)
+        return -np.mean(stats.t.logpdf(z / s, nu) - np.log(s))
+
+    return float(np.exp(minimize_scalar(nll, bounds=(np.log(1.0), np.log(200.0)),
+                                        method="bounded").x))
+
+
+class TMixture:
+    """eq. unseen_mixture with Student-t components of ``nu`` dof in place of the two
+    Gaussians, each scaled so that its central 68.27 % half-width is the Gaussian's sigma
+    (sqrt v, sqrt(v + w^2 / 3)); intervals by bisection (prototype)."""
+
+    def __init__(self, mean, v, w_b, w_e, lam, nu):
+        from scipy import stats
+        self.t = stats.t
+        self.nu = nu
+        q1 = stats.t.ppf(Q1, nu)
+        w2 = w_b ** 2 + w_e ** 2
+        self.mean = mean
+        self.s1 = np.sqrt(v) / q1
+        self.s2 = np.sqrt(v + w2 / 3.0) / q1
+        self.q = np.where(w2 > 0, min(3.0 * lam ** 2, 0.5), 0.0)
+
+    def mass(self, t):
+        c = lambda s: 2.0 * self.t.cdf(t / s, self.nu) - 1.0
+        return (1 - self.q) * c(self.s1) + self.q * c(self.s2)
+
+    def half_width(self, level):
+        lo = np.zeros_like(self.s1)
+        hi = 1e3 * self.s2
+        for _ in range(80):
+            mid = 0.5 * (lo + hi)
+            below = self.mass(mid) < level
+            lo = np.where(below, mid, lo)
+            hi = np.where(below, hi, mid)
+        return 0.5 * (lo + hi)
+
+    def logpdf(self, y):
+        e = y - self.mean
+        l1 = self.t.logpdf(e / self.s1, self.nu) - np.log(self.s1)
+        l2 = self.t.logpdf(e / self.s2, self.nu) - np.log(self.s2)
+        q = np.clip(self.q, 1e-300, 1.0)
+        return np.where(self.q > 0, np.logaddexp(np.log1p(-self.q) + l1, np.log(q) + l2), l1)
+
+
+def score(d, coef, which, base=None):
+    if T_CORE[0] == "all":
+        v0 = variance(d, coef, which)
+        w_b = F.behind_width(d["mean"], d["t_min"])
+        w_e = F.extent_width(d["mean"], d["r"], d["gap"])
+        mix = TMixture(d["mean"], v0, w_b, w_e, d["lam"], T_CORE[1])
+        e = np.abs(d["y"] - d["mean"])
+        z = e / mix.half_width(FV.ONE_SIGMA if hasattr(FV, "ONE_SIGMA") else 0.6826894921370859)
+        in2 = e <= mix.half_width(FV.TWO_SIGMA)
+        ll = mix.logpdf(d["y"])
+        return _tally(d, z, in2, ll, base)
+    if not T_CORE[0]:
+        return _old_score(d, coef, which, base)
+    from scipy import stats
+    nu = T_CORE[1]
+    v0 = variance(d, coef, which)
+    w_b = F.behind_width(d["mean"], d["t_min"])
+    w_e = F.extent_width(d["mean"], d["r"], d["gap"])
+    mix = UnseenMixture(d["mean"], v0, w_b, w_e, d["lam"])
+    obs = (w_b == 0) & (w_e == 0)
+    e = np.abs(d["y"] - d["mean"])
+    sig = np.sqrt(mix.var)
+    z = e / sig
+    in2 = e <= mix.half_width(FV.TWO_SIGMA)
+    ll = mix.logpdf(d["y"])
+    q1 = stats.t.ppf(Q1, nu)
+    r2 = stats.t.ppf(0.5 + FV.TWO_SIGMA / 2, nu) / q1
+    in2 = np.where(obs, e <= r2 * sig, in2)
+    sc = sig / q1
+    ll = np.where(obs, stats.t.logpdf(e / sc, nu) - np.log(sc), ll)
+    return _tally(d, z, in2, ll, base)
+
+
+def _tally(d, z, in2, ll, base):
+    c1, c2, n1, n2, nl, nr, rm = [], [], 0, 0, 0, 0, []
+    for i in range(len(B.BINS) - 1):
+        s_ = d["bin"] == i
+        a, b = float(np.mean(z[s_] <= 1)), float(np.mean(in2[s_]))
+        c1.append(a)
+        c2.append(b)
+        n1 += abs(round(a, 2) - 0.68) <= 0.05 + 1e-9
+        n2 += abs(round(b, 2) - 0.95) <= 0.03 + 1e-9
+        r = float(np.sqrt(np.mean((d["y"][s_] - d["mean"][s_]) ** 2)))
+        rm.append(r)
+        if base is not None:
+            nl += float(ll[s_].mean()) > FV.best_baseline_ll(base, i)
+            nr += r < base["plane"]["rmse_sdf"][i]
+    return dict(c1=c1, c2=c2, n=(n1, n2, nl, nr), rm=rm, rmse=rm)
+
+
+SS.score = score
 
 
 #: cache tags of a candidate's ``VOTE:`` prefix -> the map's overrides
@@ -158,6 +285,8 @@ def main():
     fit_on = args[0]
     cands = [c if ":" in c else "sphere:" + c for c in args[1].split(",")]
     for c in cands:
+        T_CORE[0] = "all" if c.endswith("@T") else c.endswith("@t")
+        c = c.removesuffix("@t").removesuffix("@T")
         KAPPA_AWARE[0] = c.endswith("@k") or c.endswith("@h")
         ADD_HS[0] = c.endswith("@h")
         if KAPPA_AWARE[0]:
