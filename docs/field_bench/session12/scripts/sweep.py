@@ -92,7 +92,11 @@ def fit(cases, which, tau=0.68, per_scene=4000):
     variance h^2 exp(X t) + kappa d^2 (a query whose error the kappa term covers is
     covered whatever X t)."""
     if not KAPPA_AWARE[0]:
-        return _old_fit(cases, which, tau, per_scene)
+        coef = _old_fit(cases, which, tau, per_scene)
+        if T_CORE[0]:
+            T_CORE[1] = fit_nu(cases, coef, which)
+            print(f"(t core: nu = {T_CORE[1]:.2f})")
+        return coef
     X, Y = [], []
     rng = np.random.default_rng(0)
     for d in cases:
