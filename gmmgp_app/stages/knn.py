@@ -320,105 +320,122 @@ def _knn_groups(x, qorder, gptr, gcell, k, cell, lo, dims, tk, ts, te, pts, orde
     G = len(gptr) - 1
     mask = len(tk) - 1
     half = gcell * math.sqrt(3.0) / 2
-    for g in nb.prange(G):
-        q0 = qorder[gptr[g]]
-        b0 = math.floor(x[q0, 0] / gcell)
-        b1 = math.floor(x[q0, 1] / gcell)
-        b2 = math.floor(x[q0, 2] / gcell)
-        cx = (b0 + 0.5) * gcell
-        cy = (b1 + 0.5) * gcell
-        cz = (b2 + 0.5) * gcell
-        # 1. the centre's k-th neighbour distance
+    # groups in runs of ``chunk``, each run with its own scratch (allocated once per run,
+    # not per group: the allocations were a tenth of the kernel on a surface lattice)
+    chunk = 64
+    for t in nb.prange((G + chunk - 1) // chunk):
         bd = np.empty(k)
         bi = np.empty(k, np.int64)
-        if not _shell_knn(cx, cy, cz, k, cell, lo, dims, tk, ts, te, pts, max_ring, bd, bi):
-            continue
-        # 2. the candidates: points within R of the cube (margins cover round-off)
-        R = (math.sqrt(bd[k - 1]) + half) * (1.0 + 1e-9) + 1e-12 * gcell
-        R2 = R * R
-        lx = b0 * gcell
-        ly = b1 * gcell
-        lz = b2 * gcell
-        hx = lx + gcell
-        hy = ly + gcell
-        hz = lz + gcell
         cand = np.empty(cap, np.int64)
         cd = np.empty(cap)
-        n = 0
-        over = False
-        for a in range(int(math.floor((lx - R) / cell)), int(math.floor((hx + R) / cell)) + 1):
-            qa = a - lo[0]
-            if qa < 0 or qa >= dims[0] or over:
-                continue
-            for b in range(int(math.floor((ly - R) / cell)),
-                           int(math.floor((hy + R) / cell)) + 1):
-                qb = b - lo[1]
-                if qb < 0 or qb >= dims[1] or over:
-                    continue
-                for c in range(int(math.floor((lz - R) / cell)),
-                               int(math.floor((hz + R) / cell)) + 1):
-                    qc = c - lo[2]
-                    if qc < 0 or qc >= dims[2] or over:
-                        continue
-                    s = _cell_slot(tk, mask, dims, qa, qb, qc)
-                    if s < 0:
-                        continue
-                    for j in range(ts[s], te[s]):
-                        g0 = max(lx - pts[j, 0], pts[j, 0] - hx, 0.0)
-                        g1 = max(ly - pts[j, 1], pts[j, 1] - hy, 0.0)
-                        g2 = max(lz - pts[j, 2], pts[j, 2] - hz, 0.0)
-                        if g0 * g0 + g1 * g1 + g2 * g2 <= R2:
-                            if n == cap:
-                                over = True
-                                break
-                            e0 = cx - pts[j, 0]
-                            e1 = cy - pts[j, 1]
-                            e2 = cz - pts[j, 2]
-                            cand[n] = j
-                            cd[n] = e0 * e0 + e1 * e1 + e2 * e2
-                            n += 1
-        if over:
+        cs = np.empty(cap, np.int64)
+        cdist = np.empty(cap)
+        px = np.empty(cap)
+        py = np.empty(cap)
+        pz = np.empty(cap)
+        for g in range(t * chunk, min(G, (t + 1) * chunk)):
+            _group_knn(g, x, qorder, gptr, gcell, half, k, cell, lo, dims, tk, ts, te, pts,
+                       order, max_ring, cap, mask, dist, idx, done, bd, bi, cand, cd, cs,
+                       cdist, px, py, pz)
+
+
+@nb.njit(cache=True, inline="always")
+def _group_knn(g, x, qorder, gptr, gcell, half, k, cell, lo, dims, tk, ts, te, pts, order,
+               max_ring, cap, mask, dist, idx, done, bd, bi, cand, cd, cs, cdist, px, py,
+               pz):
+    """One group of :func:`_knn_groups` (its members' rows of ``dist``, ``idx``,
+    ``done``), with the caller's scratch arrays."""
+    q0 = qorder[gptr[g]]
+    b0 = math.floor(x[q0, 0] / gcell)
+    b1 = math.floor(x[q0, 1] / gcell)
+    b2 = math.floor(x[q0, 2] / gcell)
+    cx = (b0 + 0.5) * gcell
+    cy = (b1 + 0.5) * gcell
+    cz = (b2 + 0.5) * gcell
+    # 1. the centre's k-th neighbour distance
+    if not _shell_knn(cx, cy, cz, k, cell, lo, dims, tk, ts, te, pts, max_ring, bd, bi):
+        return
+    # 2. the candidates: points within R of the cube (margins cover round-off)
+    R = (math.sqrt(bd[k - 1]) + half) * (1.0 + 1e-9) + 1e-12 * gcell
+    R2 = R * R
+    lx = b0 * gcell
+    ly = b1 * gcell
+    lz = b2 * gcell
+    hx = lx + gcell
+    hy = ly + gcell
+    hz = lz + gcell
+    n = 0
+    over = False
+    for a in range(int(math.floor((lx - R) / cell)), int(math.floor((hx + R) / cell)) + 1):
+        qa = a - lo[0]
+        if qa < 0 or qa >= dims[0] or over:
             continue
-        o = np.argsort(cd[:n])
-        cs = cand[:n][o]
-        cdist = np.sqrt(cd[:n][o])
-        # their coordinates in that order, one array per axis: the members' scans read
-        # them in sequence (a gather through ``cs`` per candidate was a fifth slower)
-        px = np.empty(n)
-        py = np.empty(n)
-        pz = np.empty(n)
+        for b in range(int(math.floor((ly - R) / cell)),
+                       int(math.floor((hy + R) / cell)) + 1):
+            qb = b - lo[1]
+            if qb < 0 or qb >= dims[1] or over:
+                continue
+            for c in range(int(math.floor((lz - R) / cell)),
+                           int(math.floor((hz + R) / cell)) + 1):
+                qc = c - lo[2]
+                if qc < 0 or qc >= dims[2] or over:
+                    continue
+                s = _cell_slot(tk, mask, dims, qa, qb, qc)
+                if s < 0:
+                    continue
+                for j in range(ts[s], te[s]):
+                    g0 = max(lx - pts[j, 0], pts[j, 0] - hx, 0.0)
+                    g1 = max(ly - pts[j, 1], pts[j, 1] - hy, 0.0)
+                    g2 = max(lz - pts[j, 2], pts[j, 2] - hz, 0.0)
+                    if g0 * g0 + g1 * g1 + g2 * g2 <= R2:
+                        if n == cap:
+                            over = True
+                            break
+                        e0 = cx - pts[j, 0]
+                        e1 = cy - pts[j, 1]
+                        e2 = cz - pts[j, 2]
+                        cand[n] = j
+                        cd[n] = e0 * e0 + e1 * e1 + e2 * e2
+                        n += 1
+    if over:
+        return
+    o = np.argsort(cd[:n])
+    # their coordinates in that order, one array per axis: the members' scans read
+    # them in sequence (a gather through ``cs`` per candidate was a fifth slower)
+    for u in range(n):
+        cs[u] = cand[o[u]]
+        cdist[u] = math.sqrt(cd[o[u]])
+        px[u] = pts[cs[u], 0]
+        py[u] = pts[cs[u], 1]
+        pz[u] = pts[cs[u], 2]
+    # 3. each member's k best among them
+    for t in range(gptr[g], gptr[g + 1]):
+        q = qorder[t]
+        x0 = x[q, 0]
+        x1 = x[q, 1]
+        x2 = x[q, 2]
+        bd[:] = np.inf
+        cnt = 0
+        e0 = x[q, 0] - cx
+        e1 = x[q, 1] - cy
+        e2 = x[q, 2] - cz
+        dq = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2) * (1.0 + 1e-9) + 1e-12 * gcell
+        lim = math.inf
         for u in range(n):
-            px[u] = pts[cs[u], 0]
-            py[u] = pts[cs[u], 1]
-            pz[u] = pts[cs[u], 2]
-        # 3. each member's k best among them
-        for t in range(gptr[g], gptr[g + 1]):
-            q = qorder[t]
-            x0 = x[q, 0]
-            x1 = x[q, 1]
-            x2 = x[q, 2]
-            bd[:] = np.inf
-            cnt = 0
-            e0 = x[q, 0] - cx
-            e1 = x[q, 1] - cy
-            e2 = x[q, 2] - cz
-            dq = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2) * (1.0 + 1e-9) + 1e-12 * gcell
-            lim = math.inf
-            for u in range(n):
-                if cnt == k and cdist[u] - dq > lim:
-                    break              # this and every later candidate: beyond the k-th
-                d0 = x0 - px[u]            # _sq_dist's arithmetic
-                d1 = x1 - py[u]
-                d2 = x2 - pz[u]
-                dd = d0 * d0 + d1 * d1 + d2 * d2
-                if cnt < k or dd < bd[k - 1]:
-                    cnt = _insert(bd, bi, cnt, k, dd, cs[u])
-                    if cnt == k:
-                        lim = math.sqrt(bd[k - 1]) * (1.0 + 1e-9) + 1e-12 * gcell
-            for m in range(k):
-                dist[q, m] = math.sqrt(bd[m])
-                idx[q, m] = order[bi[m]]
-            done[q] = True
+            if cnt == k and cdist[u] - dq > lim:
+                break              # this and every later candidate: beyond the k-th
+            d0 = x0 - px[u]            # _sq_dist's arithmetic
+            d1 = x1 - py[u]
+            d2 = x2 - pz[u]
+            dd = d0 * d0 + d1 * d1 + d2 * d2
+            if cnt < k or dd < bd[k - 1]:
+                cnt = _insert(bd, bi, cnt, k, dd, cs[u])
+                if cnt == k:
+                    lim = math.sqrt(bd[k - 1]) * (1.0 + 1e-9) + 1e-12 * gcell
+        for m in range(k):
+            dist[q, m] = math.sqrt(bd[m])
+            idx[q, m] = order[bi[m]]
+        done[q] = True
 
 
 def ball_lists(points, centres, radius: float):
