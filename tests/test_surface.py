@@ -922,3 +922,26 @@ def test_seed_reach_rejects_a_bad_reach():
 
     with pytest.raises(ValueError, match="reach > 0"):
         SeedReach(np.zeros((3, 3)), 0.0)
+
+
+def test_seed_reach_trims_the_faces_the_tree_trims():
+    from scipy.spatial import cKDTree
+
+    from gmmgp_app.stages.surface import SeedReach, faces_within_reach
+
+    seeds = _sphere_seeds(3000)
+    mesh = extract_surface(_sphere_field, seeds, voxel_size=0.1, block_cells=8)
+    v, f = mesh.vertices, mesh.faces
+    # one more face whose centroid lies exactly the reach (0.5) from a lone seed at
+    # (5, 0, 0): (5.25 + 5.5 + 5.75) / 3 = 5.5 on x
+    v = np.vstack([v, [[5.25, 0, 0], [5.5, 0, 0], [5.75, 0, 0]]])
+    f = np.vstack([f, [[len(v) - 3, len(v) - 2, len(v) - 1]]])
+    seeds = np.vstack([seeds * 0.7, [[5.0, 0.0, 0.0]]])
+    for reach in (0.5, 0.32, 0.05):
+        sr = SeedReach(seeds, reach)
+        keep = faces_within_reach(v, f, sr, reach)
+        np.testing.assert_array_equal(keep, faces_within_reach(v, f, cKDTree(seeds), reach))
+        assert keep[-1] == (reach == 0.5)
+        assert (sr._tree is not None) == (reach == 0.5)   # the tie went to the tree
+        if reach == 0.32:
+            assert 0 < keep.sum() < len(f)

@@ -295,8 +295,13 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
         raise ValueError(f"Expected reach > 0 m, found {reach}.")
     reach = float(reach)
     # which cells (and, with the trim, faces) lie within the reach of a seed: the k-d
-    # tree's answers from a grid of the seeds (SeedReach)
-    tree = SeedReach(seeds, reach)
+    # tree's answers from a grid of the seeds (SeedReach), built on the worker thread
+    # while the seed cells' corners are evaluated
+    if pool is not None:
+        reach_job = pool.submit(SeedReach, seeds, reach)
+        tree = None
+    else:
+        tree = SeedReach(seeds, reach)
     cells = _unique_rows(np.floor(seeds / h).astype(np.int64))
     pack = _Packer(cells.min(0) - dilate - block_cells - 2,
                    cells.max(0) + dilate + block_cells + 2)
@@ -313,6 +318,8 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
     for _ in range(dilate):
         new = lattice.evaluate_corners(frontier, followed, pool=follow_pool)
         if len(new):
+            if tree is None:
+                tree = reach_job.result()
             new = new[tree.within((new + 0.5) * h, closed=False)]
         bar and bar.update(1)
         if len(new) == 0:
@@ -323,6 +330,8 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
     bar and bar.close()
     node_keys, values = lattice.keys, lattice.values    # hash table: key -1 = empty slot
     # memory: only the node values go on
+    if tree is None:
+        tree = reach_job.result()       # built (unused when nothing was followed)
     if not trim_to_reach:
         tree = None
     del followed, frontier, lattice
@@ -451,6 +460,8 @@ def faces_within_reach(verts: np.ndarray, faces: np.ndarray, seeds_tree, reach: 
     surface is sought no further than the reach from a seed (:func:`surface_reach`), but
     a followed cell is meshed whole. ``chunk`` faces at a time (the centroids'
     temporaries)."""
+    if isinstance(seeds_tree, SeedReach):
+        return seeds_tree.faces_within(verts, faces)
     keep = np.empty(len(faces), bool)
     for s in range(0, len(faces), chunk):
         keep[s:s + chunk] = centroids_within_reach(verts[faces[s:s + chunk]].mean(axis=1),
@@ -525,17 +536,34 @@ class SeedReach:
         ``b = nextafter(reach)`` (``closed``; the trim), ``< inf`` with ``b = reach``
         (open; the following)."""
         x = np.ascontiguousarray(np.asarray(x, dtype=np.float64).reshape(-1, 3))
-        if self.table is None or len(x) == 0:
-            ans = np.full(len(x), 2, np.int8)
-        else:
-            r2 = self.reach * self.reach
-            ans = _reach_test(x, self.cell, self.reach, self.lo, self.dims, *self.table,
-                              r2 * (1.0 - REACH_MARGIN), r2 * (1.0 + REACH_MARGIN))
+        ans = self._grid(_reach_test, x)
         out = ans == 1
         close = np.flatnonzero(ans == 2)
         if len(close):
             out[close] = self._tree_within(x[close], closed)
         return out
+
+    def faces_within(self, verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+        """(F,) :meth:`within` (closed) of the faces' centroids, as
+        :func:`faces_within_reach` asks it of a tree (numpy's ``mean(axis=1)`` of the
+        corners; the grid's own centroid, within round-off of it, decides the clear
+        cases, numpy's the close calls)."""
+        ans = self._grid(_face_reach_test, np.ascontiguousarray(verts, dtype=np.float64),
+                         np.ascontiguousarray(faces))
+        out = ans == 1
+        close = np.flatnonzero(ans == 2)
+        if len(close):
+            out[close] = self._tree_within(verts[faces[close]].mean(axis=1), True)
+        return out
+
+    def _grid(self, kernel, *args) -> np.ndarray:
+        """The grid's answers (1 within, 0 not, 2 a close call) by ``kernel``."""
+        n = len(args[-1])
+        if self.table is None or n == 0:
+            return np.full(n, 2, np.int8)
+        r2 = self.reach * self.reach
+        return kernel(*args, self.cell, self.reach, self.lo, self.dims, *self.table,
+                      r2 * (1.0 - REACH_MARGIN), r2 * (1.0 + REACH_MARGIN))
 
     def _tree_within(self, x: np.ndarray, closed: bool) -> np.ndarray:
         """The k-d tree's answer (the one the grid's clear answers equal)."""
@@ -598,50 +626,65 @@ def _seed_cells(seeds, cell, lo, dims):
 @nb.njit(cache=True, nogil=True, parallel=True)
 def _reach_test(x, cell, reach, lo, dims, tk, start, end, pts, r2_in, r2_out):
     """(n,) int8 per point: 1 when a seed's squared distance is below ``r2_in``, 0 when
-    none is within ``r2_out``, else 2 (a close call, or a non-finite coordinate). The
-    seeds are looked for in the cells overlapping the box ``x +- reach`` (slightly
-    widened against round-off): at most 2 per axis, the cell being over twice the
-    reach."""
+    none is within ``r2_out``, else 2 (a close call, or a non-finite coordinate)
+    (:func:`_reach_one`)."""
     n = len(x)
     out = np.empty(n, np.int8)
-    r = reach * (1.0 + 1e-7)
     for q in nb.prange(n):
-        x0, x1, x2 = x[q, 0], x[q, 1], x[q, 2]
-        if not (math.isfinite(x0) and math.isfinite(x1) and math.isfinite(x2)):
-            out[q] = 2
-            continue
-        i0 = max(int(math.floor((x0 - r) / cell)), lo[0])
-        i1 = min(int(math.floor((x0 + r) / cell)), lo[0] + dims[0] - 1)
-        j0 = max(int(math.floor((x1 - r) / cell)), lo[1])
-        j1 = min(int(math.floor((x1 + r) / cell)), lo[1] + dims[1] - 1)
-        k0 = max(int(math.floor((x2 - r) / cell)), lo[2])
-        k1 = min(int(math.floor((x2 + r) / cell)), lo[2] + dims[2] - 1)
-        res = 0
-        for i in range(i0, i1 + 1):
-            for j in range(j0, j1 + 1):
-                for k in range(k0, k1 + 1):
-                    key = _pack1(i, j, k, lo, dims)
-                    s = _probe(tk, key)
-                    if tk[s] != key:
-                        continue
-                    for t in range(start[s], end[s]):
-                        d0 = x0 - pts[t, 0]
-                        d1 = x1 - pts[t, 1]
-                        d2 = x2 - pts[t, 2]
-                        dd = d0 * d0 + d1 * d1 + d2 * d2
-                        if dd < r2_in:
-                            res = 1
-                            break
-                        if dd <= r2_out:
-                            res = 2
-                    if res == 1:
-                        break
-                if res == 1:
-                    break
-            if res == 1:
-                break
-        out[q] = res
+        out[q] = _reach_one(x[q, 0], x[q, 1], x[q, 2], cell, reach, lo, dims, tk, start,
+                            end, pts, r2_in, r2_out)
     return out
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _face_reach_test(verts, faces, cell, reach, lo, dims, tk, start, end, pts, r2_in,
+                     r2_out):
+    """:func:`_reach_test` of the faces' centroids ``(v0 + v1 + v2) / 3`` (a close call
+    is decided by the caller on numpy's centroid)."""
+    n = len(faces)
+    out = np.empty(n, np.int8)
+    for f in nb.prange(n):
+        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+        out[f] = _reach_one((verts[a, 0] + verts[b, 0] + verts[c, 0]) / 3.0,
+                            (verts[a, 1] + verts[b, 1] + verts[c, 1]) / 3.0,
+                            (verts[a, 2] + verts[b, 2] + verts[c, 2]) / 3.0,
+                            cell, reach, lo, dims, tk, start, end, pts, r2_in, r2_out)
+    return out
+
+
+@nb.njit(cache=True, inline="always")
+def _reach_one(x0, x1, x2, cell, reach, lo, dims, tk, start, end, pts, r2_in, r2_out):
+    """1 when a seed's squared distance to ``x`` is below ``r2_in``, 0 when none is
+    within ``r2_out``, else 2 (a close call, or a non-finite coordinate). The seeds are
+    looked for in the cells overlapping the box ``x +- reach`` (slightly widened against
+    round-off): at most 2 per axis, the cell being over twice the reach."""
+    if not (math.isfinite(x0) and math.isfinite(x1) and math.isfinite(x2)):
+        return 2
+    r = reach * (1.0 + 1e-7)
+    i0 = max(int(math.floor((x0 - r) / cell)), lo[0])
+    i1 = min(int(math.floor((x0 + r) / cell)), lo[0] + dims[0] - 1)
+    j0 = max(int(math.floor((x1 - r) / cell)), lo[1])
+    j1 = min(int(math.floor((x1 + r) / cell)), lo[1] + dims[1] - 1)
+    k0 = max(int(math.floor((x2 - r) / cell)), lo[2])
+    k1 = min(int(math.floor((x2 + r) / cell)), lo[2] + dims[2] - 1)
+    res = 0
+    for i in range(i0, i1 + 1):
+        for j in range(j0, j1 + 1):
+            for k in range(k0, k1 + 1):
+                key = _pack1(i, j, k, lo, dims)
+                s = _probe(tk, key)
+                if tk[s] != key:
+                    continue
+                for t in range(start[s], end[s]):
+                    d0 = x0 - pts[t, 0]
+                    d1 = x1 - pts[t, 1]
+                    d2 = x2 - pts[t, 2]
+                    dd = d0 * d0 + d1 * d1 + d2 * d2
+                    if dd < r2_in:
+                        return 1
+                    if dd <= r2_out:
+                        res = 2
+    return res
 
 
 def _variance(predict: Callable, verts: np.ndarray, batch: int) -> np.ndarray:
