@@ -123,3 +123,14 @@ def test_kept_candidate_lists_give_the_same_neighbours():
         np.testing.assert_array_equal(d, d1)
         kept.keep_lists(False)
         assert kept._kept is None
+
+
+def test_kept_list_cube_keys():
+    from gmmgp_app.stages.knn import _KeptLists
+
+    h = float(1 << 20)
+    cube = np.array([[0, 0, 0], [-1, 0, 0], [0, -1, 0], [0, 0, -1], [h - 1, -(h - 1), 3],
+                     [h, 0, 0], [0, -h, 0], [0, 0, 1e18]], dtype=float)
+    keys = _KeptLists.cube_keys(cube)
+    assert (keys[:5] >= 0).all() and len(set(keys[:5])) == 5   # distinct, kept
+    assert (keys[5:] == -1).all()                               # too far out to key

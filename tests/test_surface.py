@@ -945,3 +945,17 @@ def test_seed_reach_trims_the_faces_the_tree_trims():
         assert (sr._tree is not None) == (reach == 0.5)   # the tie went to the tree
         if reach == 0.32:
             assert 0 < keep.sum() < len(f)
+
+
+def test_seed_reach_without_a_grid_is_the_tree():
+    from gmmgp_app.stages.surface import SeedReach
+
+    # cells of twice the reach over 1e13 m: too many to key, every answer the tree's
+    seeds = np.array([[0.0, 0.0, 0.0], [1e13, 1e13, 1e13], [5.0, 0.0, 0.0]])
+    x = np.array([[0.0005, 0.0, 0.0], [5.0, 0.002, 0.0], [1e13, 1e13, 1e13 - 0.0005]])
+    sr = SeedReach(seeds, 1e-3)
+    assert sr.table is None
+    for closed in (True, False):
+        got = sr.within(x, closed=closed)
+        np.testing.assert_array_equal(got, [True, False, True])
+        np.testing.assert_array_equal(got, _tree_within(seeds, x, 1e-3, closed))
