@@ -83,7 +83,7 @@ def test_grouped_queries_same_as_one_by_one_and_the_kd_tree():
     np.testing.assert_array_equal(i0, ref_i)
 
 
-def test_kept_candidate_lists_give_the_same_neighbours():
+def test_kept_candidate_lists_give_the_same_neighbours(monkeypatch):
     # a lattice, then points between its nodes (a mesh's vertices on the lattice edges),
     # in batches that cut groups apart: with the lists kept every batch after the first
     # reuses some; the answers equal those found afresh bit for bit, also once the
@@ -104,7 +104,11 @@ def test_kept_candidate_lists_give_the_same_neighbours():
     probe.keep_lists(True)
     probe.query(batches[0])
     first = int(probe._kept.starts[probe._kept.count])   # what the first batch keeps
-    for max_entries in (1 << 25, first + 10):
+    from gmmgp_app.stages.knn import _KeptLists
+
+    for max_entries, rows in ((1 << 25, 8192), (first + 10, 8192), (1 << 25, 3)):
+        # rows: lists kept per call at most (3: most groups of each call found afresh)
+        monkeypatch.setattr(_KeptLists, "ROWS", rows)
         kept = GridKNN(p, 16)
         kept.keep_lists(True, max_entries=max_entries)
         for b, (d0, i0) in zip(batches, ref):
@@ -114,6 +118,7 @@ def test_kept_candidate_lists_give_the_same_neighbours():
         store = kept._kept
         assert store.count > 0
         assert store.open == (max_entries > first + 10)   # the small store filled up
+        assert (store.count <= 3 * len(batches)) == (rows == 3)
         assert (kept._kept.find(np.array([-1, 0])) == -1).all()
         other = copy.copy(kept)
         other.k = 24

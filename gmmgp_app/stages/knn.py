@@ -146,8 +146,10 @@ class GridKNN:
             cube = np.floor(x[qorder[gptr[:-1]]] / g)
             gkey = _KeptLists.cube_keys(cube)
             have = kept.find(gkey)
-            miss = np.flatnonzero((have < 0) & (gkey >= 0)) if kept.open else \
-                np.zeros(0, np.int64)
+            # the lists to keep: at most ROWS per call (the buffer's bound: scattered
+            # queries make a group each)
+            miss = np.flatnonzero((have < 0) & (gkey >= 0))[:_KeptLists.ROWS] \
+                if kept.open else np.zeros(0, np.int64)
             row = np.full(G, -1, np.int64)
             row[miss] = np.arange(len(miss))
             out = np.empty((len(miss), _KeptLists.LONGEST), np.int32)
@@ -194,8 +196,10 @@ class _KeptLists:
     another in ``pool`` (int32 point rows) from ``starts``. ``lock``: one query at a
     time uses it."""
 
-    #: The longest list kept (the street's lattice: ~85 on average).
-    LONGEST = 512
+    #: The longest list kept (the street's lattice: 72 on average, at most 191).
+    LONGEST = 256
+    #: Lists kept per query call at most (the buffer: ROWS x LONGEST int32, 8 MiB).
+    ROWS = 8192
     #: Cube coordinates kept: |b| < 2^20 on each axis (21 bits each in the key).
     _HALF = 1 << 20
 
