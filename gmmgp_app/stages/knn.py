@@ -130,7 +130,7 @@ class GridKNN:
         i = np.empty((len(x), self.k), np.int64)
         done = np.zeros(len(x), np.bool_)
         G = len(gptr) - 1
-        kept = self._kept
+        kept = getattr(self, "_kept", None)    # (a GridKNN pickled before the lists)
         if kept is not None and kept.params != self._list_params():
             kept = None       # a copy with another k, group, ...: its lists are not these
         if kept is None:
