@@ -287,12 +287,21 @@ class SurfaceMap:
             raise PipelineError(f"A {self.method} map predicts an unsigned distance, which "
                                 "has no zero level set to mesh; map with --method gmmgp.")
         project = int(self.config.surface.project_steps) > 0
-        return _surface.mesh_field(self.predict, self.seed_points, self.config.surface,
-                                   voxel_size, max_std, progress,
-                                   self.surface_reach() if reach is None else reach,
-                                   predict_mean=self.lattice_mean,
-                                   project=self._predict_with_grad if project else None,
-                                   overlap=overlap)
+        # the far field's k-NN keeps its query groups' candidate lists while meshing: the
+        # vertices reuse the lattice's (same neighbours bit for bit, GridKNN.keep_lists)
+        knn = self.far.knn if self.far is not None else None
+        if knn is not None:
+            knn.keep_lists(True)
+        try:
+            return _surface.mesh_field(self.predict, self.seed_points, self.config.surface,
+                                       voxel_size, max_std, progress,
+                                       self.surface_reach() if reach is None else reach,
+                                       predict_mean=self.lattice_mean,
+                                       project=self._predict_with_grad if project else None,
+                                       overlap=overlap)
+        finally:
+            if knn is not None:
+                knn.keep_lists(False)
 
     def lattice_mean(self, xyz) -> np.ndarray:
         """(K,) the field the surface lattice is evaluated with (``surface.lattice_field``):
