@@ -287,12 +287,21 @@ class SurfaceMap:
             raise PipelineError(f"A {self.method} map predicts an unsigned distance, which "
                                 "has no zero level set to mesh; map with --method gmmgp.")
         project = int(self.config.surface.project_steps) > 0
-        return _surface.mesh_field(self.predict, self.seed_points, self.config.surface,
-                                   voxel_size, max_std, progress,
-                                   self.surface_reach() if reach is None else reach,
-                                   predict_mean=self.lattice_mean,
-                                   project=self._predict_with_grad if project else None,
-                                   overlap=overlap)
+        # the far field's k-NN keeps its query groups' candidate lists while meshing: the
+        # vertices reuse the lattice's (same neighbours bit for bit, GridKNN.keep_lists)
+        knn = self.far.knn if self.far is not None else None
+        if knn is not None:
+            knn.keep_lists(True)
+        try:
+            return _surface.mesh_field(self.predict, self.seed_points, self.config.surface,
+                                       voxel_size, max_std, progress,
+                                       self.surface_reach() if reach is None else reach,
+                                       predict_mean=self.lattice_mean,
+                                       project=self._predict_with_grad if project else None,
+                                       overlap=overlap)
+        finally:
+            if knn is not None:
+                knn.keep_lists(False)
 
     def lattice_mean(self, xyz) -> np.ndarray:
         """(K,) the field the surface lattice is evaluated with (``surface.lattice_field``):
@@ -1035,6 +1044,41 @@ def _resolve_config(cfg: MappingConfig, scan: Scan, tree=None) -> tuple:
         return concrete(cfg), {"fallback": f"urban values ({exc})"}
 
 
+def sample_scale(points, origins=None, *, owned=None, n_total=None):
+    """The scale measurements of the points a part of a scan owns (a tile of a tiled
+    map: :func:`stages.autoscale.sample_scale`), for :func:`resolve_pooled`."""
+    from .stages.autoscale import sample_scale as _sample
+
+    return _sample(points, origins, owned=owned, n_total=n_total)
+
+
+def resolve_pooled(cfg: MappingConfig, samples, points, n_points: int) -> tuple:
+    """:func:`resolve_config` for a scan measured in parts (a tiled map's tiles, each
+    :func:`sample_scale`): its scale from the pooled ``samples``
+    (:func:`stages.autoscale.pool_scale`), a training budget per part, so that the
+    lengths follow the training subset of the largest part, ``points`` (budget
+    ``TRAIN_BUDGET n_points / len(points)`` for the scan: ``h_t = h max(1,
+    sqrt(len(points) / TRAIN_BUDGET))``). Returns ``(cfg, record, budget)``; a scan too
+    small or degenerate to measure gets the urban values, as :func:`resolve_config`."""
+    from .config import concrete
+    from .stages.autoscale import TRAIN_BUDGET, AutoScaleError, pool_scale
+    from .stages.autoscale import resolve_config as _resolve
+
+    budget = max(TRAIN_BUDGET, int(round(TRAIN_BUDGET * n_points / max(len(points), 1))))
+    try:
+        cfg, record = _resolve(cfg, points, scale=pool_scale(samples), budget=budget)
+    except AutoScaleError as exc:
+        return concrete(cfg), {"fallback": f"urban values ({exc})"}, budget
+    return cfg, record, budget
+
+
+def has_auto_fields(cfg: MappingConfig) -> bool:
+    """Whether any field of ``cfg`` is left at ``"auto"``."""
+    from .stages.autoscale import auto_field_names
+
+    return bool(auto_field_names(cfg))
+
+
 def auto_reasons(record: dict) -> dict:
     """Dotted field name -> ``"auto: <reason>"`` for every value chosen from the scan
     (``summary["auto"]``); what :meth:`MappingConfig.to_toml` writes beside it."""
@@ -1055,6 +1099,8 @@ def format_auto(record: dict) -> str:
             f"{sc.get('noise', float('nan')):.3g} m):")
     rows = [(k, v) for k, v in record.items() if isinstance(v, dict) and v.get("auto")
             and "." in k]
+    if isinstance(record.get("tiles"), dict):     # a tiled map's, measured tile by tile
+        head += f"\n  ({record['tiles']['reason']})"
     width = max((len(k) for k, _ in rows), default=0)
     return "\n".join([head] + [f"  {k:<{width}} = {v['value']:<10.4g} {v['reason']}"
                                for k, v in rows])

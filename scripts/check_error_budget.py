@@ -44,7 +44,8 @@ deg x 1e-3 (x is the street's axis), translation at the points' weighted centre 
 ``--final`` (bench pair, or ``--map DIR``): the same at the truth for the field the
 registration's last stage fits (check._surface_correction: the GP field's mean plus the
 blended mean's difference where the blend's variance is the smaller, with the GP
-field's gradient and variance): the step from the truth, its map part (noise-free
+field's gradient and variance, and the shape's squared bias in the weights as
+check.SHAPE_BIAS says): the step from the truth, its map part (noise-free
 residuals) and noise part, and the map part split by face orientation (weight share,
 weighted mean residual, share of those points the correction reaches).
 
@@ -369,6 +370,7 @@ def final(args) -> int:
     residuals, the GP field's mean plus the surface correction (check._surface_correction:
     the blended mean minus the GP field's where the blend's variance is the smaller),
     with the GP field's gradient and variance, at the truth."""
+    import gmmgp_app.check as ck
     from gmmgp_app.check import (_factors_here, _normal_matrix, _share_counts,
                                  _surface_correction, _weights)
 
@@ -377,21 +379,26 @@ def final(args) -> int:
     n2 = args.noise ** 2
     rows = []
 
-    def field(y):
+    bias = {}  # the shape's squared bias at the points (check.SHAPE_BIAS), by drive
+
+    def field(y, key):
         m, var, g = smap.predict(y, return_grad=True, far=False)
-        corr = _surface_correction(smap, y, m, var, g)
+        out = {} if ck.SHAPE_BIAS else None
+        corr = _surface_correction(smap, y, m, var, g, bias_out=out)
+        bias[key] = None if out is None else out.get("bias2")
         return m + (0.0 if corr is None else corr), var, g, m
 
-    def W(y, r, var, g):
+    def W(y, r, var, g, key):
         n_share, cell = _share_counts(y, 1.0, return_cells=True)
         fac = _factors_here(y, r, var, g, n2, 0.1, cell)
-        return _weights(r, var, n2, np.sqrt(var) < 0.1, 4.685, "tukey", n_share, fac)[0]
+        return _weights(r, var, n2, np.sqrt(var) < 0.1, 4.685, "tukey", n_share, fac,
+                        bias[key])[0]
 
     for seed in (1, 2, 3):
         yn, yc = _drive_pair(args, params, seed, smap.offset)
-        rn, vn, gn, mgn = field(yn)
-        rc, vc, gc, mgc = field(yc)
-        wn = W(yn, rn, vn, gn)
+        rn, vn, gn, mgn = field(yn, "noisy")
+        rc, vc, gc, mgc = field(yc, "clean")
+        wn = W(yn, rn, vn, gn, "noisy")
         base, _, pivot = _one_step(yn, rn, gn, wn)
         rows.append({"seed": seed, "what": "step from the truth, noisy (last stage's field)",
                      "xi": base})
@@ -400,7 +407,7 @@ def final(args) -> int:
         rows.append({"seed": seed, "what": "  noise part", "xi": _one_step(yn, rn - rc, gn, wn)[0]})
         rows.append({"seed": seed, "what": "  map part, GP field alone (no correction)",
                      "xi": _one_step(yn, mgc, gn, wn)[0]})
-        wc = W(yc, rc, vc, gc)
+        wc = W(yc, rc, vc, gc, "clean")
         rows.append({"seed": seed, "what": "step from the truth, noise-free drive",
                      "xi": _one_step(yc, rc, gc, wc)[0]})
         # which faces carry the map's part: the noise-free residuals' score split by the

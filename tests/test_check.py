@@ -409,29 +409,68 @@ def test_second_drive_transform_and_covariance(aligned, drives):
     assert mahal2 < CHI2_6_3SIGMA, mahal2
 
 
+@pytest.fixture(scope="module")
+def default_street_map():
+    """The bench's map: the first drive through the 36 m street, default configuration."""
+    import gmmgp_app as gm
+    from gmmgp_app.synth import scan_scene
+
+    first, street = scan_scene("street", density=0.1, seed=0, scene_params=dict(length=36.0))
+    return gm.build_map(first), street
+
+
 @pytest.mark.slow  # ~25 s: builds the default map of the 36 m street, Open3D ICP and GICP
-def test_default_map_second_drive_meets_the_targets():
+def test_default_map_second_drive_meets_the_targets(default_street_map):
     """The pair of scripts/bench_check.py: first drive through the 36 m street mapped
     with the default configuration (scale-aware values, far field), second drive
     (other lane, noise seed 1, the van) moved by the known transform. The issue's test
     targets: within 2 mm and 0.01 deg, the truth inside the 3-sigma ellipsoid (measured
     with the last stage's surface correction, session 7: 0.0020 deg / 0.58 mm,
     Mahalanobis^2 15.4; before it 0.0030 deg / 0.30 mm, 3.5; with the map-error model
-    in the covariance, session 8: 0.85). The benchmark target "at
-    least as accurate as the better of Open3D's point-to-plane ICP and GICP" is measured
-    by scripts/bench_check.py on this pair, not asserted here: point-to-plane is still
-    ahead in rotation (0.0018 deg against 0.0020; GICP 0.0023), so the comparison is a
-    reported shortfall, not a property the code guarantees."""
-    import gmmgp_app as gm
+    in the covariance, session 8: 0.85; with the shape's bias in the last stage's
+    weights, session 12: 0.0010 deg / 0.38 mm, 0.68). The benchmark target "at least as
+    accurate as the better of Open3D's point-to-plane ICP and GICP" is measured by
+    scripts/bench_check.py (this pair: point-to-plane 0.0018 deg / 1.33 mm, GICP 0.0023 /
+    1.40; over 10 drawn second drives, --synthetic-pairs 10: ahead of both in rotation on
+    7 of 10, in translation on 10 of 10), not asserted here: a comparison with peers, not a
+    property the code guarantees."""
     from gmmgp_app.synth import scan_scene
 
-    first, street = scan_scene("street", density=0.1, seed=0, scene_params=dict(length=36.0))
-    smap = gm.build_map(first)
+    smap, _ = default_street_map
     second, _ = scan_scene("street_van", density=0.1, seed=1, scene_params=dict(length=36.0),
                            lane_y=-1.5)
     T = _truth()
     moved = _move(second.points, T)
     res = check_scan(Scan(moved), smap, align=True)
+    rot, trans, mahal2, _ = _errors(res, T)
+    assert res.converged and res.degenerate == ()
+    assert rot < 0.01 and trans < 2e-3, (rot, trans)
+    assert mahal2 < CHI2_6_3SIGMA, mahal2
+
+
+@pytest.mark.slow  # ~15 s with the map above: two drives, three registrations
+@pytest.mark.parametrize("draw, nseed, shift", [(1, 21497, 0.0), (0, 84501, -0.06),
+                                                (0, 84501, 0.06)])
+def test_second_drives_whose_coarse_stage_lost_the_street_axis(default_street_map, load_script,
+                                                               draw, nseed, shift):
+    """Second drives of scripts/bench_check.py --synthetic-pairs (draws of its seed 17:
+    noise seed and the issue's 5 cm / 0.5 deg misalignment), from the identity
+    (``shift`` 0) or from the truth moved ``shift`` m along the street. With the coarse stage's Tukey constant at 4.685 they ended 34 mm
+    (draw 1 from the identity), -33 mm and +39 mm (draw 0, 6 cm along the street either
+    way) along the street: the faces across the street lay beyond the biweight's cut-off
+    once the first step had taken out the rotation (check.COARSE_ROBUST_FACTOR). The
+    issue's targets: 2 mm, 0.01 deg, the truth inside the 3-sigma ellipsoid."""
+    from gmmgp_app.synth import scan_scene
+
+    smap, _ = default_street_map
+    seed, T = load_script("bench_check").draw_pairs(10, 17)[draw]
+    assert seed == nseed
+    second, _ = scan_scene("street_van", density=0.1, seed=seed,
+                           scene_params=dict(length=36.0), lane_y=-1.5)
+    S = np.eye(4)
+    S[0, 3] = shift
+    init = None if shift == 0 else S @ T
+    res = check_scan(Scan(_move(second.points, T)), smap, align=True, init=init)
     rot, trans, mahal2, _ = _errors(res, T)
     assert res.converged and res.degenerate == ()
     assert rot < 0.01 and trans < 2e-3, (rot, trans)
@@ -877,3 +916,111 @@ def test_check_after_alignment_reuses_the_far_fields_neighbours(corridor_map, mo
     for name in ("transform", "covariance", "distance", "std", "std_surface", "z", "known",
                  "changed"):
         assert np.array_equal(getattr(res, name), getattr(ref, name), equal_nan=True), name
+
+
+def test_bench_draws_reproducible_pairs_of_the_issues_size(load_script):
+    """scripts/bench_check.py --synthetic-pairs: each drawn misalignment is exactly a
+    0.5 deg rotation and a 5 cm shift, the same draws from the same seed, other draws
+    from another; noise seeds distinct and never the first drive's (0) nor the bench
+    pair's and earlier studies' (1-3)."""
+    bench = load_script("bench_check")
+    pairs = bench.draw_pairs(12, 17)
+    again = bench.draw_pairs(12, 17)
+    other = bench.draw_pairs(12, 18)
+    seeds = [s for s, _ in pairs]
+    assert len(set(seeds)) == 12 and min(seeds) >= 4
+    for (s, T), (s2, T2) in zip(pairs, again):
+        assert s == s2 and np.array_equal(T, T2)
+        angle = np.degrees(np.arccos(np.clip(0.5 * (np.trace(T[:3, :3]) - 1.0), -1.0, 1.0)))
+        assert abs(angle - 0.5) < 1e-9, angle
+        assert abs(np.linalg.norm(T[:3, 3]) - 0.05) < 1e-15
+        assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-15)
+    assert [s for s, _ in other] != seeds
+    axes = np.array([T[:3, 3] for _, T in pairs]) / 0.05
+    assert np.abs(axes.mean(0)).max() < 0.6  # directions spread, not one repeated
+
+
+def test_bench_pairs_summary_medians_percentiles_and_winners(load_script):
+    """The drawn pairs' summary on hand-made errors: medians, numpy's 90th percentile
+    (linear interpolation) and the per-pair winners counted exactly."""
+    bench = load_script("bench_check")
+    rot = {"gmmgp": [1.0, 2.0, 3.0, 4.0], "p2plane": [2.0, 1.0, 5.0, 5.0],
+           "gicp": [3.0, 3.0, 1.0, 6.0]}  # mdeg
+    tr = {"gmmgp": [0.5, 0.5, 0.5, 0.5], "p2plane": [1.0, 0.2, 1.0, 1.0],
+          "gicp": [2.0, 2.0, 2.0, 0.5]}  # mm; pair 3: a tie, the first listed wins
+    rows = [{"pair": "synthetic street", "error_vs_truth": {}}]  # the bench pair: not drawn
+    for i in range(4):
+        rows.append({"pair": f"draw {i}", "draw": i, "error_vs_truth": {
+            m: {"deg": 1e-3 * rot[m][i], "m": 1e-3 * tr[m][i]} for m in rot}})
+    s = bench.pairs_summary(rows)
+    assert s["pairs"] == 4
+    g = s["methods"]["gmmgp"]
+    assert g["rotation_mdeg_median"] == pytest.approx(2.5, abs=1e-12)
+    assert g["rotation_mdeg_p90"] == pytest.approx(3.7, abs=1e-12)  # 3 + 0.7 * (4 - 3)
+    assert g["translation_mm_median"] == pytest.approx(0.5, abs=1e-12)
+    assert s["methods"]["p2plane"]["rotation_mdeg_p90"] == pytest.approx(5.0, abs=1e-12)
+    assert [s["methods"][m]["rotation_best"] for m in bench.METHODS] == [2, 1, 1]
+    assert [s["methods"][m]["translation_best"] for m in bench.METHODS] == [3, 1, 0]
+    assert s["gmmgp_rotation_at_least_as_good_as_the_better_icp"] == 2
+    assert s["gmmgp_translation_at_least_as_good_as_the_better_icp"] == 3
+    assert [p["rotation_winner"] for p in s["per_pair"]] == ["gmmgp", "p2plane", "gicp", "gmmgp"]
+    assert "| gmmgp | 2.50 | 3.70 |" in bench.pairs_markdown(s)
+    assert bench.pairs_summary(rows[:1]) is None
+
+
+def _far_map(points, normals, noise=0.005):
+    from types import SimpleNamespace
+
+    from gmmgp_app.stages.farfield import FarField
+
+    return SimpleNamespace(far=FarField(points, normals, rho0=0.05, noise=noise, k=16),
+                           offset=np.zeros(3))
+
+
+def test_shape_bias_is_zero_on_a_plane_and_the_corners_spread_near_an_edge():
+    """check._shape_bias_variance: exactly nothing on a noise-free plane (all tangent
+    planes agree); at a right-angled edge (floor z = 0 and wall x = 0, hit points on a
+    2 cm grid) the neighbours' tangent planes disagree within the far field's reach of the
+    edge (off its bisector, where the two planes' distances are equal) and the bias is
+    positive there, and again exactly 0 where the 16 nearest hit
+    points all lie on the floor; the neighbours passed in give the same values as the
+    far field's own search; no far field, no bias."""
+    from types import SimpleNamespace
+
+    from gmmgp_app.check import _shape_bias_variance
+
+    g = np.arange(-0.5, 0.5001, 0.02)
+    u, v = (a.ravel() for a in np.meshgrid(g, g))
+    floor = np.c_[u, v, np.zeros_like(u)]
+    up = np.tile([0.0, 0.0, 1.0], (len(u), 1))
+    assert _shape_bias_variance(_far_map(floor, up), floor + [0, 0, 0.003]) is None
+    wall = np.c_[np.zeros_like(u), v, u + 0.5]  # x = 0, z from 0 to 1
+    floor_x = floor[floor[:, 0] > 0.0]  # floor on the x > 0 side only
+    pts = np.r_[floor_x, wall[wall[:, 2] > 0.0]]
+    nrm = np.r_[np.tile([0.0, 0.0, 1.0], (len(floor_x), 1)),
+                np.tile([1.0, 0.0, 0.0], (len(pts) - len(floor_x), 1))]
+    smap = _far_map(pts, nrm)
+    q = np.array([[0.04, -0.1, 0.005], [0.03, 0.1, 0.002], [0.3, 0.0, 0.002]])
+    b2 = _shape_bias_variance(smap, q)
+    # near the edge: the floor's and the wall's planes 2.8-3.5 cm apart at the query
+    assert b2[0] > 0.0 and b2[1] > 0.0, b2
+    d, i = smap.far.knn.query(q)
+    assert np.all(nrm[i[2], 2] == 1.0)  # the far query's neighbours: all on the floor
+    assert b2[2] == 0.0
+    assert np.array_equal(_shape_bias_variance(smap, q, (d, i)), b2)
+    assert _shape_bias_variance(SimpleNamespace(far=None), q) is None
+
+
+def test_weights_take_the_shape_bias_as_map_variance():
+    """_weights with ``bias2``: the inverse-variance factor 1 / (var + bias2 + noise2 / n)
+    exactly, z (and so the robust weights) unchanged."""
+    from gmmgp_app.check import _weights
+
+    m = np.array([0.001, -0.002, 0.0005, 0.003])
+    var = np.array([4e-5, 9e-5, 1e-5, 2e-5])
+    b2 = np.array([0.0, 1e-4, 3e-4, 0.0])
+    n = np.array([1.0, 10.0, 100.0, 5.0])
+    w0, s0 = _weights(m, var, 1e-4, np.ones(4, bool), 4.685, "tukey", n)
+    w1, s1 = _weights(m, var, 1e-4, np.ones(4, bool), 4.685, "tukey", n, None, b2)
+    assert s0 == s1
+    assert np.allclose(w1 * (var + b2 + 1e-4 / n), w0 * (var + 1e-4 / n), rtol=1e-14, atol=0)

@@ -235,30 +235,70 @@ def test_single_tile_equals_build_map(street):
     a, b = tm.predict(q, return_grad=True), ref.predict(q, return_grad=True)
     for x, y in zip(a, b):
         assert np.abs(x - y).max() == 0, np.abs(x - y).max()
+    # the stitched surface is followed as far from the seeds as the map's (the reach of
+    # the extent cell, not of the voxel) and meshed at its voxel: the same faces
+    assert tm.config == ref.config
+    assert tm.surface_reach(tm.stitched_seeds()) == ref.surface_reach()
+    mt, mr = tm.extract_surface(), ref.extract_surface()
+    assert len(mt.faces) == len(mr.faces) > 100
+    np.testing.assert_allclose(np.sort(mt.vertices, axis=0), np.sort(mr.vertices, axis=0),
+                               rtol=0, atol=1e-9)
 
 
-def test_tiles_resolve_auto_values_from_their_own_points(street, tiled):
-    """What README's tiling section says: each tile resolves the "auto" fields from the
-    points it trains on (so a streamed build, which never holds the whole scan, equals
-    an in-memory one); here the tiles' spacings differ, so do their lengths, and the
-    stitched mesh takes their median voxel."""
-    from gmmgp_app.pipeline import resolve_config
-    from gmmgp_app.tiling.geometry import members, split_into_tiles, union_points
+def test_tiles_share_one_set_of_auto_values_measured_tile_by_tile(street, tiled):
+    """What README's tiling section says: a tiled map resolves the "auto" fields once,
+    from the points each tile owns, pooled (tiling/auto.py): every tile has the same
+    lengths, the stitched mesh the same voxel, and the spacing and noise are the whole
+    scan's (another sample of it: within 3 % of measure_scan on the whole scan)."""
+    from gmmgp_app.stages.autoscale import measure_scan
 
     scan, _ = street
-    parts = split_into_tiles(scan, tiled.spec)
-    voxels = []
+    auto = tiled.summary["auto"]
+    assert isinstance(tiled.config.surface.voxel_size, float)
     for key, tile in tiled.tiles.items():
-        pts, org = union_points([(parts[m].points, parts[m].origins)
-                                 for m in members(tiled.owners, key)])
-        own = resolve_config(gm.MappingConfig(), gm.Scan(points=pts, origins=org))[0]
-        for sec, name in (("surface", "voxel_size"), ("gp", "length_scale"),
-                          ("gp", "block_size"), ("far", "kernel_floor")):
-            assert getattr(getattr(tile.config, sec), name) == \
-                getattr(getattr(own, sec), name), (key, name)
-        voxels.append(own.surface.voxel_size)
-    assert len(set(voxels)) > 1
-    assert tiled.surface_voxel() == float(np.median(voxels))
+        assert tile.config == tiled.config, key
+        assert tile.summary["auto"]["surface.voxel_size"]["value"] == \
+            tiled.config.surface.voxel_size
+    assert tiled.surface_voxel() == tiled.config.surface.voxel_size
+    whole = measure_scan(scan.points, scan.origins)
+    assert auto["scan"]["n_points"] == len(scan)
+    assert auto["scan"]["spacing"] == pytest.approx(whole.spacing, rel=0.03)
+    assert auto["scan"]["noise"] == pytest.approx(whole.noise, rel=0.03)
+    # every tile here holds fewer points than the training budget: all points, h_t = h
+    assert tiled.config.surface.voxel_size == pytest.approx(auto["scan"]["spacing"])
+    assert "tiles" in auto and "4 tiles" in auto["tiles"]["reason"] or \
+        f"{len(tiled.tiles)} tiles" in auto["tiles"]["reason"]
+
+
+def test_pooled_tile_samples_are_measure_scan_for_one_tile_and_the_scan_for_many():
+    """sample_scale + pool_scale: one part owning every point is measure_scan bit for
+    bit; a plane of known spacing cut into four owned quarters (each quarter's tree
+    holding a margin of its neighbours' points) gives the whole plane's spacing and
+    noise (within 3 % of the whole plane's: the quarters' samples are another sample)."""
+    from gmmgp_app.stages.autoscale import measure_scan, pool_scale, sample_scale
+
+    rng = np.random.default_rng(3)
+    g = np.arange(0.0, 12.0, 0.03)          # 160k points, spacing 0.03 m, noise 3 mm
+    xy = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
+    pts = np.column_stack([xy, 0.003 * rng.standard_normal(len(xy))])
+    org = pts + np.array([0.0, 0.0, 5.0])
+    whole = measure_scan(pts, org)
+    one = pool_scale([sample_scale(pts, org)])
+    assert one == whole
+    parts = []
+    for qx in (0, 1):
+        for qy in (0, 1):
+            lo, hi = np.array([qx, qy]) * 6.0, np.array([qx, qy]) * 6.0 + 6.0
+            near = np.all((xy >= lo - 0.5) & (xy < hi + 0.5), axis=1)
+            own = np.all((xy[near] >= lo) & (xy[near] < hi), axis=1)
+            parts.append(sample_scale(pts[near], org[near], owned=own, n_total=len(pts)))
+    pooled = pool_scale(parts)
+    assert pooled.n_points == len(pts)
+    assert sum(len(p.points) for p in parts) == pytest.approx(20_000, abs=4)
+    assert pooled.spacing == pytest.approx(0.03, rel=0.03)
+    assert pooled.noise == pytest.approx(whole.noise, rel=0.03)   # (0.0028: the estimator's)
+    assert pooled.sensor_distance == pytest.approx(5.0)
+    assert pooled.extent == pytest.approx(whole.extent, rel=0.01)
 
 
 def test_smooth_blend_has_no_seam(street, tiled):
@@ -554,7 +594,9 @@ def test_tiled_map_errors(street):
 
 @pytest.mark.parametrize("cut", [24.0, 23.0])
 def test_update_with_hgmm_refit_matches_whole_build(street, tiled, cut):
-    """Half the street, then the other half (refit_hgmm=True) == the whole street.
+    """Half the street, then the other half (refit_hgmm=True) == the whole street
+    mapped with the values the first half resolved (an update keeps the map's lengths,
+    as ``update_map`` does; the tiles rebuilt get them too, tiling/update.py).
 
     With the cut at 23 m the first map's tiles at x >= 24 m hold only a 1 m strip
     (< min_points): they start as small tiles owned by a neighbour and become tiles
@@ -564,7 +606,11 @@ def test_update_with_hgmm_refit_matches_whole_build(street, tiled, cut):
     first = scan.points[:, 0] < cut
     tm = build_tiled_map(scan.select(first), gm.MappingConfig(), tiled.spec)
     small_before = {k for k in tm.owners if k[0] == 3}
+    cfg_first = tm.config
     rep = tm.update(scan.select(~first), refit_hgmm=True)
+    assert tm.config == cfg_first
+    assert all(t.config == cfg_first for _, t in tm.tiles.items())
+    tiled = build_tiled_map(scan, cfg_first, tiled.spec)
     assert rep["rebuilt_tiles"]
     assert tm.keys == tiled.keys
     assert tm.owners == tiled.owners
@@ -1035,16 +1081,21 @@ def test_cli_run_help_shows_the_tiled_example(capsys):
     assert "--tile-size 20" in text and "--min-tile-points" in text
 
 
-def test_tiled_surface_with_the_auto_voxel_uses_the_tiles_median():
-    """With the default config every tile resolves 'auto' from its own points; the
-    stitched mesh uses the median of their surface voxels (gmmgp run --tile-size with
-    defaults failed on 'auto' > 0 before)."""
+def test_tiled_surface_of_a_map_whose_tiles_resolved_their_own_values_uses_the_median(
+        monkeypatch):
+    """A tiled map saved before the tiles shared one set of "auto" values (each tile
+    resolved them from its own points, its config "auto"): the stitched mesh uses the
+    median of the tiles' surface voxels (gmmgp run --tile-size with defaults failed on
+    'auto' > 0 before that)."""
+    import gmmgp_app.tiling.tiled_map as tiled_map
     from gmmgp_app.synth import scan_scene
 
+    monkeypatch.setattr(tiled_map, "resolve_tiles", lambda cfg, parts, spec, n: (cfg, {}))
     scan, _ = scan_scene("box", density=0.08)
     tm = build_tiled_map(scan, gm.MappingConfig(), TileSpec(size=1.5, overlap=0.4))
     per_tile = [t.config.surface.voxel_size for _, t in tm.tiles.items()]
     assert len(per_tile) > 1 and all(isinstance(v, float) for v in per_tile)
+    assert len(set(per_tile)) > 1
     assert tm.surface_voxel() == pytest.approx(float(np.median(per_tile)), rel=1e-12)
     mesh = tm.extract_surface()
     ref = tm.extract_surface(voxel_size=tm.surface_voxel())

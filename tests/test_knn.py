@@ -81,3 +81,61 @@ def test_grouped_queries_same_as_one_by_one_and_the_kd_tree():
         np.testing.assert_array_equal(d, ref_d)
     d0, i0 = GridKNN(p, 16, group=0).query(q)
     np.testing.assert_array_equal(i0, ref_i)
+
+
+def test_kept_candidate_lists_give_the_same_neighbours(monkeypatch):
+    # a lattice, then points between its nodes (a mesh's vertices on the lattice edges),
+    # in batches that cut groups apart: with the lists kept every batch after the first
+    # reuses some; the answers equal those found afresh bit for bit, also once the
+    # store is full, and a copy asking another k does not use the lists
+    import copy
+
+    rng = np.random.default_rng(5)
+    p = _points(rng, 8000)
+    ax = np.arange(-1.0, 1.0, 0.03)
+    lat = np.stack(np.meshgrid(ax, ax, [-0.05, 0.0, 0.04], indexing="ij"), -1).reshape(-1, 3)
+    verts = lat + rng.uniform(0, 0.03, size=lat.shape) * (rng.integers(0, 3, len(lat))[:, None]
+                                                           == np.arange(3))
+    far = rng.uniform(-8, 8, (300, 3))
+    batches = [lat[:5000], lat[5000:], verts[::2], far, verts[1::2], lat[::3]]
+    plain = GridKNN(p, 16)
+    ref = [plain.query(b) for b in batches]
+    probe = GridKNN(p, 16)
+    probe.keep_lists(True)
+    probe.query(batches[0])
+    first = int(probe._kept.starts[probe._kept.count])   # what the first batch keeps
+    from gmmgp_app.stages.knn import _KeptLists
+
+    for max_entries, rows in ((1 << 25, 8192), (first + 10, 8192), (1 << 25, 3)):
+        # rows: lists kept per call at most (3: most groups of each call found afresh)
+        monkeypatch.setattr(_KeptLists, "ROWS", rows)
+        kept = GridKNN(p, 16)
+        kept.keep_lists(True, max_entries=max_entries)
+        for b, (d0, i0) in zip(batches, ref):
+            d, i = kept.query(b)
+            np.testing.assert_array_equal(d, d0)
+            np.testing.assert_array_equal(i, i0)
+        store = kept._kept
+        assert store.count > 0
+        assert store.open == (max_entries > first + 10)   # the small store filled up
+        assert (store.count <= 3 * len(batches)) == (rows == 3)
+        assert (kept._kept.find(np.array([-1, 0])) == -1).all()
+        other = copy.copy(kept)
+        other.k = 24
+        d, i = other.query(lat)
+        d1, i1 = cKDTree(p).query(lat, k=24)
+        np.testing.assert_array_equal(i, i1)
+        np.testing.assert_array_equal(d, d1)
+        kept.keep_lists(False)
+        assert kept._kept is None
+
+
+def test_kept_list_cube_keys():
+    from gmmgp_app.stages.knn import _KeptLists
+
+    h = float(1 << 20)
+    cube = np.array([[0, 0, 0], [-1, 0, 0], [0, -1, 0], [0, 0, -1], [h - 1, -(h - 1), 3],
+                     [h, 0, 0], [0, -h, 0], [0, 0, 1e18]], dtype=float)
+    keys = _KeptLists.cube_keys(cube)
+    assert (keys[:5] >= 0).all() and len(set(keys[:5])) == 5   # distinct, kept
+    assert (keys[5:] == -1).all()                               # too far out to key

@@ -865,3 +865,97 @@ def test_trim_to_reach_is_on_by_default_and_a_maps_mesh_obeys_it(box_scene):
     assert d.max() <= reach
     np.testing.assert_array_equal(trimmed.vertices[trimmed.faces],
                                   full.vertices[full.faces[within]])
+
+
+# ------------------------------------------------------------ the seeds' reach test (grid)
+def _tree_within(seeds, x, reach, closed):
+    """The k-d tree's answers, as the surface stage asked them before SeedReach."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(seeds)
+    if closed:
+        d = tree.query(x, k=1, distance_upper_bound=np.nextafter(reach, np.inf))[0]
+        return d <= reach
+    return tree.query(x, k=1, distance_upper_bound=reach)[0] < np.inf
+
+
+def test_seed_reach_answers_as_the_kd_tree():
+    from gmmgp_app.stages.surface import SeedReach
+
+    rng = np.random.default_rng(3)
+    seeds = rng.uniform(-2, 2, size=(3000, 3)) * [1, 1, 0.1]
+    x = np.concatenate([seeds + rng.normal(scale=0.05, size=seeds.shape),
+                        rng.uniform(-3, 3, size=(3000, 3))])
+    for reach in (0.03, 0.1, 0.7):
+        sr = SeedReach(seeds, reach)
+        for closed in (True, False):
+            got = sr.within(x, closed=closed)
+            np.testing.assert_array_equal(got, _tree_within(seeds, x, reach, closed))
+            assert 0 < got.sum() < len(x)
+        # no distance within the margin of the reach here: the grid decided every point
+        assert sr._tree is None
+
+
+def test_seed_reach_close_calls_go_to_the_tree():
+    from gmmgp_app.stages.surface import SeedReach
+
+    # seeds on integer nodes, queries exactly the reach (0.5, a binary fraction: the
+    # squared distance is exactly 0.25) from one: inside when closed, outside when open
+    seeds = np.stack(np.meshgrid(*([np.arange(4.0)],) * 3, indexing="ij"), -1).reshape(-1, 3)
+    x = np.array([[1.5, 1.0, 1.0], [2.0, 2.5, 0.0], [0.0, 0.0, -0.5], [3.0, 3.0, 3.5],
+                  [1.25, 1.0, 1.0], [1.5, 1.5, 1.5], [10.0, 10.0, 10.0]])
+    sr = SeedReach(seeds, 0.5)
+    closed = sr.within(x, closed=True)
+    opened = sr.within(x, closed=False)
+    np.testing.assert_array_equal(closed, [True, True, True, True, True, False, False])
+    np.testing.assert_array_equal(opened, [False, False, False, False, True, False, False])
+    np.testing.assert_array_equal(closed, _tree_within(seeds, x, 0.5, True))
+    np.testing.assert_array_equal(opened, _tree_within(seeds, x, 0.5, False))
+    assert sr._tree is not None              # the exact ties were the tree's to answer
+    # a non-finite point goes to the tree, which refuses it (as the stage's tree did)
+    with pytest.raises(ValueError, match="finite"):
+        sr.within(np.array([[np.nan, 0.0, 0.0]]))
+
+
+def test_seed_reach_rejects_a_bad_reach():
+    from gmmgp_app.stages.surface import SeedReach
+
+    with pytest.raises(ValueError, match="reach > 0"):
+        SeedReach(np.zeros((3, 3)), 0.0)
+
+
+def test_seed_reach_trims_the_faces_the_tree_trims():
+    from scipy.spatial import cKDTree
+
+    from gmmgp_app.stages.surface import SeedReach, faces_within_reach
+
+    seeds = _sphere_seeds(3000)
+    mesh = extract_surface(_sphere_field, seeds, voxel_size=0.1, block_cells=8)
+    v, f = mesh.vertices, mesh.faces
+    # one more face whose centroid lies exactly the reach (0.5) from a lone seed at
+    # (5, 0, 0): (5.25 + 5.5 + 5.75) / 3 = 5.5 on x
+    v = np.vstack([v, [[5.25, 0, 0], [5.5, 0, 0], [5.75, 0, 0]]])
+    f = np.vstack([f, [[len(v) - 3, len(v) - 2, len(v) - 1]]])
+    seeds = np.vstack([seeds * 0.7, [[5.0, 0.0, 0.0]]])
+    for reach in (0.5, 0.32, 0.05):
+        sr = SeedReach(seeds, reach)
+        keep = faces_within_reach(v, f, sr, reach)
+        np.testing.assert_array_equal(keep, faces_within_reach(v, f, cKDTree(seeds), reach))
+        assert keep[-1] == (reach == 0.5)
+        assert (sr._tree is not None) == (reach == 0.5)   # the tie went to the tree
+        if reach == 0.32:
+            assert 0 < keep.sum() < len(f)
+
+
+def test_seed_reach_without_a_grid_is_the_tree():
+    from gmmgp_app.stages.surface import SeedReach
+
+    # cells of twice the reach over 1e13 m: too many to key, every answer the tree's
+    seeds = np.array([[0.0, 0.0, 0.0], [1e13, 1e13, 1e13], [5.0, 0.0, 0.0]])
+    x = np.array([[0.0005, 0.0, 0.0], [5.0, 0.002, 0.0], [1e13, 1e13, 1e13 - 0.0005]])
+    sr = SeedReach(seeds, 1e-3)
+    assert sr.table is None
+    for closed in (True, False):
+        got = sr.within(x, closed=closed)
+        np.testing.assert_array_equal(got, [True, False, True])
+        np.testing.assert_array_equal(got, _tree_within(seeds, x, 1e-3, closed))

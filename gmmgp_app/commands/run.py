@@ -315,7 +315,11 @@ def _run_tiled(args, cfg, spec, scan, out: Path, console, t0: float, read_s: flo
             summary["counts"]["surface"] = {args.method: {"vertices": made["vertices"],
                                                           "faces": made["faces"]}}
             written.append(ply)
-        atomic_write_text(out / "config.toml", cfg.to_toml())
+        # the values the tiles were mapped with; those chosen from the scan say why
+        from ..pipeline import auto_reasons
+
+        atomic_write_text(out / "config.toml",
+                          tmap.config.to_toml(auto_reasons(summary.get("auto"))))
         seconds["total"] = time.perf_counter() - t0
         atomic_write_text(out / "summary.json", json.dumps(jsonable(summary), indent=2))
         written += [out / "config.toml", out / "summary.json"]
@@ -330,6 +334,10 @@ def _run_tiled(args, cfg, spec, scan, out: Path, console, t0: float, read_s: flo
         if not ok and created and out.is_dir() and not any(out.iterdir()):
             out.rmdir()  # a failed streamed run leaves no empty output folder behind
     if not args.quiet:
+        if summary.get("auto"):
+            from ..pipeline import format_auto
+
+            print(format_auto(summary["auto"]))
         how = "streamed, " if stream is not None else ""
         print(f"mapped {summary['n_tiles']} tiles ({how}{len(tmap.owners)} small ones joined "
               f"a neighbour, {summary['n_skipped_tiles']} skipped)", file=sys.stderr)

@@ -65,8 +65,8 @@ from scipy.spatial import cKDTree
 from gmmgp_app.config import MappingConfig, is_auto
 from gmmgp_app.stages._distinct import voxel_count
 
-__all__ = ["ScanScale", "AutoScaleError", "measure_scan", "auto_values", "resolve_config",
-           "TRAIN_BUDGET", "clip_to_field"]
+__all__ = ["ScanScale", "ScaleSample", "AutoScaleError", "measure_scan", "sample_scale",
+           "pool_scale", "auto_values", "auto_field_names", "resolve_config", "TRAIN_BUDGET", "clip_to_field"]
 
 #: The automatic surface voxel in units of h_t, and the reason printed with it
 #: (docs/speed.md "Seventh pass").
@@ -146,6 +146,49 @@ def measure_scan(points, origins=None, *, tree: Optional[cKDTree] = None,
     -------
     ScanScale
     """
+    return pool_scale([sample_scale(points, origins, tree=tree)])
+
+
+@dataclass(frozen=True)
+class ScaleSample:
+    """The per-point measurements behind a :class:`ScanScale`, of the part of a scan one
+    call of :func:`sample_scale` owns; :func:`pool_scale` turns several parts (the tiles
+    of a scan) into the scan's scale.
+
+    Attributes
+    ----------
+    n_points : int
+        Points the part owns (the scan's share it stands for).
+    nn : (m,) float64
+        Distance from each sampled point to its nearest distinct neighbour (finite).
+    noise : (s,) float64
+        ``sqrt(lambda_min)`` of each sampled point's 16 neighbours' covariance.
+    points : (s, 3) float64
+        The sampled points (the extent's quantiles).
+    sensor : (s,) float64 or None
+        Distance from each sampled point to its sensor origin.
+    """
+
+    n_points: int
+    nn: np.ndarray
+    noise: np.ndarray
+    points: np.ndarray
+    sensor: Optional[np.ndarray]
+
+
+def sample_scale(points, origins=None, *, tree: Optional[cKDTree] = None,
+                 owned: Optional[np.ndarray] = None,
+                 n_total: Optional[int] = None) -> ScaleSample:
+    """Measure a sample of the points a part of a scan owns (:func:`measure_scan`'s
+    measurements before their medians).
+
+    ``owned``: (N,) bool, the points whose measurements count (default all); the others
+    (a tile's overlap margin) only serve as neighbours. ``n_total``: the whole scan's
+    number of points (default the owned count): the part is sampled in proportion,
+    ``20000 n_owned / n_total`` of its owned points at even steps of their lexicographic
+    (x, y, z) order, all of them when the whole scan has at most 20 000 points. With
+    every point owned and ``n_total`` = N this is :func:`measure_scan`'s sample.
+    """
     pts = np.asarray(points, dtype=np.float64)
     n = len(pts)
     if n < _K + 1:
@@ -153,31 +196,52 @@ def measure_scan(points, origins=None, *, tree: Optional[cKDTree] = None,
             f"Expected at least {_K + 1} points to measure the scan's spacing and noise, "
             f"found {n}; set the lengths by hand (--set prepare.normal_radius=... etc.) or "
             "map a larger scan.")
-    # every (n / 20000)-th point in lexicographic (x, y, z) order: the same sample
-    # whatever order the points come in (tiles streamed from a file or cut in memory),
-    # and the same after scaling or shifting the scan
-    if n > _SAMPLE:
-        order = _lex_order(pts)
-        idx = np.sort(order[np.linspace(0, n - 1, _SAMPLE).astype(np.int64)])
+    mine = np.arange(n) if owned is None else np.flatnonzero(np.asarray(owned, dtype=bool))
+    total = len(mine) if n_total is None else int(n_total)
+    # every (total / 20000)-th owned point in lexicographic (x, y, z) order: the same
+    # sample whatever order the points come in (tiles streamed from a file or cut in
+    # memory), and the same after scaling or shifting the scan
+    if total > _SAMPLE:
+        count = int(round(_SAMPLE * len(mine) / total))
+        order = _lex_order(pts) if owned is None else mine[_lex_order(pts[mine])]
+        idx = np.sort(order[np.linspace(0, len(mine) - 1, count).astype(np.int64)])
     else:
-        idx = np.arange(n)
+        idx = mine
     tree = cKDTree(pts, balanced_tree=False) if tree is None else tree
     d, nb = tree.query(pts[idx], k=_K + 1, workers=-1)    # same neighbours, on threads
     # the nearest *distinct* neighbour: duplicated points are common in merged scans
     nn = np.where(d[:, 1:] > 0, d[:, 1:], np.inf).min(axis=1)
-    nn = nn[np.isfinite(nn)]
-    if len(nn) == 0:
-        raise AutoScaleError(f"All {n} points coincide; the scan has no spacing to measure.")
-    h = float(np.median(nn))
     P = pts[nb[:, 1:]]
     P = P - P.mean(axis=1, keepdims=True)
     lam = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", P, P) / _K)
-    sigma = float(np.median(np.sqrt(np.maximum(lam[:, 0], 0.0))) * math.sqrt(_K / (_K - 3)))
-    lo, hi = np.quantile(pts[idx], [0.005, 0.995], axis=0)
-    extent = float(np.linalg.norm(hi - lo))
     sensor = None
     if origins is not None:
-        sensor = float(np.median(np.linalg.norm(np.asarray(origins)[idx] - pts[idx], axis=1)))
+        sensor = np.linalg.norm(np.asarray(origins)[idx] - pts[idx], axis=1)
+    return ScaleSample(n_points=len(mine), nn=nn[np.isfinite(nn)],
+                       noise=np.sqrt(np.maximum(lam[:, 0], 0.0)), points=pts[idx],
+                       sensor=sensor)
+
+
+def pool_scale(samples) -> ScanScale:
+    """The :class:`ScanScale` of the scan the parts ``samples`` (:class:`ScaleSample`)
+    make up: the medians of their pooled measurements (a single part: that part's
+    :func:`measure_scan`). The noise is ``sqrt(16 / 13)`` times the median
+    ``sqrt(lambda_min)`` (three degrees of freedom go to the plane), at least 1 % of
+    the spacing (round-off of a noise-free scan)."""
+    samples = [s for s in samples if len(s.points)]
+    n = sum(s.n_points for s in samples)
+    nn = np.concatenate([s.nn for s in samples]) if samples else np.zeros(0)
+    if len(nn) == 0:
+        raise AutoScaleError(f"All {n} points coincide; the scan has no spacing to measure.")
+    h = float(np.median(nn))
+    noise = np.concatenate([s.noise for s in samples])
+    sigma = float(np.median(noise) * math.sqrt(_K / (_K - 3)))
+    pts = np.concatenate([s.points for s in samples])
+    lo, hi = np.quantile(pts, [0.005, 0.995], axis=0)
+    extent = float(np.linalg.norm(hi - lo))
+    sensor = None
+    if all(s.sensor is not None for s in samples):
+        sensor = float(np.median(np.concatenate([s.sensor for s in samples])))
     # a noise-free scan still has round-off; keep sigma a small fraction of h at least
     sigma = max(sigma, 0.01 * h)
     # three significant digits: the same values for a scan read in another frame
@@ -252,37 +316,46 @@ def auto_values(scale: ScanScale, budget: int = TRAIN_BUDGET, *,
 
 
 def resolve_config(cfg: MappingConfig, points, origins=None, *,
-                   tree: Optional[cKDTree] = None) -> tuple[MappingConfig, dict]:
+                   tree: Optional[cKDTree] = None, scale: Optional[ScanScale] = None,
+                   budget: int = TRAIN_BUDGET) -> tuple[MappingConfig, dict]:
     """Replace every ``"auto"`` field of ``cfg`` by its value for this scan.
 
     Fields set to a number (``--set``) are kept. Returns the resolved configuration
     and the record ``{"scan": ScanScale dict, field: {"value", "reason", "auto"}}``
     that ``build_map`` stores in the map's summary. A configuration without any
     ``"auto"`` field is returned unchanged (and the scan is not measured).
+
+    ``scale``: the scan's :class:`ScanScale` when the caller measured it (a tiled map
+    pools its tiles', :func:`pool_scale`); ``points`` then need not be the whole scan:
+    the voxel subset (scans of more than ``budget`` points) is sized on them, to keep
+    their share of the budget, ``budget len(points) / scale.n_points``. ``budget``: the
+    training points of the whole scan (:data:`TRAIN_BUDGET` for one map).
     """
-    wanted = [k for k, _, _ in MappingConfig.describe() if _is_auto_field(cfg, k)]
+    wanted = auto_field_names(cfg)
     if not wanted:
         return cfg, {}
-    scale = measure_scan(points, origins, tree=tree)
+    if scale is None:
+        scale = measure_scan(points, origins, tree=tree)
     # a training subset set by hand thins the points every length is scaled to
     p = cfg.prepare
     rate = None if is_auto(p.subsample_rate) else float(p.subsample_rate)
     voxel = None if p.subsample_voxel is None else float(p.subsample_voxel)
-    vals = auto_values(scale, rate=rate, voxel=voxel)
+    vals = auto_values(scale, budget, rate=rate, voxel=voxel)
     record: dict = {"scan": scale.to_dict()}
     updates = {}
     for key in wanted:
         updates[key] = clip_to_field(key, vals[key]["value"])
     # the voxel subset is a voxel size, not a rate
-    if "prepare.subsample_rate" in updates and scale.n_points > TRAIN_BUDGET \
+    if "prepare.subsample_rate" in updates and scale.n_points > budget \
             and cfg.prepare.subsample_voxel is None:
+        pts = np.asarray(points, dtype=np.float64)
+        share = int(round(budget * len(pts) / scale.n_points))
         updates["prepare.subsample_rate"] = 1.0
         updates["prepare.subsample_voxel"] = _voxel_for_budget(
-            np.asarray(points, dtype=np.float64), vals["train_spacing"]["value"],
-            TRAIN_BUDGET)
+            pts, vals["train_spacing"]["value"], share)
         record["prepare.subsample_voxel"] = {
             "value": updates["prepare.subsample_voxel"], "auto": True,
-            "reason": f"voxel keeping about {TRAIN_BUDGET} points (spatially even)"}
+            "reason": f"voxel keeping about {share} points (spatially even)"}
     for key, v in vals.items():
         record[key] = dict(v, auto=key in wanted or key == "train_spacing")
         if key in updates and updates[key] != v["value"]:
@@ -321,6 +394,11 @@ def clip_to_field(dotted: str, value: float) -> float:
     if hi is not None:
         value = min(value, hi)
     return value
+
+
+def auto_field_names(cfg: MappingConfig) -> list:
+    """The dotted names of the fields of ``cfg`` left at ``"auto"``."""
+    return [k for k, _, _ in MappingConfig.describe() if _is_auto_field(cfg, k)]
 
 
 def _is_auto_field(cfg, dotted: str) -> bool:

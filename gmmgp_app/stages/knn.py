@@ -81,6 +81,7 @@ class GridKNN:
         self.dims = dims.astype(np.int64)
         (self.order, self.sorted_points, self.table_keys, self.table_start,
          self.table_end) = _cell_table(p, c, self.lo, self.dims)
+        self._kept = None
 
     def _default_cell(self) -> float:
         p = self.points
@@ -128,10 +129,53 @@ class GridKNN:
         d = np.empty((len(x), self.k))
         i = np.empty((len(x), self.k), np.int64)
         done = np.zeros(len(x), np.bool_)
-        _knn_groups(x, qorder, gptr, g, self.k, self.cell, self.lo, self.dims,
-                    self.table_keys, self.table_start, self.table_end, self.sorted_points,
-                    self.order, self.max_ring, self.max_candidates, d, i, done)
+        G = len(gptr) - 1
+        kept = getattr(self, "_kept", None)    # (a GridKNN pickled before the lists)
+        if kept is not None and kept.params != self._list_params():
+            kept = None       # a copy with another k, group, ...: its lists are not these
+        if kept is None:
+            none = np.zeros(0, np.int64)
+            _knn_groups(x, qorder, gptr, g, self.k, self.cell, self.lo, self.dims,
+                        self.table_keys, self.table_start, self.table_end,
+                        self.sorted_points, self.order, self.max_ring, self.max_candidates,
+                        d, i, done, np.full(G, -1, np.int64), none, np.zeros(0, np.int32),
+                        np.full(G, -1, np.int64), np.zeros((0, 0), np.int32), none)
+            return d, i, done
+        with kept.lock:
+            # each group's cube (the kernel's floor(x / g) of its first member)
+            cube = np.floor(x[qorder[gptr[:-1]]] / g)
+            gkey = _KeptLists.cube_keys(cube)
+            have = kept.find(gkey)
+            # the lists to keep: at most ROWS per call (the buffer's bound: scattered
+            # queries make a group each)
+            miss = np.flatnonzero((have < 0) & (gkey >= 0))[:_KeptLists.ROWS] \
+                if kept.open else np.zeros(0, np.int64)
+            row = np.full(G, -1, np.int64)
+            row[miss] = np.arange(len(miss))
+            out = np.empty((len(miss), _KeptLists.LONGEST), np.int32)
+            out_n = np.empty(len(miss), np.int64)
+            _knn_groups(x, qorder, gptr, g, self.k, self.cell, self.lo, self.dims,
+                        self.table_keys, self.table_start, self.table_end,
+                        self.sorted_points, self.order, self.max_ring, self.max_candidates,
+                        d, i, done, have, kept.starts, kept.pool, row, out, out_n)
+            kept.add(gkey[miss], out, out_n)
         return d, i, done
+
+    def keep_lists(self, on: bool = True, max_entries: int = 1 << 25) -> None:
+        """Keep each query group's candidate list (``on``) for later queries in the same
+        cube, or drop the kept lists (off, the default state). A list is a function of
+        its cube alone (the cube's centre, its k-th neighbour distance, the points), so
+        a member scanning a kept list finds the same neighbours in the same order as
+        with a list found afresh: the answers are the same bit for bit, only cheaper
+        when a cube is queried again (a surface's vertices after its lattice: the
+        vertex pass's k-NN without finding the lists costs about half). At most
+        ``max_entries`` candidates are kept (4 bytes each; the street's lattice keeps
+        ~5M); beyond, lists are found afresh again."""
+        self._kept = _KeptLists(max_entries, self._list_params()) if on else None
+
+    def _list_params(self) -> tuple:
+        """What a group's candidate list depends on besides its cube and the points."""
+        return (self.k, self.group, self.cell, self.max_ring, self.max_candidates)
 
     def _query_each(self, x):
         """Query by query (:func:`_knn_grid`, the k-d tree beyond ``max_ring`` shells)."""
@@ -144,6 +188,117 @@ class GridKNN:
             d[rest] = np.asarray(dr).reshape(len(rest), self.k)
             i[rest] = np.asarray(ir).reshape(len(rest), self.k)
         return d, i
+
+
+class _KeptLists:
+    """Candidate lists of query groups by cube (:meth:`GridKNN.keep_lists`): an
+    open-addressing table from the cube's key to a list number, the lists one after
+    another in ``pool`` (int32 point rows) from ``starts``. ``lock``: one query at a
+    time uses it."""
+
+    #: The longest list kept (the street's lattice: 72 on average, at most 191).
+    LONGEST = 256
+    #: Lists kept per query call at most (the buffer: ROWS x LONGEST int32, 8 MiB).
+    ROWS = 8192
+    #: Cube coordinates kept: |b| < 2^20 on each axis (21 bits each in the key).
+    _HALF = 1 << 20
+
+    def __init__(self, max_entries: int, params: tuple):
+        import threading
+
+        self.params = params
+        self.lock = threading.Lock()
+        self.max_entries = int(max_entries)
+        self.keys = np.full(1 << 12, -1, np.int64)
+        self.ids = np.zeros(1 << 12, np.int64)
+        self.count = 0
+        self.pool = np.empty(1 << 16, np.int32)
+        self.starts = np.zeros(1 << 10, np.int64)    # starts[n]: end of the n lists
+        self.open = True                              # False once max_entries is reached
+
+    @classmethod
+    def cube_keys(cls, cube: np.ndarray) -> np.ndarray:
+        """(G,) int64 keys of integer-valued cube coordinates (G, 3) float; -1 for a cube
+        too far out to key (its list is not kept)."""
+        h = cls._HALF
+        ok = np.all(np.abs(cube) < h, axis=1)
+        b = np.where(ok[:, None], cube, 0).astype(np.int64) + h
+        return np.where(ok, (b[:, 0] << 42) | (b[:, 1] << 21) | b[:, 2], -1)
+
+    def find(self, gkey: np.ndarray) -> np.ndarray:
+        """(G,) the list number of each key (-1: none kept)."""
+        return _kept_find(self.keys, self.ids, gkey)
+
+    def add(self, gkey, out, out_n) -> None:
+        """Keep the lists ``out[r, :out_n[r]]`` (``out_n`` -1: none) of the cubes
+        ``gkey``."""
+        ok = np.flatnonzero(out_n >= 0)
+        if len(ok) == 0:
+            return
+        n_lists = self.count
+        used = int(self.starts[n_lists])
+        lens = out_n[ok]
+        need = used + int(lens.sum())
+        if need > self.max_entries:
+            self.open = False
+            return
+        if need > len(self.pool):
+            self.pool = np.concatenate([self.pool[:used],
+                                        np.empty(max(need, 2 * len(self.pool)) - used,
+                                                 np.int32)])
+        if n_lists + len(ok) + 1 > len(self.starts):
+            grown = np.zeros(max(n_lists + len(ok) + 1, 2 * len(self.starts)), np.int64)
+            grown[:n_lists + 1] = self.starts[:n_lists + 1]
+            self.starts = grown
+        _kept_append(self.pool, self.starts, n_lists, out, ok, lens)
+        if 2 * (n_lists + len(ok)) > len(self.keys):
+            size = len(self.keys)
+            while 2 * (n_lists + len(ok)) > size:
+                size *= 2
+            keys, ids = np.full(size, -1, np.int64), np.zeros(size, np.int64)
+            _kept_insert(keys, ids, self.keys[self.keys >= 0], self.ids[self.keys >= 0])
+            self.keys, self.ids = keys, ids
+        _kept_insert(self.keys, self.ids, gkey[ok], np.arange(n_lists, n_lists + len(ok)))
+        self.count = n_lists + len(ok)
+
+
+@nb.njit(cache=True, nogil=True)
+def _kept_find(tk, tv, keys):
+    mask = len(tk) - 1
+    out = np.full(len(keys), -1, np.int64)
+    for g in range(len(keys)):
+        key = keys[g]
+        if key < 0:
+            continue
+        s = _hash(key, mask)
+        while tk[s] != -1:
+            if tk[s] == key:
+                out[g] = tv[s]
+                break
+            s = (s + 1) & mask
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
+def _kept_insert(tk, tv, keys, ids):
+    mask = len(tk) - 1
+    for g in range(len(keys)):
+        s = _hash(keys[g], mask)
+        while tk[s] != -1 and tk[s] != keys[g]:
+            s = (s + 1) & mask
+        tk[s] = keys[g]
+        tv[s] = ids[g]
+
+
+@nb.njit(cache=True, nogil=True)
+def _kept_append(pool, starts, n_lists, out, rows, lens):
+    pos = starts[n_lists]
+    for m in range(len(rows)):
+        r = rows[m]
+        for u in range(lens[m]):
+            pool[pos + u] = out[r, u]
+        pos += lens[m]
+        starts[n_lists + m + 1] = pos
 
 
 @nb.njit(cache=True, inline="always")
@@ -308,7 +463,7 @@ def _knn_grid(x, k, cell, lo, dims, tk, ts, te, pts, order, max_ring):
 
 @nb.njit(cache=True, parallel=True, nogil=True)
 def _knn_groups(x, qorder, gptr, gcell, k, cell, lo, dims, tk, ts, te, pts, order, max_ring,
-                cap, dist, idx, done):
+                cap, dist, idx, done, have, pool_start, pool, row, out, out_n):
     """Per group of queries (``qorder[gptr[g]:gptr[g + 1]]``, all in one cube of edge
     ``gcell``): the exact k-th neighbour distance ``D`` of the cube's centre ``c`` (cube
     shells of cells, as :func:`_knn_grid`), the points within ``R = D + gcell sqrt(3)/2``
@@ -316,109 +471,177 @@ def _knn_groups(x, qorder, gptr, gcell, k, cell, lo, dims, tk, ts, te, pts, orde
     distance to ``c`` (their coordinates copied in that order), then per member the k
     best by insertion, the scan stopping once ``|p - c| - |q - c|`` is beyond its k-th
     best. Groups whose centre needs more than
-    ``max_ring`` shells, or more than ``cap`` candidates, are left (``done`` False)."""
+    ``max_ring`` shells, or more than ``cap`` candidates, are left (``done`` False).
+
+    Candidate lists kept from earlier queries (:meth:`GridKNN.keep_lists`): a group with
+    ``have[g] >= 0`` scans the kept list ``pool[pool_start[have[g]]:pool_start[have[g] +
+    1]]`` (the points' rows in the order of their distance to the cube's centre, as the
+    group once found them: the same scan, so the same neighbours in the same order);
+    the others find theirs, and a group with ``row[g] >= 0`` writes it to
+    ``out[row[g]]`` with its length to ``out_n[row[g]]`` (-1: none, or longer than
+    ``out``'s rows) for the caller to keep."""
     G = len(gptr) - 1
     mask = len(tk) - 1
     half = gcell * math.sqrt(3.0) / 2
-    for g in nb.prange(G):
-        q0 = qorder[gptr[g]]
-        b0 = math.floor(x[q0, 0] / gcell)
-        b1 = math.floor(x[q0, 1] / gcell)
-        b2 = math.floor(x[q0, 2] / gcell)
-        cx = (b0 + 0.5) * gcell
-        cy = (b1 + 0.5) * gcell
-        cz = (b2 + 0.5) * gcell
-        # 1. the centre's k-th neighbour distance
+    # groups in runs of ``chunk``, each run with its own scratch (allocated once per run,
+    # not per group as before)
+    chunk = 64
+    for t in nb.prange((G + chunk - 1) // chunk):
         bd = np.empty(k)
         bi = np.empty(k, np.int64)
-        if not _shell_knn(cx, cy, cz, k, cell, lo, dims, tk, ts, te, pts, max_ring, bd, bi):
-            continue
-        # 2. the candidates: points within R of the cube (margins cover round-off)
-        R = (math.sqrt(bd[k - 1]) + half) * (1.0 + 1e-9) + 1e-12 * gcell
-        R2 = R * R
-        lx = b0 * gcell
-        ly = b1 * gcell
-        lz = b2 * gcell
-        hx = lx + gcell
-        hy = ly + gcell
-        hz = lz + gcell
         cand = np.empty(cap, np.int64)
         cd = np.empty(cap)
-        n = 0
-        over = False
-        for a in range(int(math.floor((lx - R) / cell)), int(math.floor((hx + R) / cell)) + 1):
-            qa = a - lo[0]
-            if qa < 0 or qa >= dims[0] or over:
+        cs = np.empty(cap, np.int64)
+        cdist = np.empty(cap)
+        px = np.empty(cap)
+        py = np.empty(cap)
+        pz = np.empty(cap)
+        for g in range(t * chunk, min(G, (t + 1) * chunk)):
+            q0 = qorder[gptr[g]]
+            b0 = math.floor(x[q0, 0] / gcell)
+            b1 = math.floor(x[q0, 1] / gcell)
+            b2 = math.floor(x[q0, 2] / gcell)
+            cx = (b0 + 0.5) * gcell
+            cy = (b1 + 0.5) * gcell
+            cz = (b2 + 0.5) * gcell
+            if have[g] >= 0:
+                n = _kept_candidates(cx, cy, cz, pool, pool_start[have[g]],
+                                     pool_start[have[g] + 1], pts, cs, cdist, px, py, pz)
+            else:
+                n = _group_candidates(b0, b1, b2, cx, cy, cz, gcell, half, k, cell, lo,
+                                      dims, tk, ts, te, pts, max_ring, cap, mask, bd, bi,
+                                      cand, cd, cs, cdist, px, py, pz)
+                if row[g] >= 0:
+                    r = row[g]
+                    if 0 <= n <= out.shape[1]:
+                        for u in range(n):
+                            out[r, u] = np.int32(cs[u])
+                        out_n[r] = n
+                    else:
+                        out_n[r] = -1
+            if n < 0:
                 continue
-            for b in range(int(math.floor((ly - R) / cell)),
-                           int(math.floor((hy + R) / cell)) + 1):
-                qb = b - lo[1]
-                if qb < 0 or qb >= dims[1] or over:
-                    continue
-                for c in range(int(math.floor((lz - R) / cell)),
-                               int(math.floor((hz + R) / cell)) + 1):
-                    qc = c - lo[2]
-                    if qc < 0 or qc >= dims[2] or over:
-                        continue
-                    s = _cell_slot(tk, mask, dims, qa, qb, qc)
-                    if s < 0:
-                        continue
-                    for j in range(ts[s], te[s]):
-                        g0 = max(lx - pts[j, 0], pts[j, 0] - hx, 0.0)
-                        g1 = max(ly - pts[j, 1], pts[j, 1] - hy, 0.0)
-                        g2 = max(lz - pts[j, 2], pts[j, 2] - hz, 0.0)
-                        if g0 * g0 + g1 * g1 + g2 * g2 <= R2:
-                            if n == cap:
-                                over = True
-                                break
-                            e0 = cx - pts[j, 0]
-                            e1 = cy - pts[j, 1]
-                            e2 = cz - pts[j, 2]
-                            cand[n] = j
-                            cd[n] = e0 * e0 + e1 * e1 + e2 * e2
-                            n += 1
-        if over:
+            _group_members(g, x, qorder, gptr, cx, cy, cz, gcell, k, order, n, cs, cdist,
+                           px, py, pz, bd, bi, dist, idx, done)
+
+
+@nb.njit(cache=True, inline="always")
+def _group_candidates(b0, b1, b2, cx, cy, cz, gcell, half, k, cell, lo, dims, tk, ts, te,
+                      pts, max_ring, cap, mask, bd, bi, cand, cd, cs, cdist, px, py, pz):
+    """The candidates of the group in cube ``(b0, b1, b2)`` (centre ``c``) in the order
+    of their distance to ``c``: rows to ``cs``, those distances to ``cdist``,
+    coordinates to ``px``, ``py``, ``pz``; returns their count, -1 when the centre needs
+    more than ``max_ring`` shells or the list more than ``cap`` points."""
+    # 1. the centre's k-th neighbour distance
+    if not _shell_knn(cx, cy, cz, k, cell, lo, dims, tk, ts, te, pts, max_ring, bd, bi):
+        return -1
+    # 2. the candidates: points within R of the cube (margins cover round-off)
+    R = (math.sqrt(bd[k - 1]) + half) * (1.0 + 1e-9) + 1e-12 * gcell
+    R2 = R * R
+    lx = b0 * gcell
+    ly = b1 * gcell
+    lz = b2 * gcell
+    hx = lx + gcell
+    hy = ly + gcell
+    hz = lz + gcell
+    n = 0
+    over = False
+    for a in range(int(math.floor((lx - R) / cell)), int(math.floor((hx + R) / cell)) + 1):
+        qa = a - lo[0]
+        if qa < 0 or qa >= dims[0] or over:
             continue
-        o = np.argsort(cd[:n])
-        cs = cand[:n][o]
-        cdist = np.sqrt(cd[:n][o])
-        # their coordinates in that order, one array per axis: the members' scans read
-        # them in sequence (a gather through ``cs`` per candidate was a fifth slower)
-        px = np.empty(n)
-        py = np.empty(n)
-        pz = np.empty(n)
+        for b in range(int(math.floor((ly - R) / cell)),
+                       int(math.floor((hy + R) / cell)) + 1):
+            qb = b - lo[1]
+            if qb < 0 or qb >= dims[1] or over:
+                continue
+            for c in range(int(math.floor((lz - R) / cell)),
+                           int(math.floor((hz + R) / cell)) + 1):
+                qc = c - lo[2]
+                if qc < 0 or qc >= dims[2] or over:
+                    continue
+                s = _cell_slot(tk, mask, dims, qa, qb, qc)
+                if s < 0:
+                    continue
+                for j in range(ts[s], te[s]):
+                    g0 = max(lx - pts[j, 0], pts[j, 0] - hx, 0.0)
+                    g1 = max(ly - pts[j, 1], pts[j, 1] - hy, 0.0)
+                    g2 = max(lz - pts[j, 2], pts[j, 2] - hz, 0.0)
+                    if g0 * g0 + g1 * g1 + g2 * g2 <= R2:
+                        if n == cap:
+                            over = True
+                            break
+                        e0 = cx - pts[j, 0]
+                        e1 = cy - pts[j, 1]
+                        e2 = cz - pts[j, 2]
+                        cand[n] = j
+                        cd[n] = e0 * e0 + e1 * e1 + e2 * e2
+                        n += 1
+    if over:
+        return -1
+    o = np.argsort(cd[:n])
+    # their coordinates in that order, one array per axis: the members' scans read
+    # them in sequence (a gather through ``cs`` per candidate was a fifth slower)
+    for u in range(n):
+        cs[u] = cand[o[u]]
+        cdist[u] = math.sqrt(cd[o[u]])
+        px[u] = pts[cs[u], 0]
+        py[u] = pts[cs[u], 1]
+        pz[u] = pts[cs[u], 2]
+    return n
+
+
+@nb.njit(cache=True, inline="always")
+def _kept_candidates(cx, cy, cz, pool, s0, s1, pts, cs, cdist, px, py, pz):
+    """A kept candidate list ``pool[s0:s1]`` laid out as :func:`_group_candidates` lays
+    out its own (the distances to the centre by the same arithmetic: the same values);
+    returns its length."""
+    n = s1 - s0
+    for u in range(n):
+        j = pool[s0 + u]
+        e0 = cx - pts[j, 0]
+        e1 = cy - pts[j, 1]
+        e2 = cz - pts[j, 2]
+        cs[u] = j
+        cdist[u] = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+        px[u] = pts[j, 0]
+        py[u] = pts[j, 1]
+        pz[u] = pts[j, 2]
+    return n
+
+
+@nb.njit(cache=True, inline="always")
+def _group_members(g, x, qorder, gptr, cx, cy, cz, gcell, k, order, n, cs, cdist, px, py,
+                   pz, bd, bi, dist, idx, done):
+    """Each member's k best among the group's ``n`` candidates (by insertion, in the
+    candidates' order, stopping once ``|p - c| - |q - c|`` is beyond its k-th best)."""
+    for t in range(gptr[g], gptr[g + 1]):
+        q = qorder[t]
+        x0 = x[q, 0]
+        x1 = x[q, 1]
+        x2 = x[q, 2]
+        bd[:] = np.inf
+        cnt = 0
+        e0 = x[q, 0] - cx
+        e1 = x[q, 1] - cy
+        e2 = x[q, 2] - cz
+        dq = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2) * (1.0 + 1e-9) + 1e-12 * gcell
+        lim = math.inf
         for u in range(n):
-            px[u] = pts[cs[u], 0]
-            py[u] = pts[cs[u], 1]
-            pz[u] = pts[cs[u], 2]
-        # 3. each member's k best among them
-        for t in range(gptr[g], gptr[g + 1]):
-            q = qorder[t]
-            x0 = x[q, 0]
-            x1 = x[q, 1]
-            x2 = x[q, 2]
-            bd[:] = np.inf
-            cnt = 0
-            e0 = x[q, 0] - cx
-            e1 = x[q, 1] - cy
-            e2 = x[q, 2] - cz
-            dq = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2) * (1.0 + 1e-9) + 1e-12 * gcell
-            lim = math.inf
-            for u in range(n):
-                if cnt == k and cdist[u] - dq > lim:
-                    break              # this and every later candidate: beyond the k-th
-                d0 = x0 - px[u]            # _sq_dist's arithmetic
-                d1 = x1 - py[u]
-                d2 = x2 - pz[u]
-                dd = d0 * d0 + d1 * d1 + d2 * d2
-                if cnt < k or dd < bd[k - 1]:
-                    cnt = _insert(bd, bi, cnt, k, dd, cs[u])
-                    if cnt == k:
-                        lim = math.sqrt(bd[k - 1]) * (1.0 + 1e-9) + 1e-12 * gcell
-            for m in range(k):
-                dist[q, m] = math.sqrt(bd[m])
-                idx[q, m] = order[bi[m]]
-            done[q] = True
+            if cnt == k and cdist[u] - dq > lim:
+                break              # this and every later candidate: beyond the k-th
+            d0 = x0 - px[u]            # _sq_dist's arithmetic
+            d1 = x1 - py[u]
+            d2 = x2 - pz[u]
+            dd = d0 * d0 + d1 * d1 + d2 * d2
+            if cnt < k or dd < bd[k - 1]:
+                cnt = _insert(bd, bi, cnt, k, dd, cs[u])
+                if cnt == k:
+                    lim = math.sqrt(bd[k - 1]) * (1.0 + 1e-9) + 1e-12 * gcell
+        for m in range(k):
+            dist[q, m] = math.sqrt(bd[m])
+            idx[q, m] = order[bi[m]]
+        done[q] = True
 
 
 def ball_lists(points, centres, radius: float):

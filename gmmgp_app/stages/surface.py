@@ -28,7 +28,7 @@ from . import _distinct
 from ..types import SurfaceMesh
 
 __all__ = ["extract_surface", "surface_seeds", "mesh_field", "project_vertices",
-           "faces_within_reach",
+           "faces_within_reach", "centroids_within_reach", "SeedReach",
            "check_surface_grid", "check_grid_size", "std_colour_max", "variance_colors",
            "write_mesh_ply", "write_mesh_obj", "read_mesh_ply", "estimate_grid_nodes", "GridTooLargeError"]
 
@@ -232,8 +232,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     wall_timings : dict, optional
         Filled with the wall seconds of the same phases.
     overlap : bool
-        Run serial parts side by side on two threads (default): the seeds' k-d tree is
-        built in a worker thread while the first lattice nodes are evaluated, and the
+        Run serial parts side by side on two threads (default): the
         vertex pass (variance, or projection) runs in it on the stitched vertices of
         each finished layer of blocks while scikit-image's marching cubes (which holds
         the GIL) meshes the next ones (:class:`_VertexStream`). The mesh is the same
@@ -265,44 +264,44 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     # 1. Follow the zero crossing from the seed cells (cells by their lower corner), but
     #    only into cells near a seed: beyond the data a planar component's zero set goes
     #    on as a "fin", which is not observed surface.
-    from scipy.spatial import cKDTree
-
-    pools = []
+    pool = None
     if overlap:
         from concurrent.futures import ThreadPoolExecutor
 
-        # the fields' worker, and one for the seeds' tree (not to queue before the
-        # field); numba's thread count is per thread: the workers take the caller's
-        pools = [ThreadPoolExecutor(1, thread_name_prefix="gmmgp-surface",
-                                    initializer=nb.set_num_threads,
-                                    initargs=(nb.get_num_threads(),)) for _ in range(2)]
+        # the fields' worker; numba's thread count is per thread: it takes the caller's
+        pool = ThreadPoolExecutor(1, thread_name_prefix="gmmgp-surface",
+                                  initializer=nb.set_num_threads,
+                                  initargs=(nb.get_num_threads(),))
     try:
         return _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress,
                         reach, predict_mean, project, project_steps, project_clamp, tick,
-                        *(pools or (None, None)), cKDTree, marching_cubes, trim_to_reach)
+                        pool, marching_cubes, trim_to_reach)
     finally:
-        for p in pools:
-            p.shutdown(wait=True, cancel_futures=True)
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, reach,
-             predict_mean, project, project_steps, project_clamp, tick, pool, tree_pool,
-             cKDTree, marching_cubes, trim_to_reach=False) -> SurfaceMesh:
+             predict_mean, project, project_steps, project_clamp, tick, pool,
+             marching_cubes, trim_to_reach=False) -> SurfaceMesh:
     """:func:`extract_surface` after its checks; ``pool`` (one worker thread, or None
     for the serial path) evaluates the fields beside the rest (one call at a time: a
-    map's field is not called from two threads at once), ``tree_pool`` builds the
-    seeds' tree (kept to the end with ``trim_to_reach``)."""
+    map's field is not called from two threads at once). The seeds' reach test
+    (:class:`SeedReach`) is kept to the end with ``trim_to_reach``."""
     follow_pool = pool if FOLLOW_PIPELINED else None
-    if pool is not None:          # sliding midpoint: faster, same answers
-        tree_job = tree_pool.submit(cKDTree, seeds, balanced_tree=False)
-        tree = None
-    else:
-        tree = cKDTree(seeds, balanced_tree=False)
     if reach is None:
         reach = surface_reach(seeds, h)
     elif not reach > 0:
         raise ValueError(f"Expected reach > 0 m, found {reach}.")
     reach = float(reach)
+    # which cells (and, with the trim, faces) lie within the reach of a seed: the k-d
+    # tree's answers from a grid of the seeds (SeedReach), built on the worker thread
+    # while the seed cells' corners are evaluated
+    if pool is not None:
+        reach_job = pool.submit(SeedReach, seeds, reach)
+        tree = None
+    else:
+        tree = SeedReach(seeds, reach)
     cells = _unique_rows(np.floor(seeds / h).astype(np.int64))
     pack = _Packer(cells.min(0) - dilate - block_cells - 2,
                    cells.max(0) + dilate + block_cells + 2)
@@ -320,10 +319,8 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
         new = lattice.evaluate_corners(frontier, followed, pool=follow_pool)
         if len(new):
             if tree is None:
-                tree = tree_job.result()
-            near = tree.query((new + 0.5) * h, k=1, distance_upper_bound=reach,
-                              workers=-1)[0] < np.inf
-            new = new[near]
+                tree = reach_job.result()
+            new = new[tree.within((new + 0.5) * h, closed=False)]
         bar and bar.update(1)
         if len(new) == 0:
             break
@@ -334,7 +331,7 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
     node_keys, values = lattice.keys, lattice.values    # hash table: key -1 = empty slot
     # memory: only the node values go on
     if tree is None:
-        tree = tree_job.result()  # built (unused when nothing was followed)
+        tree = reach_job.result()       # built (unused when nothing was followed)
     if not trim_to_reach:
         tree = None
     del followed, frontier, lattice
@@ -459,9 +456,12 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
 def faces_within_reach(verts: np.ndarray, faces: np.ndarray, seeds_tree, reach: float,
                        chunk: int = 65_536) -> np.ndarray:
     """(F,) True for the faces whose centroid lies within ``reach`` (m) of a seed, the
-    seeds in ``seeds_tree`` (a ``cKDTree``): the surface is sought no further than the
-    reach from a seed (:func:`surface_reach`), but a followed cell is meshed whole.
-    ``chunk`` faces at a time (the centroids' temporaries)."""
+    seeds in ``seeds_tree`` (a ``cKDTree``, or a :class:`SeedReach` of that reach): the
+    surface is sought no further than the reach from a seed (:func:`surface_reach`), but
+    a followed cell is meshed whole. ``chunk`` faces at a time (the centroids'
+    temporaries)."""
+    if isinstance(seeds_tree, SeedReach):
+        return seeds_tree.faces_within(verts, faces)
     keep = np.empty(len(faces), bool)
     for s in range(0, len(faces), chunk):
         keep[s:s + chunk] = centroids_within_reach(verts[faces[s:s + chunk]].mean(axis=1),
@@ -471,10 +471,220 @@ def faces_within_reach(verts: np.ndarray, faces: np.ndarray, seeds_tree, reach: 
 
 def centroids_within_reach(c: np.ndarray, seeds_tree, reach: float) -> np.ndarray:
     """(n,) True for the face centroids ``c`` (n, 3) within ``reach`` (m) of a seed in
-    ``seeds_tree`` (the test of :func:`faces_within_reach`)."""
+    ``seeds_tree`` (the test of :func:`faces_within_reach`; a ``cKDTree``, or a
+    :class:`SeedReach` of the same reach, which answers the same)."""
+    if isinstance(seeds_tree, SeedReach):
+        return seeds_tree.within(c, closed=True)
     bound = np.nextafter(float(reach), np.inf)   # the query's bound is strict
     d = seeds_tree.query(c, k=1, distance_upper_bound=bound, workers=-1)[0]
     return d <= reach
+
+
+#: :class:`SeedReach` decides by its own distances only when they are clear of the reach
+#: by this relative margin (of the squared reach); closer calls go to the k-d tree.
+REACH_MARGIN = 1e-9
+
+
+class SeedReach:
+    """Whether points lie within a fixed ``reach`` (m) of a seed, as the seeds' k-d tree
+    answers it, from the seeds bucketed in cubic cells of edge just over twice the
+    reach: a seed within the reach of ``x`` lies in one of the (at most 8) cells that
+    the box ``x +- reach`` overlaps, and one seed clearly nearer (squared distance
+    below ``reach^2 (1 - REACH_MARGIN)``) decides, and none within
+    ``reach^2 (1 + REACH_MARGIN)`` decides the other way. A point whose seeds lie within
+    that margin of the reach (or with a non-finite coordinate) is answered by a k-d tree
+    of the seeds (``cKDTree.query`` with ``distance_upper_bound``, built on first need),
+    so every answer is the tree's: the margin is ~1e6 times the round-off of either
+    distance. Replaces the tree in the surface following and the trim (street: a 1.1M
+    seed tree, 0.15 CPU s to build, ~0.3 us per query; docs/speed.md 'Session 12')."""
+
+    def __init__(self, seeds: np.ndarray, reach: float):
+        self.seeds = np.ascontiguousarray(seeds, dtype=np.float64)
+        self.reach = float(reach)
+        if not (self.reach > 0 and math.isfinite(self.reach)):
+            raise ValueError(f"Expected reach > 0 m, found {reach}.")
+        self._tree = None
+        # cells just over twice the reach: the box x +- reach overlaps at most 2 per axis
+        self.cell = 2.0 * self.reach * (1.0 + 1e-6)
+        if len(self.seeds) == 0:
+            self.table = None
+            return
+        # floor(min / cell) is the least cell (division and floor are monotonic)
+        lo = np.floor(self.seeds.min(0) / self.cell) - 1
+        hi = np.floor(self.seeds.max(0) / self.cell) + 1
+        if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+            self.table = None
+            return
+        dims = hi - lo + 1
+        if float(np.prod(dims)) >= 2.0 ** 62:
+            self.table = None                # too many cells to key: the tree alone
+            return
+        self.lo, self.dims = lo.astype(np.int64), dims.astype(np.int64)
+        self.table = _seed_cells(self.seeds, self.cell, self.lo, self.dims)
+
+    @property
+    def tree(self):
+        if self._tree is None:
+            from scipy.spatial import cKDTree
+
+            self._tree = cKDTree(self.seeds, balanced_tree=False)
+        return self._tree
+
+    def within(self, x: np.ndarray, closed: bool = True) -> np.ndarray:
+        """(n,) for the points ``x`` (n, 3): True where a seed lies within the reach,
+        as the tree's ``query(x, k=1, distance_upper_bound=b)[0]``: ``<= reach`` with
+        ``b = nextafter(reach)`` (``closed``; the trim), ``< inf`` with ``b = reach``
+        (open; the following)."""
+        x = np.ascontiguousarray(np.asarray(x, dtype=np.float64).reshape(-1, 3))
+        ans = self._grid(_reach_test, x)
+        out = ans == 1
+        close = np.flatnonzero(ans == 2)
+        if len(close):
+            out[close] = self._tree_within(x[close], closed)
+        return out
+
+    def faces_within(self, verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+        """(F,) :meth:`within` (closed) of the faces' centroids, as
+        :func:`faces_within_reach` asks it of a tree (numpy's ``mean(axis=1)`` of the
+        corners; the grid's own centroid, within round-off of it, decides the clear
+        cases, numpy's the close calls)."""
+        ans = self._grid(_face_reach_test, np.ascontiguousarray(verts, dtype=np.float64),
+                         np.ascontiguousarray(faces))
+        out = ans == 1
+        close = np.flatnonzero(ans == 2)
+        if len(close):
+            out[close] = self._tree_within(verts[faces[close]].mean(axis=1), True)
+        return out
+
+    def _grid(self, kernel, *args) -> np.ndarray:
+        """The grid's answers (1 within, 0 not, 2 a close call) by ``kernel``."""
+        n = len(args[-1])
+        if self.table is None or n == 0:
+            return np.full(n, 2, np.int8)
+        r2 = self.reach * self.reach
+        return kernel(*args, self.cell, self.reach, self.lo, self.dims, *self.table,
+                      r2 * (1.0 - REACH_MARGIN), r2 * (1.0 + REACH_MARGIN))
+
+    def _tree_within(self, x: np.ndarray, closed: bool) -> np.ndarray:
+        """The k-d tree's answer (the one the grid's clear answers equal)."""
+        if closed:
+            bound = np.nextafter(self.reach, np.inf)
+            return self.tree.query(x, k=1, distance_upper_bound=bound, workers=-1)[0] \
+                <= self.reach
+        return self.tree.query(x, k=1, distance_upper_bound=self.reach,
+                               workers=-1)[0] < np.inf
+
+
+@nb.njit(cache=True, nogil=True)
+def _seed_cells(seeds, cell, lo, dims):
+    """The seeds bucketed by cell in linear passes (a counting sort through an
+    open-addressing table of the occupied cells, kept at most half full and so a few MB
+    on the street, not an O(N log N) sort): (table keys (-1: empty), each slot's first
+    and end row, the seeds' coordinates in bucket order)."""
+    n = len(seeds)
+    keys = np.empty(n, np.int64)
+    size = 16
+    while size < n // 4:
+        size *= 2
+    tk = np.full(size, -1, np.int64)
+    used = 0
+    for i in range(n):
+        key = _pack1(int(math.floor(seeds[i, 0] / cell)), int(math.floor(seeds[i, 1] / cell)),
+                     int(math.floor(seeds[i, 2] / cell)), lo, dims)
+        keys[i] = key
+        s = _probe(tk, key)
+        if tk[s] == -1:
+            tk[s] = key
+            used += 1
+            if 2 * used > size:
+                size *= 2
+                bigger = np.full(size, -1, np.int64)
+                _rehash(tk, np.zeros(0), bigger, np.zeros(0))
+                tk = bigger
+    count = np.zeros(size, np.int64)
+    slot = np.empty(n, np.int64)
+    for i in range(n):
+        s = _probe(tk, keys[i])
+        count[s] += 1
+        slot[i] = s
+    start = np.empty(size, np.int64)
+    acc = 0
+    for s in range(size):
+        start[s] = acc
+        acc += count[s]
+    end = start.copy()
+    pts = np.empty((n, 3))
+    for i in range(n):
+        r = end[slot[i]]
+        pts[r, 0] = seeds[i, 0]
+        pts[r, 1] = seeds[i, 1]
+        pts[r, 2] = seeds[i, 2]
+        end[slot[i]] = r + 1
+    return tk, start, end, pts
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _reach_test(x, cell, reach, lo, dims, tk, start, end, pts, r2_in, r2_out):
+    """(n,) int8 per point: 1 when a seed's squared distance is below ``r2_in``, 0 when
+    none is within ``r2_out``, else 2 (a close call, or a non-finite coordinate)
+    (:func:`_reach_one`)."""
+    n = len(x)
+    out = np.empty(n, np.int8)
+    for q in nb.prange(n):
+        out[q] = _reach_one(x[q, 0], x[q, 1], x[q, 2], cell, reach, lo, dims, tk, start,
+                            end, pts, r2_in, r2_out)
+    return out
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _face_reach_test(verts, faces, cell, reach, lo, dims, tk, start, end, pts, r2_in,
+                     r2_out):
+    """:func:`_reach_test` of the faces' centroids ``(v0 + v1 + v2) / 3`` (a close call
+    is decided by the caller on numpy's centroid)."""
+    n = len(faces)
+    out = np.empty(n, np.int8)
+    for f in nb.prange(n):
+        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+        out[f] = _reach_one((verts[a, 0] + verts[b, 0] + verts[c, 0]) / 3.0,
+                            (verts[a, 1] + verts[b, 1] + verts[c, 1]) / 3.0,
+                            (verts[a, 2] + verts[b, 2] + verts[c, 2]) / 3.0,
+                            cell, reach, lo, dims, tk, start, end, pts, r2_in, r2_out)
+    return out
+
+
+@nb.njit(cache=True, inline="always")
+def _reach_one(x0, x1, x2, cell, reach, lo, dims, tk, start, end, pts, r2_in, r2_out):
+    """1 when a seed's squared distance to ``x`` is below ``r2_in``, 0 when none is
+    within ``r2_out``, else 2 (a close call, or a non-finite coordinate). The seeds are
+    looked for in the cells overlapping the box ``x +- reach`` (slightly widened against
+    round-off): at most 2 per axis, the cell being over twice the reach."""
+    if not (math.isfinite(x0) and math.isfinite(x1) and math.isfinite(x2)):
+        return 2
+    r = reach * (1.0 + 1e-7)
+    i0 = max(int(math.floor((x0 - r) / cell)), lo[0])
+    i1 = min(int(math.floor((x0 + r) / cell)), lo[0] + dims[0] - 1)
+    j0 = max(int(math.floor((x1 - r) / cell)), lo[1])
+    j1 = min(int(math.floor((x1 + r) / cell)), lo[1] + dims[1] - 1)
+    k0 = max(int(math.floor((x2 - r) / cell)), lo[2])
+    k1 = min(int(math.floor((x2 + r) / cell)), lo[2] + dims[2] - 1)
+    res = 0
+    for i in range(i0, i1 + 1):
+        for j in range(j0, j1 + 1):
+            for k in range(k0, k1 + 1):
+                key = _pack1(i, j, k, lo, dims)
+                s = _probe(tk, key)
+                if tk[s] != key:
+                    continue
+                for t in range(start[s], end[s]):
+                    d0 = x0 - pts[t, 0]
+                    d1 = x1 - pts[t, 1]
+                    d2 = x2 - pts[t, 2]
+                    dd = d0 * d0 + d1 * d1 + d2 * d2
+                    if dd < r2_in:
+                        return 1
+                    if dd <= r2_out:
+                        res = 2
+    return res
 
 
 def _variance(predict: Callable, verts: np.ndarray, batch: int) -> np.ndarray:

@@ -10,7 +10,8 @@ import numpy as np
 from ..config import MappingConfig
 from .geometry import TileSpec, TilingError, members, owners_summary, tile_owners
 from .store import TileStore
-from .tasks import largest_first, map_tiles_to_store
+from .auto import resolve_tiles
+from .tasks import largest_first, map_tiles_to_store, tile_points
 from .tiled_map import TiledMap
 
 __all__ = ["spill_las_to_tiles", "build_tiled_map_from_las", "stream_plan", "stream_tiles",
@@ -217,6 +218,11 @@ def build_tiled_map_from_las(path, cfg: Optional[MappingConfig] = None,
                       else []) for m in mem]
             tasks.append((key, files, None, cfg, method))
             sizes.append(sum(counts[m] for m in mem))
+    # the "auto" fields resolved once for all tiles (tiling/auto.py): a first pass
+    # reads each tile's pieces (one tile in memory at a time)
+    cfg, auto = resolve_tiles(cfg, ((members(owners, t[0]), *tile_points(t[1], None))
+                                    for t in tasks), spec, n)
+    tasks = [t[:3] + ((cfg, auto) if auto else cfg,) + t[4:] for t in tasks]
     store = TileStore(work_dir / "maps", [], cache=cache_tiles)
     skipped = map_tiles_to_store(executor, largest_first(tasks, sizes), store, progress,
                                  workers_write=True, stats=tile_stats)
@@ -226,4 +232,5 @@ def build_tiled_map_from_las(path, cfg: Optional[MappingConfig] = None,
     return TiledMap(spec, store, cfg, method, offset=off, owners=owners,
                     summary=dict(n_tiles=len(store), n_points=n,
                                  absorbed_tiles=owners_summary(owners),
-                                 skipped_tiles={str(k): v for k, v in skipped.items()}))
+                                 skipped_tiles={str(k): v for k, v in skipped.items()},
+                                 auto=auto))

@@ -127,21 +127,22 @@ def stream_tiled_surface(tmap, voxel_size: Optional[float] = None, max_std=None,
     spec = tmap.spec
     holder = _TileHolder(tmap.tiles)
     # one pass over the tiles: the stitched seeds and the tiles' voxels
-    parts, voxels = [], []
+    parts, surfaces = [], []
     for k in sorted(tmap.tiles):
         t = holder[k]
         parts.append(tmap._tile_seeds(k, t))
-        voxels.append(t.config.surface.voxel_size)
+        surfaces.append(t.config.surface)
         holder.drop([k])
     seeds = tmap._stitch_seeds(parts)
     del parts
-    map_voxel = tmap._median_voxel(voxels)     # TiledMap.surface_voxel, from this pass
+    # TiledMap.surface_voxel and extent_cell, from this pass
+    map_voxel = tmap._median_voxel([s.voxel_size for s in surfaces])
     h = float(map_voxel if voxel_size is None else voxel_size)
     if len(seeds) == 0:
         return
     # the whole map's reach and dilate (TiledMap.extract_surface's, from all the seeds;
     # the grid check refuses the same lattices as the whole-lattice path)
-    reach = surface_reach(seeds, map_voxel)
+    reach = surface_reach(seeds, tmap._median_extent(surfaces))
     dilate = check_grid_size(seeds, h)
     cfg = tmap.config.surface
     steps = project_steps(cfg)

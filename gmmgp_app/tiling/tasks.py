@@ -17,7 +17,9 @@ from .geometry import canonical_order, union_points
 def build_tile(task):
     """Executor task: map one tile (module level so that it pickles).
 
-    ``task`` is ``(key, points, origins, cfg, method)`` or, with a sixth element
+    ``task`` is ``(key, points, origins, cfg, method)`` (``cfg`` a MappingConfig, or the
+    ``(cfg, record)`` the scan's ``"auto"`` fields were resolved to for all tiles,
+    tiling/auto.py: ``build_map(resolved=...)``) or, with a sixth element
     ``dest`` (a folder path), the same with the map saved by this process into
     ``dest`` (atomically) instead of returned: nothing but a few numbers travels back.
     ``points`` is an array or, for a streamed input, the tile's piece files (read
@@ -32,19 +34,14 @@ def build_tile(task):
     from ..pipeline import HGMMError, PrepareError, build_map
 
     t0, c0, h0 = time.time(), time.process_time(), time.thread_time()
-    if isinstance(points, (list, tuple)):  # spilled chunks on disk (streaming input)
-        # per tile (the tile, then the small tiles it owns): its point and origin files
-        parts = [(np.concatenate([np.load(f) for f in pf]),
-                  np.concatenate([np.load(f) for f in of]) if of else None)
-                 for pf, of in points]
-        pts, org = union_points(parts)
-    else:
-        pts, org = canonical_order(np.asarray(points, dtype=np.float64), origins)
+    pts, org = tile_points(points, origins)
     t1, c1 = time.time(), time.process_time()
     stats = dict(key=list(key), pid=os.getpid(), n_points=int(len(pts)), start=t0,
                  read_s=t1 - t0, read_cpu_s=c1 - c0, numba_threads=_numba_threads())
     try:
-        smap = build_map(Scan(points=pts, origins=org, source=f"tile {key}"), cfg, method)
+        resolved = cfg if isinstance(cfg, tuple) else None
+        smap = build_map(Scan(points=pts, origins=org, source=f"tile {key}"),
+                         cfg[0] if resolved else cfg, method, resolved=resolved)
     except (PrepareError, HGMMError) as exc:
         # too sparse for normals, or too few hit points with one for the HGMM: its
         # neighbours answer its queries (reported in ``skipped_tiles``)
@@ -68,6 +65,19 @@ def build_tile(task):
                  bytes_returned=(sum(len(b) for b in payload.values())
                                  if isinstance(payload, dict) else 0))
     return key, payload, stats
+
+
+def tile_points(points, origins) -> tuple:
+    """What a tile trains on, ``(points, origins)`` in canonical order, from a task's
+    ``points`` and ``origins`` (:func:`build_tile`): an array, or a streamed tile's
+    piece files (per tile, the tile and then the small tiles it owns: its point and
+    origin files), read here."""
+    if isinstance(points, (list, tuple)):  # spilled chunks on disk (streaming input)
+        parts = [(np.concatenate([np.load(f) for f in pf]),
+                  np.concatenate([np.load(f) for f in of]) if of else None)
+                 for pf, of in points]
+        return union_points(parts)
+    return canonical_order(np.asarray(points, dtype=np.float64), origins)
 
 
 def _threading_layer() -> str:

@@ -15,6 +15,7 @@ from ..types import Scan, as_up_axis
 from .geometry import (TileSpec, TilingError, members, owners_summary, tile_dirname,
                        union_points, split_into_tiles, tile_owners, warn_if_not_z_up)
 from .store import TileStore
+from .auto import resolve_tiles
 from .tasks import largest_first, map_tiles_to_store, run_tiles
 
 __all__ = ["TiledMap", "build_tiled_map", "load_tiled_map"]
@@ -346,10 +347,29 @@ class TiledMap:
     def surface_reach(self, seeds) -> Optional[float]:
         """How far from a seed the stitched surface is followed (m), whatever voxel it
         is meshed at: :func:`stages.surface.surface_reach` of the stitched ``seeds`` at
-        :meth:`surface_voxel` (see :meth:`SurfaceMap.surface_reach`)."""
+        :meth:`extent_cell`, as :meth:`SurfaceMap.surface_reach` for one map."""
         from ..pipeline import surface_reach
 
-        return surface_reach(seeds, self.surface_voxel()) if len(seeds) else None
+        return surface_reach(seeds, self.extent_cell()) if len(seeds) else None
+
+    def extent_cell(self) -> float:
+        """The cell bounding the stitched surface's extent (m, ``surface.extent_cell``):
+        the configured one, or with ``"auto"`` (each tile resolved it from its own
+        points) the median of the tiles' values; the surface voxel for tiles made
+        before the extent cell."""
+        return self._median_extent([t.config.surface for _, t in self.tiles.items()])
+
+    def _median_extent(self, surfaces) -> float:
+        """:meth:`extent_cell` from the tiles' SurfaceConfigs."""
+        from ..config import is_auto
+
+        e = self.config.surface.extent_cell
+        if not is_auto(e):
+            return float(e)
+        cells = [s.extent_cell for s in surfaces if not is_auto(s.extent_cell)]
+        if not cells:
+            return self._median_voxel([s.voxel_size for s in surfaces])
+        return float(np.median(cells))
 
     def surface_voxel(self) -> float:
         """The surface voxel of the stitched mesh (m): the configured one, or with
@@ -510,6 +530,11 @@ def build_tiled_map(scan: Scan, cfg: Optional[MappingConfig] = None,
         raise TilingError(f"Expected at least one tile with {spec.min_points} points, found "
                           f"{max((len(t) for t in tiles.values()), default=0)}; use larger "
                           "tiles or lower TileSpec.min_points.")
+    # the "auto" fields resolved once, from the tiles' pooled measurements: every tile
+    # gets the same lengths (tiling/auto.py)
+    cfg, auto = resolve_tiles(cfg, ((members(owners, t[0]), t[1], t[2]) for t in tasks),
+                              spec, len(scan))
+    tasks = [t[:3] + ((cfg, auto) if auto else cfg,) + t[4:] for t in tasks]
     if work_dir is None:
         maps, skipped = run_tiles(executor, tasks, progress)
     else:
@@ -524,7 +549,8 @@ def build_tiled_map(scan: Scan, cfg: Optional[MappingConfig] = None,
                     owners=owners, up=scan.up,
                     summary=dict(n_tiles=len(maps), n_points=len(scan),
                                  absorbed_tiles=owners_summary(owners),
-                                 skipped_tiles={str(k): v for k, v in skipped.items()}))
+                                 skipped_tiles={str(k): v for k, v in skipped.items()},
+                                 auto=auto))
 
 
 

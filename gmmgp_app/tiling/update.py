@@ -68,7 +68,7 @@ def update_tiled_map(tmap, scan: Scan, refit_hgmm: bool = False, executor=None,
                 or tmap.tiles[key].gp is None
                 or _new_space(old_p, new_p, new_space_voxel) > (
                     np.inf if new_space_fraction is None else new_space_fraction)):
-            rebuild.append((key, all_p, all_o, tmap.config, tmap.method))
+            rebuild.append((key, all_p, all_o, tile_config(tmap), tmap.method))
         else:
             tmap.tiles[key], n = update_gp_blocks(tmap.tiles[key], all_p, all_o, new_p,
                                                   tmap.config, executor=executor)
@@ -82,6 +82,16 @@ def update_tiled_map(tmap, scan: Scan, refit_hgmm: bool = False, executor=None,
         tmap.tiles[key] = smap
         report["rebuilt_tiles"].append(key)
     return report
+
+
+def tile_config(tmap):
+    """What a tile of ``tmap`` is mapped again with (:func:`~.tasks.build_tile`): the
+    map's configuration and the record of the ``"auto"`` fields it resolved once for all
+    tiles (tiling/auto.py: the tile gets the lengths the others were made with, and the
+    fields the scan chose stay free for the GP's marginal likelihood), or the
+    configuration alone (a map saved before: the tile resolves its own)."""
+    auto = tmap.summary.get("auto")
+    return (tmap.config, auto) if isinstance(auto, dict) and auto else tmap.config
 
 
 def update_gp_blocks(smap, all_points, all_origins, new_points, cfg: MappingConfig,
