@@ -946,6 +946,7 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
     # one k-d tree of the scan for the scale measurement and the prepare stage
     state = {"scan": scan, "summary": summary,
              "tree": scan_tree(scan) if tree is None else tree}
+    tree = None     # the state's reference only: the prepare stage frees it
     cfg, summary["auto"] = (resolve_config(cfg, scan, tree=state["tree"]) if resolved is None
                             else (resolved[0], dict(resolved[1])))
     if resolved is not None and len(resolved) > 2:      # check_surface_grid's seeds
@@ -1012,16 +1013,18 @@ def resolve_config(cfg: MappingConfig, scan: Scan, *, tree=None) -> tuple:
     return _resolve_config(cfg, scan, tree)
 
 
-def scan_tree(scan: Scan):
+def scan_tree(scan: Scan, built=None):
     """The k-d tree of the scan's points, shared by the scale measurement
     (stages/autoscale.py) and the prepare stage; None for a scan prepare refuses (too
-    few or non-finite points: it raises the one-line error)."""
-    from scipy.spatial import cKDTree
+    few or non-finite points: it raises the one-line error). ``built``: that tree made
+    elsewhere (:func:`gmmgp_app._kdtree.points_tree` of ``scan.points``: ``gmmgp run``
+    builds it on its reading thread), returned for a scan that gets one."""
+    from ._kdtree import points_tree
 
     pts = scan.points
     if len(pts) < _prepare.MIN_POINTS or not np.isfinite(pts).all():
         return None
-    return cKDTree(pts, balanced_tree=False)   # sliding midpoint: built ~2x faster, same queries
+    return points_tree(pts) if built is None else built
 
 
 def _resolve_config(cfg: MappingConfig, scan: Scan, tree=None) -> tuple:

@@ -681,6 +681,39 @@ def test_malformed_inputs(tmp_path, name, content, kwargs, match):
         read_scan(path, **kwargs)
 
 
+@pytest.mark.parametrize("save", [np.savez, np.savez_compressed])
+def test_npz_member_is_np_loads_array(tmp_path, save):
+    """numpy_io._npz_member (each member read whole) gives np.load's array: dtype,
+    shape, memory order, bits, writable; np.load's own errors where it hands over."""
+    from gmmgp_app.datasets.numpy_io import _npz_member
+
+    rng = np.random.default_rng(3)
+    arrays = dict(
+        points=rng.normal(size=(1000, 3)) * 1e5, labels=rng.integers(0, 9, 1000),
+        f=np.asfortranarray(rng.normal(size=(7, 5))), f32=rng.normal(size=(9, 3)).astype(np.float32),
+        xyz=np.zeros(4, dtype=[("x", "f8"), ("y", "f8"), ("z", "f8")]), scalar=np.float64(2.5),
+        empty=np.zeros((0, 3)), big_endian=np.arange(6, dtype=">f8").reshape(2, 3))
+    path = tmp_path / "m.npz"
+    save(path, **arrays)
+    with np.load(path, allow_pickle=False) as z:
+        for k in arrays:
+            want, got = z[k], _npz_member(z, k)
+            assert got.dtype == want.dtype and got.shape == want.shape, k
+            assert got.flags.c_contiguous == want.flags.c_contiguous, k
+            assert got.flags.f_contiguous == want.flags.f_contiguous, k
+            assert got.flags.writeable, k
+            assert got.tobytes(order="A") == want.tobytes(order="A"), k
+    wide = np.zeros(2, dtype=[(f"f{i:04d}" + "n" * 40, "f8") for i in range(1500)])
+    save(path, points=np.array([{"a": 1}], dtype=object), wide=wide)  # 2.0 header > 10 kB
+    with np.load(path, allow_pickle=False) as z:
+        assert np.lib.format.read_magic(z.zip.open("wide.npy")) == (2, 0)
+        with pytest.raises(ValueError, match="max_header_size"):
+            _npz_member(z, "wide")
+    with np.load(path, allow_pickle=False) as z:
+        with pytest.raises(ValueError, match="allow_pickle=False"):
+            _npz_member(z, "points")
+
+
 def test_npz_field_shapes(tmp_path, cloud):
     path = tmp_path / "s.npz"
     np.savez(path, points=cloud, labels=np.zeros(3))

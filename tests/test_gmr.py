@@ -255,3 +255,23 @@ def test_variance_is_continuous_across_the_data_edge_and_grows_outside():
         # outside it grows, roughly gamma per metre at 1.5 m from the edge
         assert sd[-1] > 0.5 * DEFAULT_FAR_GROWTH * 1.0
         assert np.all(np.diff(sd[x >= 0.6]) > 0)
+
+
+def test_compact_lists_is_numpys_mask():
+    """_compact_lists (one compiled pass) gives numpy's cumulative-sum pointers and
+    masked int32 indices exactly: empty cells, cells losing every entry, all kept."""
+    from gmmgp_app.stages.gmr import _compact_lists
+
+    rng = np.random.default_rng(11)
+    for n_cells, p_keep in ((1, 0.0), (7, 1.0), (50, 0.3), (400, 0.8)):
+        lens = rng.integers(0, 9, n_cells)
+        lens[::5] = 0
+        ptr = np.zeros(n_cells + 1, dtype=np.int64)
+        np.cumsum(lens, out=ptr[1:])
+        idx = rng.integers(0, 2 ** 31 - 1, ptr[-1]).astype(np.int64)
+        keep = rng.random(ptr[-1]) < p_keep
+        ptr2, idx2 = _compact_lists(ptr, idx, keep)
+        want_ptr = np.concatenate([[0], np.cumsum(keep, dtype=np.int64)])[ptr]
+        np.testing.assert_array_equal(ptr2, want_ptr)
+        assert ptr2.dtype == np.int64 and idx2.dtype == np.int32
+        np.testing.assert_array_equal(idx2, idx[keep].astype(np.int32))

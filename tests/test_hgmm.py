@@ -662,6 +662,45 @@ def test_tied_e_step_skipping_exps_is_bit_for_bit(D):
         assert got[4:] == ref[4:]
 
 
+def _lse_loop(v):
+    """Log-sum-exp taking every exp in order (the kernels' order of operations)."""
+    import math
+
+    m = max(v, key=lambda x: -math.inf if math.isnan(x) else x)
+    if m == -math.inf:
+        return m
+    s = 0.0
+    for x in v:
+        t = x - m
+        s += math.exp(t) if not math.isnan(t) else math.nan
+    return m + math.log(s) if not math.isnan(s) else math.nan
+
+
+def test_lse_skipping_absorbed_exps_is_the_loop_bit_for_bit():
+    """_lse (exps under 2^-53 of a sum >= 1 not taken, nor those before the largest
+    term when they all are tiny, exp(0) = 1) gives the loop taking every exp exactly:
+    random vectors with terms in every range, ties, and the edge values."""
+    import math
+
+    rng = np.random.default_rng(5)
+    cases = []
+    for K in (1, 2, 3, 4, 8, 9, 64, 65, 80):
+        for _ in range(400):
+            v = rng.choice([0.0, -1e-3, -0.7, -3.0, -20.0, -30.0, -36.9, -37.1, -40.0,
+                            -41.9, -42.1, -45.0, -200.0, -745.5, -746.5, -1e4], size=K)
+            v = v + rng.normal(scale=rng.choice([0.0, 1e-9, 0.5, 5.0]), size=K)
+            cases.append(v + rng.normal() * 100.0)
+    near = [0.0] + [-(37.0 + 1e-12)] * 7 + [-(42.0 + 1e-12)] * 3
+    cases += [np.array(near), np.array(near[::-1]), np.array([-42.1] * 63 + [0.0]),
+              np.array([-41.9, 0.0, -41.9]), np.array([-50.0, 0.0, 0.0, -50.0]),
+              np.array([-np.inf, -np.inf]), np.array([-np.inf, 1.0, -np.inf]),
+              np.array([np.nan, 0.0, -50.0]), np.array([-50.0, 0.0, np.nan]),
+              np.array([np.inf, 0.0]), np.array([-50.0, np.inf]), np.array([0.0, -0.0])]
+    for v in cases:
+        got, want = ek._lse(np.asarray(v, dtype=np.float64)), _lse_loop([float(x) for x in v])
+        assert (math.isnan(got) and math.isnan(want)) or got == want, v
+
+
 @pytest.mark.parametrize("D", [4, 3])
 def test_group_log_likelihood_and_labels_are_the_loops_bit_for_bit(D):
     """group_log_likelihood and assign_groups (the D = 4 path reads each component once

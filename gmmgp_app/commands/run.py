@@ -83,12 +83,16 @@ def run(args) -> int:
     # unwritable --out is the error to report first
     check_writable(out)
 
-    from .._atomic import atomic_write_text
-    from .._json import jsonable
     from .._memory import fix_mmap_threshold
-    from ..pipeline import FanoutObserver, build_map
 
     fix_mmap_threshold()  # freed temporaries leave the resident set (gmmgp_app/_memory.py)
+    # the scan is read on a second thread while the compute modules import (numba,
+    # scipy: ~0.4 CPU-s of Python holding the GIL; reading is mostly zlib and copies,
+    # which release it); its result, or its error, is taken where it was read before
+    reading = BackgroundRead(args) if spec is None else None
+    from .._atomic import atomic_write_text
+    from .._json import jsonable
+    from ..pipeline import FanoutObserver, build_map
     from ..progress import ConsoleObserver
 
     console = ConsoleObserver(enabled=not args.quiet)
@@ -104,16 +108,22 @@ def run(args) -> int:
     stream, fallback = plan_streaming(args) if spec is not None else (None, None)
     if stream is not None:
         return _run_tiled(args, cfg, spec, None, out, console, t0, 0.0, stream=stream)
-    scan = read_scan_args(args.scan, args)
-    read_s = time.perf_counter() - t0
+    if reading is None:
+        scan = read_scan_args(args.scan, args)
+        read_s = time.perf_counter() - t0
+        tree = None
+    else:   # the read's own seconds (it may have begun before t0, during the imports)
+        from ..pipeline import scan_tree
+
+        scan, read_s, tree = reading.result()
+        tree = scan_tree(scan, tree)    # the thread's tree, for a scan that gets one
     stop = None if args.stage == "all" else args.stage
-    tree = resolved = None
+    resolved = None
     if stop is None and not args.no_mesh and args.method != "loggpis":
         # refuse an impossible grid before fitting and before a cluster starts; the
         # scale measured for it (and its k-d tree of the scan) is build_map's own
-        from ..pipeline import check_surface_grid, scan_tree
+        from ..pipeline import check_surface_grid
 
-        tree = scan_tree(scan) if spec is None else None
         resolved = check_surface_grid(scan, cfg, tree=tree)
     if spec is not None:
         return _run_tiled(args, cfg, spec, scan, out, console, t0, read_s, fallback=fallback)
@@ -122,12 +132,18 @@ def run(args) -> int:
     with open_executor(workers=args.workers or None, scheduler=args.scheduler,
                        kind="processes" if args.processes else "dask") as executor:
         bar = _TaskBar(console, "GP blocks")
+        # no bar to draw (-q): the GP blocks are fitted in one call instead of 50 (a
+        # parallel region each: their barriers cost ~0.2 CPU-s on the street); the
+        # tree handed over, not kept here: build_map frees it after the prepare stage
+        held = [tree]
+        del tree
         smap = build_map(scan, cfg, method=args.method, observer=observer, stop_after=stop,
-                         executor=executor, progress=bar, tree=tree, resolved=resolved)
+                         executor=executor, progress=bar if console.enabled else None,
+                         tree=held.pop(), resolved=resolved)
         bar.close()
-    # the map keeps what it needs (seeds, GP points): free the scan and its k-d tree
-    # (~50 MB on the 1.3M-point street) before meshing
-    del scan, tree, resolved
+    # the map keeps what it needs (seeds, GP points): free the scan (its k-d tree, ~50
+    # MB on the 1.3M-point street, went after the prepare stage) before meshing
+    del scan, resolved
     smap.summary["seconds"] = {"read": read_s, **smap.summary["seconds"]}
     if smap.summary.get("auto") and not args.quiet:
         from ..pipeline import format_auto
@@ -351,6 +367,54 @@ def _write_meshes(smap, out: Path, observer, console, prior_mesh: bool = False) 
     vmax = std_colour_max(meshes.values())
     return [write_mesh_ply(m, out / f"mesh_{k}.ply", offset=smap.offset, vmax=vmax)
             for k, m in meshes.items()]
+
+
+class BackgroundRead:
+    """``read_scan_args(args.scan, args)`` on a daemon thread, started at once, then
+    the k-d tree of the points (:func:`gmmgp_app._kdtree.points_tree`, which
+    :func:`gmmgp_app.pipeline.scan_tree` takes); :meth:`result` waits for it and
+    returns ``(scan, read seconds, tree or None)`` or raises the read's own exception
+    (the same one-line error as a read on the calling thread). No tree for points
+    that are not all finite, nor when building it fails: the pipeline then decides
+    as before. A daemon thread: an interrupted run does not wait for it."""
+
+    def __init__(self, args):
+        import threading
+
+        from .. import datasets  # noqa: F401  (imported here: the thread imports nothing)
+
+        self._scan = self._error = self._tree = None
+        self._seconds = 0.0
+        self._thread = threading.Thread(target=self._read, args=(args,), daemon=True,
+                                        name="gmmgp-read")
+        self._thread.start()
+
+    def _read(self, args) -> None:
+        t = time.perf_counter()
+        try:
+            self._scan = read_scan_args(args.scan, args)
+        except BaseException as exc:  # raised again on the calling thread by result()
+            self._error = exc
+            return
+        finally:
+            self._seconds = time.perf_counter() - t
+        try:
+            pts = self._scan.points
+            if len(pts) and np.isfinite(pts).all():
+                from .._kdtree import points_tree
+
+                self._tree = points_tree(pts)
+        except Exception:       # e.g. memory: scan_tree builds it again, or says why not
+            self._tree = None
+
+    def result(self) -> tuple:
+        self._thread.join()
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
+        scan, tree = self._scan, self._tree
+        self._scan = self._tree = None      # the run frees them before meshing
+        return scan, self._seconds, tree
 
 
 class _TaskBar:

@@ -370,12 +370,11 @@ def _voxel_for_budget(points, start: float, budget: int, rounds: int = 4) -> flo
     """A voxel size whose grid keeps about ``budget`` points: start from ``start``
     and rescale by ``sqrt(kept / budget)`` (surfaces: count ~ 1 / size^2); MMS scans
     are anisotropic, so the median spacing alone under-estimates the size."""
-    lo = points.min(axis=0)
     c = start
     for _ in range(rounds):
         kept = voxel_count(points, c)      # occupied voxels: one hashed pass
         if kept is None:
-            k = np.floor((points - lo) / c).astype(np.int64)
+            k = np.floor((points - points.min(axis=0)) / c).astype(np.int64)
             kept = len(np.unique(k, axis=0))
         if abs(kept / budget - 1.0) < 0.1:
             break

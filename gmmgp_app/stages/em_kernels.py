@@ -54,6 +54,16 @@ LOG_RESP_SKIP = -28.0
 # is exp(-744.4); below -745.13 the result rounds to zero): log-sum-exp skips such
 # terms, which adds the same +0.0 they would have added.
 LOG_EXP_ZERO = -746.0
+# Log-sum-exp adds exp(t - m) of every term to a running sum s; once s >= 1 (the
+# largest term adds exp(0) = 1), a term exp(t) < 2^-53 (half an ulp of 1) leaves s
+# unchanged whatever s is: with t < LOG_ABSORBED (exp(-37) = 8.5e-17 < 2^-53 = 1.1e-16)
+# the exp is not taken, and s keeps the same bits.
+LOG_ABSORBED = -37.0
+# Terms before the largest one are added while s < 1; when every one of them (at most
+# LSE_PRE_MAX_K - 1) is below this, their sum p < (K - 1) exp(-42) < 2^-53 and
+# fl(p + 1) = 1: s is exactly 1 after the largest term, as if they were not there.
+LOG_ABSORBED_PRE = -42.0
+LSE_PRE_MAX_K = 64
 EPS10 = 10.0 * np.finfo(np.float64).eps
 
 
@@ -125,18 +135,36 @@ def _row_logprob(X, n, means, pchol, logconst, out):
 
 @njit(cache=True, inline="always")
 def _lse(v):
+    """``m + log(sum_k exp(v[k] - m))``, ``m = max v``, summed in k order; the exps that
+    cannot change the sum's bits are not taken (``LOG_EXP_ZERO``, ``LOG_ABSORBED``,
+    ``LOG_ABSORBED_PRE``) and exp(0) is 1: the bits of every exp taken in order."""
+    K = v.shape[0]
     m = -np.inf
-    for k in range(v.shape[0]):
+    km = -1
+    for k in range(K):
         if v[k] > m:
             m = v[k]
+            km = k
     if m == -np.inf:
         return m
     s = 0.0
-    for k in range(v.shape[0]):
+    start = 0
+    if K <= LSE_PRE_MAX_K and m < np.inf:   # (m = inf: the largest term's t is NaN)
+        tiny = True
+        for k in range(km):
+            if not (v[k] - m < LOG_ABSORBED_PRE):     # a NaN is not tiny
+                tiny = False
+                break
+        if tiny:            # the terms before the largest add nothing to its 1.0
+            s = 1.0
+            start = km + 1
+    for k in range(start, K):
         t = v[k] - m
         if t < LOG_EXP_ZERO:
             continue        # exp(t) == 0.0 exactly (a NaN t still goes to exp)
-        s += np.exp(t)
+        if t < LOG_ABSORBED and s >= 1.0:
+            continue        # exp(t) < 2^-53: s + exp(t) == s
+        s += 1.0 if t == 0.0 else np.exp(t)
     return m + np.log(s)
 
 
@@ -506,38 +534,59 @@ def _group_logprob(X, a, b, means, pchol, logconst, logw, lp, tmp):
 
 
 @njit(cache=True, inline="always")
-def _group_logprob4(X, a, b, means, pchol, logconst, logw, lp):
-    """:func:`_group_logprob` for D = 4 (the mapper's rows): the same operations in the
-    same order (each component's mean and factor read once for the group's rows, the
-    differences taken once per row), so the same bits."""
+def _soa4(means, pchol, logconst, logw):
+    """The D = 4 components' terms by row, each row contiguous over the components
+    (for :func:`_group_logprob4`): ``Q[0:4]`` the means, ``Q[4:14]`` the precision
+    factor's lower triangle row by row (p00, p10, p11, p20, ..., p33), ``Q[14]``
+    ``logconst``, ``Q[15]`` ``logw``. (16, K)."""
     K = means.shape[0]
+    Q = np.empty((16, K))
     for k in range(K):
-        m0, m1, m2, m3 = means[k, 0], means[k, 1], means[k, 2], means[k, 3]
-        p00 = pchol[k, 0, 0]
-        p10, p11 = pchol[k, 1, 0], pchol[k, 1, 1]
-        p20, p21, p22 = pchol[k, 2, 0], pchol[k, 2, 1], pchol[k, 2, 2]
-        p30, p31, p32, p33 = pchol[k, 3, 0], pchol[k, 3, 1], pchol[k, 3, 2], pchol[k, 3, 3]
-        lc = logconst[k]
-        acc = -(b - a - 1) * logw[k]
-        for n in range(a, b):
-            d0 = X[n, 0] - m0
-            d1 = X[n, 1] - m1
-            d2 = X[n, 2] - m2
-            d3 = X[n, 3] - m3
-            y0 = 0.0 + p00 * d0
-            y1 = (0.0 + p10 * d0) + p11 * d1
-            y2 = ((0.0 + p20 * d0) + p21 * d1) + p22 * d2
-            y3 = (((0.0 + p30 * d0) + p31 * d1) + p32 * d2) + p33 * d3
-            maha = (((0.0 + y0 * y0) + y1 * y1) + y2 * y2) + y3 * y3
-            acc += lc - 0.5 * maha
-        lp[k] = acc
+        for d in range(4):
+            Q[d, k] = means[k, d]
+        t = 4
+        for i in range(4):
+            for j in range(i + 1):
+                Q[t, k] = pchol[k, i, j]
+                t += 1
+        Q[14, k] = logconst[k]
+        Q[15, k] = logw[k]
+    return Q
 
 
 @njit(cache=True, inline="always")
-def _group_lp(X, a, b, means, pchol, logconst, logw, lp, tmp):
-    """:func:`_group_logprob`, through :func:`_group_logprob4` when D = 4."""
+def _group_logprob4(X, a, b, Q, lp):
+    """:func:`_group_logprob` for D = 4 (the mapper's rows), from :func:`_soa4`'s terms:
+    the same operations in the same order for each component (its sum over the
+    group's rows taken row after row), with the components side by side in the inner
+    loop (the compiler computes several at once: independent lanes, the same bits)."""
+    K = Q.shape[1]
+    for k in range(K):
+        lp[k] = -(b - a - 1) * Q[15, k]
+    for n in range(a, b):
+        x0 = X[n, 0]
+        x1 = X[n, 1]
+        x2 = X[n, 2]
+        x3 = X[n, 3]
+        for k in range(K):
+            d0 = x0 - Q[0, k]
+            d1 = x1 - Q[1, k]
+            d2 = x2 - Q[2, k]
+            d3 = x3 - Q[3, k]
+            y0 = 0.0 + Q[4, k] * d0
+            y1 = (0.0 + Q[5, k] * d0) + Q[6, k] * d1
+            y2 = ((0.0 + Q[7, k] * d0) + Q[8, k] * d1) + Q[9, k] * d2
+            y3 = (((0.0 + Q[10, k] * d0) + Q[11, k] * d1) + Q[12, k] * d2) + Q[13, k] * d3
+            maha = (((0.0 + y0 * y0) + y1 * y1) + y2 * y2) + y3 * y3
+            lp[k] += Q[14, k] - 0.5 * maha
+
+
+@njit(cache=True, inline="always")
+def _group_lp(X, a, b, means, pchol, logconst, logw, lp, tmp, Q):
+    """:func:`_group_logprob`, through :func:`_group_logprob4` when D = 4 (``Q``:
+    :func:`_soa4`'s terms)."""
     if X.shape[1] == 4:
-        _group_logprob4(X, a, b, means, pchol, logconst, logw, lp)
+        _group_logprob4(X, a, b, Q, lp)
     else:
         _group_logprob(X, a, b, means, pchol, logconst, logw, lp, tmp)
 
@@ -550,8 +599,9 @@ def group_log_likelihood(X, gptr, means, pchol, logconst, logw):
     out = np.empty(G)
     lp = np.empty(K)
     tmp = np.empty(K)
+    Q = _soa4(means, pchol, logconst, logw) if X.shape[1] == 4 else np.empty((16, 0))
     for g in range(G):
-        _group_lp(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp, tmp)
+        _group_lp(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp, tmp, Q)
         out[g] = _lse(lp)
     return out
 
@@ -564,8 +614,9 @@ def assign_groups(X, gptr, means, pchol, logconst, logw):
     out = np.empty(G, dtype=np.int64)
     lp = np.empty(K)
     tmp = np.empty(K)
+    Q = _soa4(means, pchol, logconst, logw) if X.shape[1] == 4 else np.empty((16, 0))
     for g in range(G):
-        _group_lp(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp, tmp)
+        _group_lp(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp, tmp, Q)
         best = 0
         for k in range(1, K):
             if lp[k] > lp[best]:
@@ -595,11 +646,11 @@ def accumulate_groups(X, gptr, means, pchol, logconst, logw):
 def _group_resp(lp, RT, g):
     """Group ``g``'s log-likelihood (log-sum-exp of its ``lp``) and responsibilities
     ``RT[k, g]`` (0.0 where ``t < LOG_RESP_SKIP``: exp(t) < RESP_FLOOR; a NaN t still
-    goes to exp)."""
+    goes to exp; exp(0) is 1)."""
     lse = _lse(lp)
     for k in range(lp.shape[0]):
         t = lp[k] - lse
-        RT[k, g] = 0.0 if t < LOG_RESP_SKIP else np.exp(t)
+        RT[k, g] = 0.0 if t < LOG_RESP_SKIP else (1.0 if t == 0.0 else np.exp(t))
     return lse
 
 
@@ -609,8 +660,9 @@ def _accumulate_groups_into(X, gptr, means, pchol, logconst, logw, RT):
     :func:`em_loop_groups` across iterations): first every group's log-likelihood and
     responsibilities (``RT[k, g]``, 0.0 where ``t < LOG_RESP_SKIP``), then each
     component's statistics over the groups in order (:func:`_group_stats_task4`: the
-    sums in registers, not read and written back per row). Every sum is the one row
-    by row would take, in the same order: the same bits."""
+    sums in registers, not read and written back per row); D = 4 in one pass
+    (:func:`_accumulate_groups4`). Every sum is the one row by row would take, in the
+    same order: the same bits."""
     G = gptr.shape[0] - 1
     K, D = means.shape
     lp = np.empty(K)
@@ -620,13 +672,7 @@ def _accumulate_groups_into(X, gptr, means, pchol, logconst, logw, RT):
     worst_i = -1
     # the branch outside the loop: inside, the generic path's code slows the D = 4 one
     if D == 4:
-        for g in range(G):
-            _group_logprob4(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp)
-            lse = _group_resp(lp, RT, g)
-            ll += lse
-            if lse < worst:
-                worst = lse
-                worst_i = gptr[g]
+        return _accumulate_groups4(X, gptr, means, pchol, logconst, logw, RT)
     else:
         for g in range(G):
             _group_logprob(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp, tmp)
@@ -642,6 +688,92 @@ def _accumulate_groups_into(X, gptr, means, pchol, logconst, logw, RT):
     isplit = _stats_split(D)
     for task in range(2 * K):
         _group_stats_one(X, gptr, means, RT, task, isplit, nk, gk, sx, sxx)
+    return nk, gk, sx, sxx, ll, worst, worst_i
+
+
+@njit(cache=True, nogil=True)
+def _accumulate_groups4(X, gptr, means, pchol, logconst, logw, RT):
+    """:func:`_accumulate_groups_into` for D = 4 in one pass over the groups: each
+    group's responsibilities, then its rows added at once (still in the cache) to the
+    statistics of the components it has a share of. Every statistic is the sum
+    :func:`_group_stats_task4` takes (the same products, over the groups and rows in
+    order; here in an array, there in registers): the same bits."""
+    G = gptr.shape[0] - 1
+    K = means.shape[0]
+    lp = np.empty(K)
+    Q = _soa4(means, pchol, logconst, logw)
+    # S[k]: n_k, g_k, sx (4), sxx rows 0-1 (q00 q10 q11), rows 2-3 (q20 .. q33)
+    S = np.zeros((K, 16))
+    ll = 0.0
+    worst = np.inf
+    worst_i = -1
+    for g in range(G):
+        a, b = gptr[g], gptr[g + 1]
+        _group_logprob4(X, a, b, Q, lp)
+        lse = _group_resp(lp, RT, g)
+        ll += lse
+        if lse < worst:
+            worst = lse
+            worst_i = a
+        for k in range(K):
+            r = RT[k, g]
+            if r < RESP_FLOOR:
+                continue
+            m0, m1, m2, m3 = Q[0, k], Q[1, k], Q[2, k], Q[3, k]
+            n_k, g_k = S[k, 0], S[k, 1]
+            s0, s1, s2, s3 = S[k, 2], S[k, 3], S[k, 4], S[k, 5]
+            q00, q10, q11 = S[k, 6], S[k, 7], S[k, 8]
+            q20, q21, q22 = S[k, 9], S[k, 10], S[k, 11]
+            q30, q31, q32, q33 = S[k, 12], S[k, 13], S[k, 14], S[k, 15]
+            g_k += r
+            n_k += r * (b - a)
+            for n in range(a, b):
+                d0 = X[n, 0] - m0
+                d1 = X[n, 1] - m1
+                d2 = X[n, 2] - m2
+                d3 = X[n, 3] - m3
+                s0 += r * d0
+                s1 += r * d1
+                s2 += r * d2
+                s3 += r * d3
+                r0 = r * d0
+                q00 += r0 * d0
+                r1 = r * d1
+                q10 += r1 * d0
+                q11 += r1 * d1
+                r2 = r * d2
+                q20 += r2 * d0
+                q21 += r2 * d1
+                q22 += r2 * d2
+                r3 = r * d3
+                q30 += r3 * d0
+                q31 += r3 * d1
+                q32 += r3 * d2
+                q33 += r3 * d3
+            S[k, 0], S[k, 1] = n_k, g_k
+            S[k, 2], S[k, 3], S[k, 4], S[k, 5] = s0, s1, s2, s3
+            S[k, 6], S[k, 7], S[k, 8] = q00, q10, q11
+            S[k, 9], S[k, 10], S[k, 11] = q20, q21, q22
+            S[k, 12], S[k, 13], S[k, 14], S[k, 15] = q30, q31, q32, q33
+    nk = np.zeros(K)
+    gk = np.zeros(K)
+    sx = np.zeros((K, 4))
+    sxx = np.zeros((K, 4, 4))
+    for k in range(K):
+        nk[k] = S[k, 0]
+        gk[k] = S[k, 1]
+        for i in range(4):
+            sx[k, i] = S[k, 2 + i]
+        sxx[k, 0, 0] = S[k, 6]
+        sxx[k, 1, 0] = S[k, 7]
+        sxx[k, 1, 1] = S[k, 8]
+        sxx[k, 2, 0] = S[k, 9]
+        sxx[k, 2, 1] = S[k, 10]
+        sxx[k, 2, 2] = S[k, 11]
+        sxx[k, 3, 0] = S[k, 12]
+        sxx[k, 3, 1] = S[k, 13]
+        sxx[k, 3, 2] = S[k, 14]
+        sxx[k, 3, 3] = S[k, 15]
     return nk, gk, sx, sxx, ll, worst, worst_i
 
 
@@ -666,12 +798,13 @@ def _group_resp_parallel(X, gptr, means, pchol, logconst, logw, RT, LSE):
     K = means.shape[0]
     nch = (G + GROUP_CHUNK - 1) // GROUP_CHUNK
     D = X.shape[1]
+    Q = _soa4(means, pchol, logconst, logw) if D == 4 else np.empty((16, 0))
     for c in prange(nch):
         lp = np.empty(K)
         tmp = np.empty(K)
         if D == 4:
             for g in range(c * GROUP_CHUNK, min(G, (c + 1) * GROUP_CHUNK)):
-                _group_logprob4(X, gptr[g], gptr[g + 1], means, pchol, logconst, logw, lp)
+                _group_logprob4(X, gptr[g], gptr[g + 1], Q, lp)
                 LSE[g] = _group_resp(lp, RT, g)
         else:
             for g in range(c * GROUP_CHUNK, min(G, (c + 1) * GROUP_CHUNK)):

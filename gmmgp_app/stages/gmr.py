@@ -467,6 +467,24 @@ def _merge_lists(n_cells, ptrs, idxs, members):
 
 
 @nb.njit(cache=True, nogil=True)
+def _compact_lists(ptr, idx, keep):
+    """The CSR (ptr, idx) with only the entries ``keep`` marks, idx as int32: the
+    ``(concatenate([0], cumsum(keep))[ptr], idx[keep].astype(int32))`` of numpy in one
+    pass, without the cumulative sum and mask copies over every candidate."""
+    n_cells = ptr.shape[0] - 1
+    ptr2 = np.zeros(n_cells + 1, dtype=np.int64)
+    out = np.empty(idx.shape[0], dtype=np.int32)
+    j = 0
+    for c in range(n_cells):
+        for t in range(ptr[c], ptr[c + 1]):
+            if keep[t]:
+                out[j] = idx[t]
+                j += 1
+        ptr2[c + 1] = j
+    return ptr2, out[:j].copy()
+
+
+@nb.njit(cache=True, nogil=True)
 def _scatter_lists(p, vals, at, out):
     """Append list c of CSR (p, vals) at ``out[at[c]:]`` and advance ``at[c]``."""
     for c in range(len(p) - 1):
@@ -628,9 +646,7 @@ class GMRField:
         c = self._c
         keep = _prune_cells(centres, rho, ptr, idx, c["mux"], c["prec"], c["logc"],
                             c["lip"], self.n_active, self.mahalanobis_cut)
-        csum = np.concatenate([[0], np.cumsum(keep, dtype=np.int64)])
-        ptr2 = csum[ptr]
-        return ptr2, idx[keep].astype(np.int32)
+        return _compact_lists(ptr, idx, keep)
 
     def _append(self, keys, ptr_new, idx_new) -> None:
         """Add built cells (unique keys, not cached) to the cache."""

@@ -84,8 +84,14 @@ def _check_rows(X, name: str = "rows", min_rows: int = 1) -> np.ndarray:
     return X
 
 
+def _all_equal(X) -> bool:
+    """Whether every row of the finite (N, D) ``X`` equals the first (``X.max(0) ==
+    X.min(0)``, without numpy's strided column reductions: ~10x slower on (N, 4))."""
+    return bool(np.all(X == X[0])) if len(X) else True
+
+
 def _check_not_identical(X, name: str = "rows") -> None:
-    if len(X) > 1 and np.all(X.max(axis=0) - X.min(axis=0) == 0.0):
+    if len(X) > 1 and _all_equal(X):
         raise HGMMError(
             f"All {len(X)} {name} are identical, so no mixture can be fitted; check the "
             "input (e.g. a scan of one repeated point)."
@@ -552,7 +558,7 @@ def fit_hgmm(rows: np.ndarray, hcfg: HGMMConfig, *,
                 stats["failed_splits"] += 1
                 continue
             Xj = X[idx]
-            if np.all(Xj.max(axis=0) == Xj.min(axis=0)):
+            if _all_equal(Xj):
                 stats["failed_splits"] += 1
                 continue
             gptr = group_ptr(idx)
