@@ -139,3 +139,31 @@ def test_kept_list_cube_keys():
     keys = _KeptLists.cube_keys(cube)
     assert (keys[:5] >= 0).all() and len(set(keys[:5])) == 5   # distinct, kept
     assert (keys[5:] == -1).all()                               # too far out to key
+
+
+def test_far_queries_screened_by_the_kd_tree_answer_as_query_by_query():
+    # GridKNN._query_far (the queries no group answered): the k-d tree first, the grid
+    # only where the k-th neighbour lies within the max_ring box; the same answers as
+    # _query_each (grid, then the k-d tree where it fails), tie order included: a
+    # regular lattice of points (many equidistant neighbours) and queries near it, on
+    # it and far from it
+    rng = np.random.default_rng(3)
+    a = np.arange(12) * 0.1
+    p = np.stack(np.meshgrid(a, a, a[:3], indexing="ij"), -1).reshape(-1, 3)
+    p = np.vstack([p, rng.uniform(-3, 4, (40, 3))])
+    q = np.vstack([p[rng.choice(len(p), 300)] + rng.normal(scale=0.05, size=(300, 3)),
+                   p[:50],                                   # on points: exact ties
+                   np.round(rng.uniform(-6, 7, (600, 3)), 1),  # on the lattice's planes
+                   rng.uniform(-9, 9, (300, 3))])
+    for k in (1, 8, 16):
+        g = GridKNN(p, k, cell=0.1)     # 3 shells of 0.1: the far queries fail there
+        d0, i0 = g._query_each(q)
+        d1, i1 = g._query_far(q)
+        np.testing.assert_array_equal(d1, d0)
+        np.testing.assert_array_equal(i1, i0)
+        assert i1.dtype == i0.dtype == np.int64
+        # both routes taken: some queries answered by the grid, some by the k-d tree
+        from gmmgp_app.stages.knn import _knn_grid
+        done = _knn_grid(q, g.k, g.cell, g.lo, g.dims, g.table_keys, g.table_start,
+                         g.table_end, g.sorted_points, g.order, g.max_ring)[2]
+        assert 0 < done.sum() < len(q)

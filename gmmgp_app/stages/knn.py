@@ -108,7 +108,7 @@ class GridKNN:
             d, i, done = self._query_groups(x)
             rest = np.flatnonzero(~done)
             if len(rest):
-                d[rest], i[rest] = self._query_each(x[rest])
+                d[rest], i[rest] = self._query_far(x[rest])
             return d, i
         return self._query_each(x)
 
@@ -176,6 +176,32 @@ class GridKNN:
     def _list_params(self) -> tuple:
         """What a group's candidate list depends on besides its cube and the points."""
         return (self.k, self.group, self.cell, self.max_ring, self.max_candidates)
+
+    def _query_far(self, x):
+        """:meth:`_query_each`'s answers for queries a group could not answer (mostly far
+        from the data, where the k-d tree answers most of them): the k-d tree first for
+        all, then the grid only for the queries whose k-th neighbour distance is within
+        the distance ``out`` from the query to the outside of its ``max_ring`` box
+        (:func:`_ring_outside`). The grid's search succeeds exactly when the k-th
+        nearest distance is within ``out`` (its k-th best is never nearer than the true
+        one, and the true k nearest lie in the box when they are within ``out``), so a
+        query beyond ``out`` (with a margin for round-off) is one the grid would hand
+        to the k-d tree: the same answers as :meth:`_query_each`, without the grid's
+        failing searches (KITTI's lattice: 96 % of these queries)."""
+        dt, it = self.tree.query(x, k=self.k, workers=-1)
+        d = np.asarray(dt, dtype=np.float64).reshape(len(x), self.k)
+        i = np.asarray(it).reshape(len(x), self.k).astype(np.int64, copy=False)
+        out = _ring_outside(x, self.cell, self.max_ring)
+        # not (d_k > out): NaN distances (none found) go to the grid as before
+        maybe = np.flatnonzero(~(d[:, -1] > out * (1.0 + 1e-9) + 1e-12 * self.cell))
+        if len(maybe):
+            xm = np.ascontiguousarray(x[maybe])
+            dg, ig, done = _knn_grid(xm, self.k, self.cell, self.lo, self.dims,
+                                     self.table_keys, self.table_start, self.table_end,
+                                     self.sorted_points, self.order, self.max_ring)
+            ok = maybe[done]
+            d[ok], i[ok] = dg[done], ig[done]
+        return d, i
 
     def _query_each(self, x):
         """Query by query (:func:`_knn_grid`, the k-d tree beyond ``max_ring`` shells)."""
@@ -437,6 +463,14 @@ def _shell_knn(p0, p1, p2, k, cell, lo, dims, tk, ts, te, pts, max_ring, bd, bi)
         if cnt == k and bd[k - 1] <= out * out:
             return True
     return False
+
+
+def _ring_outside(x, cell: float, max_ring: int) -> np.ndarray:
+    """(K,) the distance from each query to the outside of the box of cells
+    ``[c - max_ring, c + max_ring]`` around its cell ``c`` (:func:`_shell_knn`'s
+    ``out`` after its last shell)."""
+    c = np.floor(x / cell)
+    return np.minimum(x - (c - max_ring) * cell, (c + max_ring + 1) * cell - x).min(axis=1)
 
 
 @nb.njit(cache=True, parallel=True, nogil=True)
