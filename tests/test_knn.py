@@ -167,3 +167,43 @@ def test_far_queries_screened_by_the_kd_tree_answer_as_query_by_query():
         done = _knn_grid(q, g.k, g.cell, g.lo, g.dims, g.table_keys, g.table_start,
                          g.table_end, g.sorted_points, g.order, g.max_ring)[2]
         assert 0 < done.sum() < len(q)
+
+
+def test_group_candidate_lists_are_the_points_within_reach_of_the_cube():
+    # the lists _knn_groups gathers (column by column, GridKNN.columns) and keeps: every
+    # point within R = D + g sqrt(3)/2 of the group's cube (D: the cube centre's k-th
+    # neighbour distance) and no other, in the order of their distance to the centre;
+    # a plane, a cylinder and scattered outliers (dense and sparse columns)
+    rng = np.random.default_rng(4)
+    p = _points(rng, 6000)
+    q = np.vstack([p[rng.choice(len(p), 3000)] + rng.normal(scale=0.05, size=(3000, 3)),
+                   rng.uniform(-3, 3, (500, 3))])
+    g = GridKNN(p, 16)
+    g.keep_lists(True)
+    d, i = g.query(q)
+    kept = g._kept
+    assert kept.count > 100
+    gc = g.group * g.cell
+    cubes = np.unique(np.floor(q / gc), axis=0)
+    ids = kept.find(kept.cube_keys(cubes))
+    tree = cKDTree(p)
+    checked = 0
+    for cube, n in zip(cubes, ids):
+        if n < 0:
+            continue
+        rows = kept.pool[kept.starts[n]:kept.starts[n + 1]]
+        lo = cube * gc
+        centre = (cube + 0.5) * gc
+        D = tree.query(centre, k=16)[0][-1]
+        R = (D + gc * np.sqrt(3.0) / 2) * (1.0 + 1e-9) + 1e-12 * gc
+        sp = g.sorted_points
+        gap = np.maximum(np.maximum(lo - sp, sp - (lo + gc)), 0.0)
+        want = np.flatnonzero((gap ** 2).sum(1) <= R * R)
+        assert sorted(rows.tolist()) == want.tolist()
+        cd = ((sp[rows] - centre) ** 2).sum(1)
+        assert np.all(np.diff(cd) > 0)             # ascending (no ties here)
+        checked += 1
+    assert checked > 100
+    d2, i2 = tree.query(q, k=16)
+    np.testing.assert_array_equal(d, d2)
+    np.testing.assert_array_equal(i, i2)

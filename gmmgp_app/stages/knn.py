@@ -82,6 +82,26 @@ class GridKNN:
         (self.order, self.sorted_points, self.table_keys, self.table_start,
          self.table_end) = _cell_table(p, c, self.lo, self.dims)
         self._kept = None
+        self._columns = None
+
+    @property
+    def columns(self) -> tuple:
+        """The occupied columns of cells (cells with the same first two coordinates):
+        an open-addressing table from the column's key ``a * dims[1] + b`` (box
+        coordinates) to the run of its points in the cell order (``start``, ``end``),
+        and each point's third cell coordinate ``zc`` (ascending within a column: the
+        points are sorted by cell key). The cells ``c0..c1`` of one column are one
+        stretch of points, in the order cell by cell."""
+        if getattr(self, "_columns", None) is None:    # (a GridKNN pickled before it)
+            c = np.floor(self.sorted_points / self.cell).astype(np.int64) - self.lo
+            key2 = c[:, 0] * self.dims[1] + c[:, 1]
+            starts = np.flatnonzero(np.r_[True, key2[1:] != key2[:-1]])
+            ends = np.r_[starts[1:], len(key2)]
+            size = 1 << int(np.ceil(np.log2(2 * len(starts) + 2)))
+            self._columns = _build_table(key2[starts], starts.astype(np.int64),
+                                         ends.astype(np.int64), size) + \
+                (np.ascontiguousarray(c[:, 2]),)
+        return self._columns
 
     def _default_cell(self) -> float:
         p = self.points
@@ -138,7 +158,7 @@ class GridKNN:
             _knn_groups(x, qorder, gptr, g, self.k, self.cell, self.lo, self.dims,
                         self.table_keys, self.table_start, self.table_end,
                         self.sorted_points, self.order, self.max_ring, self.max_candidates,
-                        d, i, done, np.full(G, -1, np.int64), none, np.zeros(0, np.int32),
+                        *self.columns, d, i, done, np.full(G, -1, np.int64), none, np.zeros(0, np.int32),
                         np.full(G, -1, np.int64), np.zeros((0, 0), np.int32), none)
             return d, i, done
         with kept.lock:
@@ -157,7 +177,7 @@ class GridKNN:
             _knn_groups(x, qorder, gptr, g, self.k, self.cell, self.lo, self.dims,
                         self.table_keys, self.table_start, self.table_end,
                         self.sorted_points, self.order, self.max_ring, self.max_candidates,
-                        d, i, done, have, kept.starts, kept.pool, row, out, out_n)
+                        *self.columns, d, i, done, have, kept.starts, kept.pool, row, out, out_n)
             kept.add(gkey[miss], out, out_n)
         return d, i, done
 
@@ -497,7 +517,8 @@ def _knn_grid(x, k, cell, lo, dims, tk, ts, te, pts, order, max_ring):
 
 @nb.njit(cache=True, parallel=True, nogil=True)
 def _knn_groups(x, qorder, gptr, gcell, k, cell, lo, dims, tk, ts, te, pts, order, max_ring,
-                cap, dist, idx, done, have, pool_start, pool, row, out, out_n):
+                cap, colk, col0, col1, zc, dist, idx, done, have, pool_start, pool, row, out,
+                out_n):
     """Per group of queries (``qorder[gptr[g]:gptr[g + 1]]``, all in one cube of edge
     ``gcell``): the exact k-th neighbour distance ``D`` of the cube's centre ``c`` (cube
     shells of cells, as :func:`_knn_grid`), the points within ``R = D + gcell sqrt(3)/2``
@@ -544,7 +565,7 @@ def _knn_groups(x, qorder, gptr, gcell, k, cell, lo, dims, tk, ts, te, pts, orde
             else:
                 n = _group_candidates(b0, b1, b2, cx, cy, cz, gcell, half, k, cell, lo,
                                       dims, tk, ts, te, pts, max_ring, cap, mask, bd, bi,
-                                      cand, cd, cs, cdist, px, py, pz)
+                                      cand, cd, cs, cdist, px, py, pz, colk, col0, col1, zc)
                 if row[g] >= 0:
                     r = row[g]
                     if 0 <= n <= out.shape[1]:
@@ -559,13 +580,20 @@ def _knn_groups(x, qorder, gptr, gcell, k, cell, lo, dims, tk, ts, te, pts, orde
                            px, py, pz, bd, bi, dist, idx, done)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True)
 def _group_candidates(b0, b1, b2, cx, cy, cz, gcell, half, k, cell, lo, dims, tk, ts, te,
-                      pts, max_ring, cap, mask, bd, bi, cand, cd, cs, cdist, px, py, pz):
+                      pts, max_ring, cap, mask, bd, bi, cand, cd, cs, cdist, px, py, pz,
+                      colk, col0, col1, zc):
     """The candidates of the group in cube ``(b0, b1, b2)`` (centre ``c``) in the order
     of their distance to ``c``: rows to ``cs``, those distances to ``cdist``,
     coordinates to ``px``, ``py``, ``pz``; returns their count, -1 when the centre needs
-    more than ``max_ring`` shells or the list more than ``cap`` points."""
+    more than ``max_ring`` shells or the list more than ``cap`` points.
+
+    The cells within ``R`` of the cube are read column by column (:attr:`GridKNN.columns`:
+    one table look-up per column and a binary search for its first cell, instead of one
+    look-up per cell, most of them empty where the data are sparse): the points in the
+    same order as cell by cell (a column's cells are consecutive in the cell order), so
+    the same list."""
     # 1. the centre's k-th neighbour distance
     if not _shell_knn(cx, cy, cz, k, cell, lo, dims, tk, ts, te, pts, max_ring, bd, bi):
         return -1
@@ -579,40 +607,45 @@ def _group_candidates(b0, b1, b2, cx, cy, cz, gcell, half, k, cell, lo, dims, tk
     hy = ly + gcell
     hz = lz + gcell
     n = 0
-    over = False
+    cmask = len(colk) - 1
+    z0 = max(int(math.floor((lz - R) / cell)) - lo[2], 0)
+    z1 = min(int(math.floor((hz + R) / cell)) - lo[2], dims[2] - 1)
     for a in range(int(math.floor((lx - R) / cell)), int(math.floor((hx + R) / cell)) + 1):
         qa = a - lo[0]
-        if qa < 0 or qa >= dims[0] or over:
+        if qa < 0 or qa >= dims[0] or z0 > z1:
             continue
         for b in range(int(math.floor((ly - R) / cell)),
                        int(math.floor((hy + R) / cell)) + 1):
             qb = b - lo[1]
-            if qb < 0 or qb >= dims[1] or over:
+            if qb < 0 or qb >= dims[1]:
                 continue
-            for c in range(int(math.floor((lz - R) / cell)),
-                           int(math.floor((hz + R) / cell)) + 1):
-                qc = c - lo[2]
-                if qc < 0 or qc >= dims[2] or over:
-                    continue
-                s = _cell_slot(tk, mask, dims, qa, qb, qc)
-                if s < 0:
-                    continue
-                for j in range(ts[s], te[s]):
-                    g0 = max(lx - pts[j, 0], pts[j, 0] - hx, 0.0)
-                    g1 = max(ly - pts[j, 1], pts[j, 1] - hy, 0.0)
-                    g2 = max(lz - pts[j, 2], pts[j, 2] - hz, 0.0)
-                    if g0 * g0 + g1 * g1 + g2 * g2 <= R2:
-                        if n == cap:
-                            over = True
-                            break
-                        e0 = cx - pts[j, 0]
-                        e1 = cy - pts[j, 1]
-                        e2 = cz - pts[j, 2]
-                        cand[n] = j
-                        cd[n] = e0 * e0 + e1 * e1 + e2 * e2
-                        n += 1
-    if over:
-        return -1
+            s = _slot(colk, qa * dims[1] + qb, cmask)
+            if s < 0:
+                continue
+            # the column's first point in a cell >= z0 (its points ascend in zc)
+            j0 = col0[s]
+            j1 = col1[s]
+            while j0 < j1:
+                m = (j0 + j1) >> 1
+                if zc[m] < z0:
+                    j0 = m + 1
+                else:
+                    j1 = m
+            for j in range(j0, col1[s]):
+                if zc[j] > z1:
+                    break
+                g0 = max(lx - pts[j, 0], pts[j, 0] - hx, 0.0)
+                g1 = max(ly - pts[j, 1], pts[j, 1] - hy, 0.0)
+                g2 = max(lz - pts[j, 2], pts[j, 2] - hz, 0.0)
+                if g0 * g0 + g1 * g1 + g2 * g2 <= R2:
+                    if n == cap:
+                        return -1
+                    e0 = cx - pts[j, 0]
+                    e1 = cy - pts[j, 1]
+                    e2 = cz - pts[j, 2]
+                    cand[n] = j
+                    cd[n] = e0 * e0 + e1 * e1 + e2 * e2
+                    n += 1
     o = np.argsort(cd[:n])
     # their coordinates in that order, one array per axis: the members' scans read
     # them in sequence (a gather through ``cs`` per candidate was a fifth slower)
