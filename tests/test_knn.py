@@ -207,3 +207,29 @@ def test_group_candidate_lists_are_the_points_within_reach_of_the_cube():
     d2, i2 = tree.query(q, k=16)
     np.testing.assert_array_equal(d, d2)
     np.testing.assert_array_equal(i, i2)
+
+
+def test_insertion_order_is_argsorts_when_the_keys_are_distinct():
+    # _insertion_order (short candidate lists): np.argsort's order when every key is
+    # distinct; False on a tie or a NaN (the caller then sorts by np.argsort itself)
+    from gmmgp_app.stages.knn import _insertion_order
+
+    rng = np.random.default_rng(5)
+    for n in (0, 1, 2, 7, 64, 128):
+        cd = rng.uniform(0, 1, 200)
+        cand = rng.permutation(200).astype(np.int64)
+        rows, sq = np.zeros(200, np.int64), np.zeros(200)
+        keep = cd.copy(), cand.copy()
+        assert _insertion_order(cand, cd, n, rows, sq)
+        o = np.argsort(cd[:n])
+        np.testing.assert_array_equal(rows[:n], cand[o])
+        np.testing.assert_array_equal(sq[:n], cd[o])
+        np.testing.assert_array_equal(cd, keep[0])
+        np.testing.assert_array_equal(cand, keep[1])
+        if n >= 2:
+            tie = cd.copy()
+            tie[n - 1] = tie[0]
+            assert not _insertion_order(cand, tie, n, rows, sq)
+            nan = cd.copy()
+            nan[n // 2] = np.nan
+            assert not _insertion_order(cand, nan, n, rows, sq)
