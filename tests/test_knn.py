@@ -233,3 +233,34 @@ def test_insertion_order_is_argsorts_when_the_keys_are_distinct():
             nan = cd.copy()
             nan[n // 2] = np.nan
             assert not _insertion_order(cand, nan, n, rows, sq)
+
+
+def test_shell_search_through_columns_is_the_cell_by_cell_one():
+    # _shell_knn_cols (the group centres' search) against _shell_knn: the same success,
+    # k best distances and rows, for centres near the data, between sparse outliers and
+    # beyond max_ring, on points with exact ties (a regular lattice) and without
+    from gmmgp_app.stages.knn import _shell_knn, _shell_knn_cols
+
+    rng = np.random.default_rng(6)
+    a = np.arange(10) * 0.1
+    grid = np.stack(np.meshgrid(a, a, a[:2], indexing="ij"), -1).reshape(-1, 3)
+    for p in (_points(rng, 4000), np.vstack([grid, rng.uniform(-3, 4, (30, 3))])):
+        for cell in (None, 0.05):
+            g = GridKNN(p, 16, cell=cell)
+            q = np.vstack([p[rng.choice(len(p), 400)] + rng.normal(scale=0.1, size=(400, 3)),
+                           rng.uniform(-6, 6, (400, 3)), np.round(rng.uniform(-1, 2, (200, 3)), 1)])
+            ok = 0
+            for x in q:
+                out = []
+                for f, extra in ((_shell_knn, ()), (_shell_knn_cols, g.columns)):
+                    bd, bi = np.empty(16), np.empty(16, np.int64)
+                    done = f(x[0], x[1], x[2], 16, g.cell, g.lo, g.dims, g.table_keys,
+                             g.table_start, g.table_end, g.sorted_points, g.max_ring, bd, bi,
+                             *extra)
+                    out.append((done, bd, bi))
+                assert out[0][0] == out[1][0]
+                if out[0][0]:
+                    ok += 1
+                    np.testing.assert_array_equal(out[0][1], out[1][1])
+                    np.testing.assert_array_equal(out[0][2], out[1][2])
+            assert 0 < ok < len(q)

@@ -493,6 +493,98 @@ def _ring_outside(x, cell: float, max_ring: int) -> np.ndarray:
     return np.minimum(x - (c - max_ring) * cell, (c + max_ring + 1) * cell - x).min(axis=1)
 
 
+@nb.njit(cache=True, inline="always")
+def _shell_knn_cols(p0, p1, p2, k, cell, lo, dims, tk, ts, te, pts, max_ring, bd, bi, colk,
+                    col0, col1, zc):
+    """:func:`_shell_knn` with the rows of cells that a shell crosses whole read
+    through their column (:attr:`GridKNN.columns`: one look-up and a binary search
+    instead of one look-up per cell): the same cells in the same order, each skipped
+    or not by the same test at the same moment, so the same answer."""
+    mask = len(tk) - 1
+    cmask = len(colk) - 1
+    slack = (1e-9 * cell) ** 2
+    bd[:] = np.inf
+    bi[:] = -1
+    cnt = 0
+    c0 = int(math.floor(p0 / cell))
+    c1 = int(math.floor(p1 / cell))
+    c2 = int(math.floor(p2 / cell))
+    for r in range(max_ring + 1):
+        for a in range(c0 - r, c0 + r + 1):
+            qa = a - lo[0]
+            if qa < 0 or qa >= dims[0]:
+                continue
+            g0 = max(a * cell - p0, p0 - (a + 1) * cell, 0.0)
+            for b in range(c1 - r, c1 + r + 1):
+                qb = b - lo[1]
+                if qb < 0 or qb >= dims[1]:
+                    continue
+                g1 = max(b * cell - p1, p1 - (b + 1) * cell, 0.0)
+                edge_ab = a == c0 - r or a == c0 + r or b == c1 - r or b == c1 + r
+                if edge_ab:
+                    # the whole row c2 - r .. c2 + r: the column's points in cell order
+                    s = _slot(colk, qa * dims[1] + qb, cmask)
+                    if s < 0:
+                        continue
+                    z0 = c2 - r - lo[2]
+                    z1 = c2 + r - lo[2]
+                    j = col0[s]
+                    j1 = col1[s]
+                    while j < j1:
+                        m = (j + j1) >> 1
+                        if zc[m] < z0:
+                            j = m + 1
+                        else:
+                            j1 = m
+                    end = col1[s]
+                    while j < end and zc[j] <= z1:
+                        qc = zc[j]
+                        c = qc + lo[2]
+                        if cnt == k:
+                            g2 = max(c * cell - p2, p2 - (c + 1) * cell, 0.0)
+                            gg = g0 * g0 + g1 * g1 + g2 * g2
+                            if gg > bd[k - 1] * (1.0 + 1e-9) + slack:
+                                while j < end and zc[j] == qc:
+                                    j += 1       # the cell skipped, as cell by cell
+                                continue
+                        while j < end and zc[j] == qc:
+                            d0 = p0 - pts[j, 0]
+                            d1 = p1 - pts[j, 1]
+                            d2 = p2 - pts[j, 2]
+                            dd = d0 * d0 + d1 * d1 + d2 * d2
+                            if cnt < k or dd < bd[k - 1]:
+                                cnt = _insert(bd, bi, cnt, k, dd, j)
+                            j += 1
+                    continue
+                for c in (c2 - r, c2 + r):
+                    qc = c - lo[2]
+                    if qc < 0 or qc >= dims[2]:
+                        continue
+                    if cnt == k:
+                        g2 = max(c * cell - p2, p2 - (c + 1) * cell, 0.0)
+                        gg = g0 * g0 + g1 * g1 + g2 * g2
+                        if gg > bd[k - 1] * (1.0 + 1e-9) + slack:
+                            continue
+                    s = _cell_slot(tk, mask, dims, qa, qb, qc)
+                    if s < 0:
+                        continue
+                    for j in range(ts[s], te[s]):
+                        d0 = p0 - pts[j, 0]
+                        d1 = p1 - pts[j, 1]
+                        d2 = p2 - pts[j, 2]
+                        dd = d0 * d0 + d1 * d1 + d2 * d2
+                        if cnt < k or dd < bd[k - 1]:
+                            cnt = _insert(bd, bi, cnt, k, dd, j)
+        out = math.inf
+        for ax in range(3):
+            pa = p0 if ax == 0 else (p1 if ax == 1 else p2)
+            ca = c0 if ax == 0 else (c1 if ax == 1 else c2)
+            out = min(out, pa - (ca - r) * cell, (ca + r + 1) * cell - pa)
+        if cnt == k and bd[k - 1] <= out * out:
+            return True
+    return False
+
+
 @nb.njit(cache=True, parallel=True, nogil=True)
 def _knn_grid(x, k, cell, lo, dims, tk, ts, te, pts, order, max_ring):
     """Per query: :func:`_shell_knn` around it; ``done`` False where ``max_ring``
@@ -620,7 +712,8 @@ def _group_candidates(b0, b1, b2, cx, cy, cz, gcell, half, k, cell, lo, dims, tk
     same order as cell by cell (a column's cells are consecutive in the cell order), so
     the same list."""
     # 1. the centre's k-th neighbour distance
-    if not _shell_knn(cx, cy, cz, k, cell, lo, dims, tk, ts, te, pts, max_ring, bd, bi):
+    if not _shell_knn_cols(cx, cy, cz, k, cell, lo, dims, tk, ts, te, pts, max_ring, bd, bi,
+                           colk, col0, col1, zc):
         return -1
     # 2. the candidates: points within R of the cube (margins cover round-off)
     R = (math.sqrt(bd[k - 1]) + half) * (1.0 + 1e-9) + 1e-12 * gcell
