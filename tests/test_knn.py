@@ -139,3 +139,128 @@ def test_kept_list_cube_keys():
     keys = _KeptLists.cube_keys(cube)
     assert (keys[:5] >= 0).all() and len(set(keys[:5])) == 5   # distinct, kept
     assert (keys[5:] == -1).all()                               # too far out to key
+
+
+def test_far_queries_screened_by_the_kd_tree_answer_as_query_by_query():
+    # GridKNN._query_far (the queries no group answered): the k-d tree first, the grid
+    # only where the k-th neighbour lies within the max_ring box; the same answers as
+    # _query_each (grid, then the k-d tree where it fails), tie order included: a
+    # regular lattice of points (many equidistant neighbours) and queries near it, on
+    # it and far from it
+    rng = np.random.default_rng(3)
+    a = np.arange(12) * 0.1
+    p = np.stack(np.meshgrid(a, a, a[:3], indexing="ij"), -1).reshape(-1, 3)
+    p = np.vstack([p, rng.uniform(-3, 4, (40, 3))])
+    q = np.vstack([p[rng.choice(len(p), 300)] + rng.normal(scale=0.05, size=(300, 3)),
+                   p[:50],                                   # on points: exact ties
+                   np.round(rng.uniform(-6, 7, (600, 3)), 1),  # on the lattice's planes
+                   rng.uniform(-9, 9, (300, 3))])
+    for k in (1, 8, 16):
+        g = GridKNN(p, k, cell=0.1)     # 3 shells of 0.1: the far queries fail there
+        d0, i0 = g._query_each(q)
+        d1, i1 = g._query_far(q)
+        np.testing.assert_array_equal(d1, d0)
+        np.testing.assert_array_equal(i1, i0)
+        assert i1.dtype == i0.dtype == np.int64
+        # both routes taken: some queries answered by the grid, some by the k-d tree
+        from gmmgp_app.stages.knn import _knn_grid
+        done = _knn_grid(q, g.k, g.cell, g.lo, g.dims, g.table_keys, g.table_start,
+                         g.table_end, g.sorted_points, g.order, g.max_ring)[2]
+        assert 0 < done.sum() < len(q)
+
+
+def test_group_candidate_lists_are_the_points_within_reach_of_the_cube():
+    # the lists _knn_groups gathers (column by column, GridKNN.columns) and keeps: every
+    # point within R = D + g sqrt(3)/2 of the group's cube (D: the cube centre's k-th
+    # neighbour distance) and no other, in the order of their distance to the centre;
+    # a plane, a cylinder and scattered outliers (dense and sparse columns)
+    rng = np.random.default_rng(4)
+    p = _points(rng, 6000)
+    q = np.vstack([p[rng.choice(len(p), 3000)] + rng.normal(scale=0.05, size=(3000, 3)),
+                   rng.uniform(-3, 3, (500, 3))])
+    g = GridKNN(p, 16)
+    g.keep_lists(True)
+    d, i = g.query(q)
+    kept = g._kept
+    assert kept.count > 100
+    gc = g.group * g.cell
+    cubes = np.unique(np.floor(q / gc), axis=0)
+    ids = kept.find(kept.cube_keys(cubes))
+    tree = cKDTree(p)
+    checked = 0
+    for cube, n in zip(cubes, ids):
+        if n < 0:
+            continue
+        rows = kept.pool[kept.starts[n]:kept.starts[n + 1]]
+        lo = cube * gc
+        centre = (cube + 0.5) * gc
+        D = tree.query(centre, k=16)[0][-1]
+        R = (D + gc * np.sqrt(3.0) / 2) * (1.0 + 1e-9) + 1e-12 * gc
+        sp = g.sorted_points
+        gap = np.maximum(np.maximum(lo - sp, sp - (lo + gc)), 0.0)
+        want = np.flatnonzero((gap ** 2).sum(1) <= R * R)
+        assert sorted(rows.tolist()) == want.tolist()
+        cd = ((sp[rows] - centre) ** 2).sum(1)
+        assert np.all(np.diff(cd) > 0)             # ascending (no ties here)
+        checked += 1
+    assert checked > 100
+    d2, i2 = tree.query(q, k=16)
+    np.testing.assert_array_equal(d, d2)
+    np.testing.assert_array_equal(i, i2)
+
+
+def test_insertion_order_is_argsorts_when_the_keys_are_distinct():
+    # _insertion_order (short candidate lists): np.argsort's order when every key is
+    # distinct; False on a tie or a NaN (the caller then sorts by np.argsort itself)
+    from gmmgp_app.stages.knn import _insertion_order
+
+    rng = np.random.default_rng(5)
+    for n in (0, 1, 2, 7, 64, 128):
+        cd = rng.uniform(0, 1, 200)
+        cand = rng.permutation(200).astype(np.int64)
+        rows, sq = np.zeros(200, np.int64), np.zeros(200)
+        keep = cd.copy(), cand.copy()
+        assert _insertion_order(cand, cd, n, rows, sq)
+        o = np.argsort(cd[:n])
+        np.testing.assert_array_equal(rows[:n], cand[o])
+        np.testing.assert_array_equal(sq[:n], cd[o])
+        np.testing.assert_array_equal(cd, keep[0])
+        np.testing.assert_array_equal(cand, keep[1])
+        if n >= 2:
+            tie = cd.copy()
+            tie[n - 1] = tie[0]
+            assert not _insertion_order(cand, tie, n, rows, sq)
+            nan = cd.copy()
+            nan[n // 2] = np.nan
+            assert not _insertion_order(cand, nan, n, rows, sq)
+
+
+def test_shell_search_through_columns_is_the_cell_by_cell_one():
+    # _shell_knn_cols (the group centres' search) against _shell_knn: the same success,
+    # k best distances and rows, for centres near the data, between sparse outliers and
+    # beyond max_ring, on points with exact ties (a regular lattice) and without
+    from gmmgp_app.stages.knn import _shell_knn, _shell_knn_cols
+
+    rng = np.random.default_rng(6)
+    a = np.arange(10) * 0.1
+    grid = np.stack(np.meshgrid(a, a, a[:2], indexing="ij"), -1).reshape(-1, 3)
+    for p in (_points(rng, 4000), np.vstack([grid, rng.uniform(-3, 4, (30, 3))])):
+        for cell in (None, 0.05):
+            g = GridKNN(p, 16, cell=cell)
+            q = np.vstack([p[rng.choice(len(p), 400)] + rng.normal(scale=0.1, size=(400, 3)),
+                           rng.uniform(-6, 6, (400, 3)), np.round(rng.uniform(-1, 2, (200, 3)), 1)])
+            ok = 0
+            for x in q:
+                out = []
+                for f, extra in ((_shell_knn, ()), (_shell_knn_cols, g.columns)):
+                    bd, bi = np.empty(16), np.empty(16, np.int64)
+                    done = f(x[0], x[1], x[2], 16, g.cell, g.lo, g.dims, g.table_keys,
+                             g.table_start, g.table_end, g.sorted_points, g.max_ring, bd, bi,
+                             *extra)
+                    out.append((done, bd, bi))
+                assert out[0][0] == out[1][0]
+                if out[0][0]:
+                    ok += 1
+                    np.testing.assert_array_equal(out[0][1], out[1][1])
+                    np.testing.assert_array_equal(out[0][2], out[1][2])
+            assert 0 < ok < len(q)
