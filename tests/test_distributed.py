@@ -1081,6 +1081,50 @@ def test_cli_run_help_shows_the_tiled_example(capsys):
     assert "--tile-size 20" in text and "--min-tile-points" in text
 
 
+def test_tiled_build_refuses_a_too_large_surface_grid_before_mapping_a_tile(street,
+                                                                          monkeypatch):
+    """``check_grid`` (``gmmgp run --tile-size`` with a mesh): the stitched surface's grid
+    at the tiles' shared voxel is checked before any tile is mapped, so an impossible
+    grid ends the run at once, not after every tile was fitted (the region-by-region
+    mesh makes the same check at the end)."""
+    import gmmgp_app.stages.surface as surface
+    import gmmgp_app.tiling.tiled_map as tiled_map
+    from gmmgp_app.pipeline import surface_seeds
+
+    scan, _ = street
+    spec = TileSpec(size=8.0, overlap=2.0)
+    mapped = []
+
+    class Mapping(Exception):
+        pass
+
+    def run_tiles(ex, tasks, progress):
+        mapped.append(len(tasks))
+        raise Mapping
+
+    monkeypatch.setattr(tiled_map, "run_tiles", run_tiles)
+    cfg = tiled_map.resolve_tiles  # the shared values the check must use
+    shared = {}
+
+    def resolve(cfg_, parts, spec_, n):
+        shared["cfg"] = cfg(cfg_, parts, spec_, n)[0]
+        return shared["cfg"], {}
+
+    monkeypatch.setattr(tiled_map, "resolve_tiles", resolve)
+    monkeypatch.setattr(surface, "MAX_GRID_NODES", 1000)
+    with pytest.raises(surface.GridTooLargeError) as err:
+        build_tiled_map(scan, gm.MappingConfig(), spec, check_grid=True)
+    assert mapped == []
+    voxel = shared["cfg"].surface.voxel_size
+    assert f"voxel_size={voxel} m" in str(err.value)
+    seeds = surface_seeds(scan, shared["cfg"])
+    assert surface.estimate_grid_nodes(seeds, voxel, 2) > 1000
+    # without the check the build goes on to map the tiles
+    with pytest.raises(Mapping):
+        build_tiled_map(scan, gm.MappingConfig(), spec)
+    assert mapped and mapped[0] > 1
+
+
 def test_tiled_surface_of_a_map_whose_tiles_resolved_their_own_values_uses_the_median(
         monkeypatch):
     """A tiled map saved before the tiles shared one set of "auto" values (each tile

@@ -119,9 +119,10 @@ def run(args) -> int:
         tree = scan_tree(scan, tree)    # the thread's tree, for a scan that gets one
     stop = None if args.stage == "all" else args.stage
     resolved = None
-    if stop is None and not args.no_mesh and args.method != "loggpis":
+    if spec is None and stop is None and not args.no_mesh and args.method != "loggpis":
         # refuse an impossible grid before fitting and before a cluster starts; the
-        # scale measured for it (and its k-d tree of the scan) is build_map's own
+        # scale measured for it (and its k-d tree of the scan) is build_map's own (a
+        # tiled run checks the grid of the tiles' shared values: build_tiled_map)
         from ..pipeline import check_surface_grid
 
         resolved = check_surface_grid(scan, cfg, tree=tree)
@@ -272,7 +273,8 @@ def _run_tiled(args, cfg, spec, scan, out: Path, console, t0: float, read_s: flo
             work = Path(tempfile.mkdtemp(prefix=".stream-" if stream else ".tiles-", dir=out))
             if stream is None:
                 tmap = build_tiled_map(scan, cfg, spec, method=args.method, executor=executor,
-                                       progress=bar, keep_points=True, work_dir=work)
+                                       progress=bar, keep_points=True, work_dir=work,
+                                       check_grid=not args.no_mesh and args.method != "loggpis")
             else:
                 tmap = stream_tiles(stream, cfg, spec, args.method, work, executor, bar)
             bar.close()

@@ -486,8 +486,8 @@ class TiledMap:
 def build_tiled_map(scan: Scan, cfg: Optional[MappingConfig] = None,
                     spec: Optional[TileSpec] = None, method: str = "gmmgp", *,
                     executor=None, progress: Optional[Callable[[int, int], None]] = None,
-                    keep_points: bool = True, work_dir=None, cache_tiles: int = 4
-                    ) -> TiledMap:
+                    keep_points: bool = True, work_dir=None, cache_tiles: int = 4,
+                    check_grid: bool = False) -> TiledMap:
     """Map a large scan tile by tile (each tile one task on ``executor``).
 
     Parameters
@@ -510,6 +510,10 @@ def build_tiled_map(scan: Scan, cfg: Optional[MappingConfig] = None,
         does: memory then holds a few tile maps, not all of them (``gmmgp run
         --tile-size 15`` of bench_scale's 8x street, 30 tiles: peak RSS 532 -> 263 MB
         without meshing, 1268 -> 1056 MB with). Default: every tile map in memory.
+    check_grid : bool
+        Refuse, before any tile is mapped, a stitched surface grid too large to extract
+        at the tiles' shared voxel (``gmmgp run --tile-size`` with a mesh; the same check
+        the region-by-region mesh makes, on the whole scan's seeds).
 
     Returns
     -------
@@ -535,6 +539,10 @@ def build_tiled_map(scan: Scan, cfg: Optional[MappingConfig] = None,
     cfg, auto = resolve_tiles(cfg, ((members(owners, t[0]), t[1], t[2]) for t in tasks),
                               spec, len(scan))
     tasks = [t[:3] + ((cfg, auto) if auto else cfg,) + t[4:] for t in tasks]
+    if check_grid:
+        from ..pipeline import check_grid_size, surface_seeds
+
+        check_grid_size(surface_seeds(scan, cfg), cfg.surface.voxel_size)
     if work_dir is None:
         maps, skipped = run_tiles(executor, tasks, progress)
     else:
