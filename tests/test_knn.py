@@ -1,9 +1,12 @@
 """Grid k-nearest neighbours: the same neighbours as scipy's k-d tree (the oracle)."""
 
+import math
+
+import numba as nb
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gmmgp_app.stages.knn import GridKNN
+from gmmgp_app.stages.knn import GridKNN, _cell_slot, _insert
 
 
 def _points(rng, n=20000):
@@ -165,7 +168,7 @@ def test_far_queries_screened_by_the_kd_tree_answer_as_query_by_query():
         # both routes taken: some queries answered by the grid, some by the k-d tree
         from gmmgp_app.stages.knn import _knn_grid
         done = _knn_grid(q, g.k, g.cell, g.lo, g.dims, g.table_keys, g.table_start,
-                         g.table_end, g.sorted_points, g.order, g.max_ring)[2]
+                         g.table_end, g.sorted_points, g.order, g.max_ring, *g.columns)[2]
         assert 0 < done.sum() < len(q)
 
 
@@ -235,11 +238,69 @@ def test_insertion_order_is_argsorts_when_the_keys_are_distinct():
             assert not _insertion_order(cand, nan, n, rows, sq)
 
 
+@nb.njit
+def _shell_knn(p0, p1, p2, k, cell, lo, dims, tk, ts, te, pts, max_ring, bd, bi):
+    """The oracle of knn._shell_knn_cols: its shell search cell by cell (one table
+    look-up per cell; the library's search before it read rows through their column)."""
+    mask = len(tk) - 1
+    slack = (1e-9 * cell) ** 2
+    bd[:] = np.inf
+    bi[:] = -1
+    cnt = 0
+    c0 = int(math.floor(p0 / cell))
+    c1 = int(math.floor(p1 / cell))
+    c2 = int(math.floor(p2 / cell))
+    for r in range(max_ring + 1):
+        for a in range(c0 - r, c0 + r + 1):
+            qa = a - lo[0]
+            if qa < 0 or qa >= dims[0]:
+                continue
+            for b in range(c1 - r, c1 + r + 1):
+                qb = b - lo[1]
+                if qb < 0 or qb >= dims[1]:
+                    continue
+                edge_ab = a == c0 - r or a == c0 + r or b == c1 - r or b == c1 + r
+                for c in range(c2 - r, c2 + r + 1):
+                    if not edge_ab and c != c2 - r and c != c2 + r:
+                        continue          # inside the shell: scanned before
+                    qc = c - lo[2]
+                    if qc < 0 or qc >= dims[2]:
+                        continue
+                    if cnt == k:
+                        # skip a cell wholly farther than the k-th best (its points
+                        # could not enter; the margin covers the cell bounds' round-off)
+                        g0 = max(a * cell - p0, p0 - (a + 1) * cell, 0.0)
+                        g1 = max(b * cell - p1, p1 - (b + 1) * cell, 0.0)
+                        g2 = max(c * cell - p2, p2 - (c + 1) * cell, 0.0)
+                        gg = g0 * g0 + g1 * g1 + g2 * g2
+                        if gg > bd[k - 1] * (1.0 + 1e-9) + slack:
+                            continue
+                    s = _cell_slot(tk, mask, dims, qa, qb, qc)
+                    if s < 0:
+                        continue
+                    for j in range(ts[s], te[s]):
+                        d0 = p0 - pts[j, 0]
+                        d1 = p1 - pts[j, 1]
+                        d2 = p2 - pts[j, 2]
+                        dd = d0 * d0 + d1 * d1 + d2 * d2
+                        if cnt < k or dd < bd[k - 1]:
+                            cnt = _insert(bd, bi, cnt, k, dd, j)
+        # nearest point outside the scanned box of cells [c - r, c + r]
+        out = math.inf
+        for ax in range(3):
+            pa = p0 if ax == 0 else (p1 if ax == 1 else p2)
+            ca = c0 if ax == 0 else (c1 if ax == 1 else c2)
+            out = min(out, pa - (ca - r) * cell, (ca + r + 1) * cell - pa)
+        if cnt == k and bd[k - 1] <= out * out:
+            return True
+    return False
+
+
 def test_shell_search_through_columns_is_the_cell_by_cell_one():
     # _shell_knn_cols (the group centres' search) against _shell_knn: the same success,
     # k best distances and rows, for centres near the data, between sparse outliers and
     # beyond max_ring, on points with exact ties (a regular lattice) and without
-    from gmmgp_app.stages.knn import _shell_knn, _shell_knn_cols
+    from gmmgp_app.stages.knn import _shell_knn_cols
 
     rng = np.random.default_rng(6)
     a = np.arange(10) * 0.1

@@ -218,7 +218,8 @@ class GridKNN:
             xm = np.ascontiguousarray(x[maybe])
             dg, ig, done = _knn_grid(xm, self.k, self.cell, self.lo, self.dims,
                                      self.table_keys, self.table_start, self.table_end,
-                                     self.sorted_points, self.order, self.max_ring)
+                                     self.sorted_points, self.order, self.max_ring,
+                                     *self.columns)
             ok = maybe[done]
             d[ok], i[ok] = dg[done], ig[done]
         return d, i
@@ -227,7 +228,7 @@ class GridKNN:
         """Query by query (:func:`_knn_grid`, the k-d tree beyond ``max_ring`` shells)."""
         d, i, done = _knn_grid(x, self.k, self.cell, self.lo, self.dims, self.table_keys,
                                self.table_start, self.table_end, self.sorted_points,
-                               self.order, self.max_ring)
+                               self.order, self.max_ring, *self.columns)
         rest = np.flatnonzero(~done)
         if len(rest):
             dr, ir = self.tree.query(x[rest], k=self.k, workers=-1)
@@ -424,70 +425,9 @@ def _insert(bd, bi, cnt, k, dd, j):
     return cnt + 1 if cnt < k else cnt
 
 
-@nb.njit(cache=True, inline="always")
-def _shell_knn(p0, p1, p2, k, cell, lo, dims, tk, ts, te, pts, max_ring, bd, bi):
-    """The k nearest points of ``(p0, p1, p2)``: cube shells of cells around its own,
-    the k best kept sorted by insertion in ``bd`` (squared distances) and ``bi`` (point
-    rows), cells wholly farther than the k-th best skipped; stop when the k-th best is no
-    farther than the outside of the scanned box. False when ``max_ring`` shells were not
-    enough (``bd``, ``bi`` then incomplete)."""
-    mask = len(tk) - 1
-    slack = (1e-9 * cell) ** 2
-    bd[:] = np.inf
-    bi[:] = -1
-    cnt = 0
-    c0 = int(math.floor(p0 / cell))
-    c1 = int(math.floor(p1 / cell))
-    c2 = int(math.floor(p2 / cell))
-    for r in range(max_ring + 1):
-        for a in range(c0 - r, c0 + r + 1):
-            qa = a - lo[0]
-            if qa < 0 or qa >= dims[0]:
-                continue
-            for b in range(c1 - r, c1 + r + 1):
-                qb = b - lo[1]
-                if qb < 0 or qb >= dims[1]:
-                    continue
-                edge_ab = a == c0 - r or a == c0 + r or b == c1 - r or b == c1 + r
-                for c in range(c2 - r, c2 + r + 1):
-                    if not edge_ab and c != c2 - r and c != c2 + r:
-                        continue          # inside the shell: scanned before
-                    qc = c - lo[2]
-                    if qc < 0 or qc >= dims[2]:
-                        continue
-                    if cnt == k:
-                        # skip a cell wholly farther than the k-th best (its points
-                        # could not enter; the margin covers the cell bounds' round-off)
-                        g0 = max(a * cell - p0, p0 - (a + 1) * cell, 0.0)
-                        g1 = max(b * cell - p1, p1 - (b + 1) * cell, 0.0)
-                        g2 = max(c * cell - p2, p2 - (c + 1) * cell, 0.0)
-                        gg = g0 * g0 + g1 * g1 + g2 * g2
-                        if gg > bd[k - 1] * (1.0 + 1e-9) + slack:
-                            continue
-                    s = _cell_slot(tk, mask, dims, qa, qb, qc)
-                    if s < 0:
-                        continue
-                    for j in range(ts[s], te[s]):
-                        d0 = p0 - pts[j, 0]
-                        d1 = p1 - pts[j, 1]
-                        d2 = p2 - pts[j, 2]
-                        dd = d0 * d0 + d1 * d1 + d2 * d2
-                        if cnt < k or dd < bd[k - 1]:
-                            cnt = _insert(bd, bi, cnt, k, dd, j)
-        # nearest point outside the scanned box of cells [c - r, c + r]
-        out = math.inf
-        for ax in range(3):
-            pa = p0 if ax == 0 else (p1 if ax == 1 else p2)
-            ca = c0 if ax == 0 else (c1 if ax == 1 else c2)
-            out = min(out, pa - (ca - r) * cell, (ca + r + 1) * cell - pa)
-        if cnt == k and bd[k - 1] <= out * out:
-            return True
-    return False
-
-
 def _ring_outside(x, cell: float, max_ring: int) -> np.ndarray:
     """(K,) the distance from each query to the outside of the box of cells
-    ``[c - max_ring, c + max_ring]`` around its cell ``c`` (:func:`_shell_knn`'s
+    ``[c - max_ring, c + max_ring]`` around its cell ``c`` (:func:`_shell_knn_cols`'s
     ``out`` after its last shell)."""
     c = np.floor(x / cell)
     return np.minimum(x - (c - max_ring) * cell, (c + max_ring + 1) * cell - x).min(axis=1)
@@ -496,10 +436,15 @@ def _ring_outside(x, cell: float, max_ring: int) -> np.ndarray:
 @nb.njit(cache=True, inline="always")
 def _shell_knn_cols(p0, p1, p2, k, cell, lo, dims, tk, ts, te, pts, max_ring, bd, bi, colk,
                     col0, col1, zc):
-    """:func:`_shell_knn` with the rows of cells that a shell crosses whole read
-    through their column (:attr:`GridKNN.columns`: one look-up and a binary search
-    instead of one look-up per cell): the same cells in the same order, each skipped
-    or not by the same test at the same moment, so the same answer."""
+    """The k nearest points of ``(p0, p1, p2)``: cube shells of cells around its own,
+    the k best kept sorted by insertion in ``bd`` (squared distances) and ``bi`` (point
+    rows), cells wholly farther than the k-th best skipped; stop when the k-th best is no
+    farther than the outside of the scanned box. False when ``max_ring`` shells were not
+    enough (``bd``, ``bi`` then incomplete). The rows of cells that a shell crosses whole
+    are read through their column (:attr:`GridKNN.columns`: one look-up and a binary
+    search instead of one look-up per cell): the same cells in the same order as cell by
+    cell, each skipped or not by the same test at the same moment (tests/test_knn.py
+    checks it against the cell-by-cell search)."""
     mask = len(tk) - 1
     cmask = len(colk) - 1
     slack = (1e-9 * cell) ** 2
@@ -586,8 +531,8 @@ def _shell_knn_cols(p0, p1, p2, k, cell, lo, dims, tk, ts, te, pts, max_ring, bd
 
 
 @nb.njit(cache=True, parallel=True, nogil=True)
-def _knn_grid(x, k, cell, lo, dims, tk, ts, te, pts, order, max_ring):
-    """Per query: :func:`_shell_knn` around it; ``done`` False where ``max_ring``
+def _knn_grid(x, k, cell, lo, dims, tk, ts, te, pts, order, max_ring, colk, col0, col1, zc):
+    """Per query: :func:`_shell_knn_cols` around it; ``done`` False where ``max_ring``
     shells were not enough."""
     K = x.shape[0]
     dist = np.empty((K, k))
@@ -598,8 +543,8 @@ def _knn_grid(x, k, cell, lo, dims, tk, ts, te, pts, order, max_ring):
         bd = np.empty(k)                 # one scratch pair per chunk of queries
         bi = np.empty(k, np.int64)
         for q in range(t * chunk, min(K, (t + 1) * chunk)):
-            if _shell_knn(x[q, 0], x[q, 1], x[q, 2], k, cell, lo, dims, tk, ts, te, pts,
-                          max_ring, bd, bi):
+            if _shell_knn_cols(x[q, 0], x[q, 1], x[q, 2], k, cell, lo, dims, tk, ts, te,
+                               pts, max_ring, bd, bi, colk, col0, col1, zc):
                 for m in range(k):
                     dist[q, m] = math.sqrt(bd[m])
                     idx[q, m] = order[bi[m]]
