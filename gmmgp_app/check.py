@@ -44,7 +44,12 @@ see docs/check.md and scripts/check_error_budget.py. In the last stage (the blen
 field's mean, :func:`_surface_correction`) the map's variance in these weights also
 carries the squared bias a smooth field has from the surface's shape there
 (:func:`_shape_bias_variance`: the far field's neighbours' spread of tangent-plane
-distances beyond their noise, 0 on planes, large at edges and small faces).
+distances beyond their noise, 0 on planes, large at edges and small faces). When the
+scan carries its sensor origins (a Scan with ``origins``), the last stage reads ``s_i^2``
+(in the weights and in ``z_i``) at the point's ray foot, where its ray meets the field's
+zero level set (:func:`_ray_foot_variance`), not at the noisy point: the variance there
+depends on where the range noise put the point, and the weights correlate with the
+residuals they weigh.
 
 Parametrisation: each step is a left perturbation in the map frame about a pivot
 ``c`` (the weighted centroid of the aligned points)::
@@ -504,10 +509,6 @@ def _weights(m, var, noise2, known, c_robust, loss="tukey", n_share=1.0, factor=
     the inverse-variance factor (not in ``z``): ``1 / (var_map + bias2 + noise2 / n_share)``.
     """
     s2 = var + noise2
-    if ROBUST_Z == "bias" and bias2 is not None:
-        s2 = s2 + bias2
-    elif ROBUST_Z == "model":
-        s2 = s2 * (1.0 if factor is None else factor) + (0.0 if bias2 is None else bias2)
     z = m / np.sqrt(s2)
     ok = known & np.isfinite(z)
     if not ok.any():
@@ -950,10 +951,6 @@ SHAPE_BIAS = True
 #: take the map's variance where each point's ray meets the field's zero level set
 #: (:func:`_ray_foot_variance`) instead of at the point.
 RAY_FOOT_VARIANCE = True
-
-#: study switch: what standardises the robust loss's residual ("point": std^2 + noise^2;
-#: "bias": plus the shape's squared bias; "model": the weights' whole variance model)
-ROBUST_Z = "point"
 
 
 def _coarse_to_fine(smap, x, x_dense, T0, frozen, frame, max_iter, kw,
