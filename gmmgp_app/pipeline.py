@@ -1126,9 +1126,11 @@ def _checked_seeds(scan: Scan, cfg: MappingConfig) -> np.ndarray:
     return seeds
 
 
-def surface_seeds(scan: Scan, cfg: MappingConfig) -> np.ndarray:
-    """Where a map of ``scan`` seeks its surface (:func:`stages.surface.surface_seeds`)."""
-    return _surface.surface_seeds(scan.points, cfg.surface)
+def surface_seeds(scan, cfg: MappingConfig) -> np.ndarray:
+    """Where a map of ``scan`` (a Scan, or its (N, 3) points) seeks its surface
+    (:func:`stages.surface.surface_seeds`)."""
+    points = scan.points if isinstance(scan, Scan) else np.asarray(scan, dtype=np.float64)
+    return _surface.surface_seeds(points, cfg.surface)
 
 
 def as_queries(xyz) -> np.ndarray:
