@@ -755,9 +755,25 @@ def _refit_stage(ctx, smap, touched, gp_points, gp_normals, all_points, far):
     out = SurfaceMap(smap.method, smap.config, smap.offset, smap.prior, hgmm=smap.hgmm,
                      gp=field_, gp_points=gpp, gp_normals=gpn,
                      seed_points=surface_seeds(Scan(points=all_points), ctx.cfg),
-                     summary=smap.summary, far=far, up=smap.up,
-                     variance_coef=smap.variance_coef)
+                     summary=_updated_summary(smap.summary, field_, len(gpp), len(all_points),
+                                              n_refit),
+                     far=far, up=smap.up, variance_coef=smap.variance_coef)
     return {"smap": out, "n_refit": n_refit}
+
+
+def _updated_summary(summary: dict, gp, n_gp_points: int, n_points: int,
+                     n_refit: int) -> dict:
+    """The build's ``summary`` after an update (a copy): the scan's point count and the
+    GP's point and block counts are the updated map's; ``updates`` lists the updates with
+    the blocks each refitted. The stages' seconds and their other counts stay the build's."""
+    import copy
+
+    out = copy.deepcopy(summary) if summary else {"seconds": {}, "counts": {}}
+    out["n_scan_points"] = int(n_points)
+    gp_counts = out.setdefault("counts", {}).setdefault("gp", {})
+    gp_counts.update(n_points=int(n_gp_points), n_blocks=int(gp.info["n_blocks"]))
+    out["updates"] = list(out.get("updates", [])) + [{"refitted_blocks": int(n_refit)}]
+    return out
 
 
 def _info_counts(out, ctx):
