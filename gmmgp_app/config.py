@@ -360,6 +360,35 @@ class FarFieldConfig:
         "calibrated_var refitted (VARIANCE_COEF_SPHERE) the coverage bins in target fall "
         "from 26 / 32 to 18 / 28 (held-out four 22 / 24 -> 13 / 20; the bunny over-covered): "
         "not the default")
+    leave_self_out: float = _f(
+        0.0, "Where the far field's neighbours vote from: > 0, each of a query's k nearest "
+        "hit points (still chosen among the raw points) votes from its position moved "
+        "along its normal onto the plane through its own neighbours' weighted centroid "
+        "with itself left out (eq. point_projection_loo in stages/farfield.py), a move "
+        "larger than this many noise sigmas not made (the neighbours are on another "
+        "surface); 0: from the raw hit points. Removes the nearest-neighbour selection "
+        "bias far from the data. Maps saved before this field load with 0.", 0.0, 100.0,
+        unit="sigma", symbol="c_lso",
+        source="the bias measured in docs/field.md 'Session 12' (sphere 1-2 m median "
+        "+1.2 sigma -> +0.2); the 3 sigma cap fixed a priori (2 and no cap measured "
+        "worse); opt-in, see far.split_half and docs/field.md 'Session 13'")
+    split_half: bool = _f(
+        False, "Add the far-field vote's split-half variance (eq. split_half_var in "
+        "stages/farfield.py: the vote repeated on two halves of the neighbours, three "
+        "rank partitions, mean (m_A - m_B)^2 / 4) to the calibrated variance at weight 1 "
+        "(eq. calibrated_var); evaluated where the variance is, not on the surface "
+        "lattice. Maps saved before this field load with false.",
+        source="docs/field.md 'Session 12' and 'Session 13': with far.leave_self_out it "
+        "tracks the vote's error across scenes (median |e| / sqrt(v_half) 0.8-1.0 next to "
+        "the data on five of six scenes)")
+    predictive_dof: float = _f(
+        0.0, "Degrees of freedom nu of the predictive's components (eq. unseen_mixture_t "
+        "in stages/unseen.py): > 0, Student-t components with the Gaussians' central "
+        "68.27 % half-widths (1-sigma coverage unchanged, heavier tails); 0: Gaussian. "
+        "Maps saved before this field load with 0.", 0.0, 1000.0, symbol="nu",
+        source="maximum likelihood of the tuned scenes' (street, sphere) standardised "
+        "errors where the scan saw the surface, with far.leave_self_out = 3 and "
+        "far.split_half (scripts/fit_variance.py --fit): 7.1 (docs/field.md 'Session 13')")
     spread_weight: float = _f(
         1.0, "Weight a of the neighbours' plane disagreement in the far-field variance.",
         0.0, 100.0, symbol="a", source="chosen on the synthetic street")
