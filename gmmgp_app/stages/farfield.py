@@ -161,7 +161,7 @@ __all__ = ["FarField", "FarFieldError", "blend_fields", "blend_correlated", "fie
 #: (t0, ..., t4) of eq. calibrated_var: the 0.68-quantile regression (eq.
 #: variance_quantile_fit) on the tuned scenes' observed queries (synthetic street and
 #: sphere, 10 % handed, seed 0, with the robust far field of the raw hit points and
-#: ``far.gp_growth`` = 4; ``python scripts/fit_variance.py --fit``). A map saves the
+#: ``far.gp_growth`` = 4; ``python scripts/fit_variance.py --fit --target plain``). A map saves the
 #: coefficients it predicts with (map.json ``variance_coef``), so refitting these leaves
 #: saved maps alone; refits are scored with ``fit_variance.py --score`` on the bench and
 #: on the random training scenes (``--train``; docs/field.md, "Session 7").
@@ -169,18 +169,18 @@ VARIANCE_COEF = (-0.4745, -0.2282, 1.0088, 0.1706, 0.1404)
 
 #: VARIANCE_COEF for a far field of projected hit points (``far.project_points = true``,
 #: eq. point_projection, opt-in): the same fit with that mean (``python
-#: scripts/fit_variance.py --fit --set far.project_points=true``).
+#: scripts/fit_variance.py --fit --target plain --set far.project_points=true``).
 VARIANCE_COEF_PROJECTED = (-0.5797, -0.1890, 1.0619, 0.1583, 0.0675)
 
 #: (t0, ..., t4) of eq. calibrated_var for the mean of eq. blend_correlated
 #: (``far.blend = "correlated"``, opt-in), raw far-field points: the same fit with that
-#: mean (``python scripts/fit_variance.py --fit --set far.blend=correlated``).
+#: mean (``python scripts/fit_variance.py --fit --target plain --set far.blend=correlated``).
 VARIANCE_COEF_CORRELATED = (0.8599, -0.9298, 0.9000, 0.2607, 0.5194)
 
 
 #: (t0, ..., t4) of eq. calibrated_var for the sphere vote (``far.vote = "sphere"``, eq.
 #: sphere_vote; growth blend, raw points): the same fit as VARIANCE_COEF with that mean
-#: (``python scripts/fit_variance.py --fit --set far.vote=sphere``). Curvature-aware
+#: (``python scripts/fit_variance.py --fit --target plain --set far.vote=sphere``). Curvature-aware
 #: extra features (the shrink factor, the curvature's variance, the sphere-plane
 #: difference, the spread about the sphere) and fits on the training scenes did not
 #: calibrate the held-out scenes better (docs/field.md, "Session 10").

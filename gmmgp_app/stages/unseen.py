@@ -46,7 +46,7 @@ each component is a Student-t of nu degrees of freedom scaled so that its centra
 
 (``t_nu`` the standard t density, ``c`` = 1.08 at nu = 7.1). The calibrated variance
 (and so every 1-sigma coverage) is unchanged; the 95.45 % interval widens from 2 s to
-2.23 s at nu = 7.1 and the log density of a far error falls more slowly. nu = 0 keeps
+2.25 s at nu = 7.1 and the log density of a far error falls more slowly. nu = 0 keeps
 Gaussian components (what maps saved before it load with).
 """
 
