@@ -214,10 +214,12 @@ def test_maps_saved_before_the_options_load_as_they_were_and_new_ones_round_trip
     rng = np.random.default_rng(6)
     q = _unit(rng.normal(size=(500, 3))) * rng.uniform(0.8, 1.6, 500)[:, None]
     y = np.linalg.norm(q, axis=1) - 1.0
-    base = _small_map(["far.vote=sphere"])
+    base = _small_map(["far.vote=sphere", "far.leave_self_out=0", "far.split_half=false",
+                       "far.predictive_dof=0"])
     m, v = base.predict(q)
     base.save(tmp_path / "b")
     meta = json.loads((tmp_path / "b" / "map.json").read_text())
+    assert not (tmp_path / "b" / "arrays" / "far" / "vote_points.npy").exists()
     del meta["far_params"]["self_out_cap"]
     keys = ("leave_self_out", "split_half", "predictive_dof")
     toml = meta["config_toml"]
@@ -234,7 +236,9 @@ def test_maps_saved_before_the_options_load_as_they_were_and_new_ones_round_trip
     np.testing.assert_array_equal(lm, m)
     np.testing.assert_array_equal(lv, v)
 
-    cand = _small_map(CANDIDATE)
+    cand = _small_map([])   # the defaults: CANDIDATE
+    f = cand.config.far
+    assert (f.vote, f.leave_self_out, f.split_half, f.predictive_dof) == ("sphere", 3.0, True, 7.1)
     assert not np.array_equal(cand.far.vote_points, cand.far.points)
     cm, cv = cand.predict(q)
     assert np.abs(cm - m).max() > 1e-5
