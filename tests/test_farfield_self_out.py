@@ -129,6 +129,45 @@ def test_split_half_is_the_halves_disagreement():
     assert got.min() > 0
 
 
+def test_split_half_sphere_halves_are_the_sphere_vote_of_each_half():
+    """With the sphere vote each half's distance is eq. sphere_vote on that half alone:
+    the kernel's split-half variance equals, bit for bit, the one built from
+    :func:`_sphere_vote` called with the other half's weights set to zero (plain IMLS
+    weights; a noisy sphere patch, where the halves' curvatures differ)."""
+    from gmmgp_app.stages.farfield import _sphere_vote
+
+    rng = np.random.default_rng(7)
+    v = _unit(rng.normal(size=(6000, 3)))
+    v = v[v[:, 2] > 0.2]
+    p = v * (1.0 + rng.normal(0.0, 0.004, len(v)))[:, None]
+    n = _unit(v + rng.normal(0.0, 0.03, v.shape))
+    q = _unit(rng.normal(size=(300, 3)))
+    q = q[q[:, 2] > 0.4] * rng.uniform(0.6, 2.0, (int((q[:, 2] > 0.4).sum()), 1))
+    f = FarField(p, n, 0.05, 0.004, robust_scale=0.0, vote="sphere", self_out_cap=3.0)
+    got = f.components(q, split_half=True)["half"]
+    d, i = f.knn.query(q)
+    rho = np.maximum(0.05, d[:, :1])
+    w = np.exp(-(d ** 2 - d[:, :1] ** 2) / rho ** 2)
+    a = np.einsum("qkc,qkc->qk", q[:, None, :] - f.vote_points[i], n[i])
+    rank = np.arange(16)
+    ref = np.zeros(len(q))
+    used = 0
+    for r in range(len(q)):
+        tot = 0.0
+        for b in range(3):
+            mv = []
+            for side in range(2):
+                uu = np.where(((rank >> b) & 1) == side, w[r], 0.0)
+                m = (uu * a[r]).sum() / uu.sum()
+                dq, _, _, _, ok = _sphere_vote(q[r], i[r], f.vote_points, n, uu, w[r], a[r], 16)
+                used += ok
+                mv.append(dq if ok else m)
+            tot += (mv[0] - mv[1]) ** 2 / 4.0
+        ref[r] = tot / 3
+    assert used > 0.9 * 6 * len(q)
+    np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-24)
+
+
 def test_bad_cap_names_the_setting():
     with pytest.raises(FarFieldError, match="far.leave_self_out"):
         FarField(np.zeros((4, 3)), np.tile([0.0, 0, 1], (4, 1)), 0.1, 0.01, self_out_cap=-1)

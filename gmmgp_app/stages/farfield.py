@@ -30,7 +30,8 @@ current estimate, a few passes from ``f^0`` = eq. imls (eq. rimls):
 with ``c_r`` = ``FarFieldConfig.robust_scale`` (1: residuals are measured against the
 kernel width, so near the data, where residuals are noise, nothing changes).
 
-**The sphere vote** (``far.vote = "sphere"``, opt-in; docs/field.md, "Session 10"). A
+**The sphere vote** (``far.vote = "sphere"``, the default since session 13; docs/field.md,
+"Session 10"). A
 tangent plane is biased by the curvature 0.1-2 m from a curved surface. With the final
 robust weights ``u_j`` of eq. rimls the neighbours fit an algebraic sphere
 (APSS, Guennebaud & Gross 2007) in coordinates centred on the query,
@@ -53,6 +54,26 @@ the radius keep eq. rimls. The variance's ingredients stay the plane vote's; per
 the kernel also reports the shrink factor, the distance's variance from var(u4) and the
 spread of the neighbours' plane distances about the ones the sphere predicts (eq.
 sphere_spread), which a variance model may use (none of them helped: "Session 10").
+
+**The leave-self-out vote** (``far.leave_self_out`` = 3, the default since session 13;
+docs/field.md, "Session 12" and "Session 13"). Beyond a few spacings the kernel is as
+wide as ``r``, all ``k`` weights are about 1, and which hit points are a query's nearest
+is decided by their noise: they are the ones displaced most towards it, so every plane
+distance is short (sphere scene 1-2 m: a median bias of 1.2 sigma). The query still picks
+its ``k`` nearest raw hit points (``points``: the k-NN, ``r``, the kernel weights), but
+each votes from its position moved along its normal onto the plane through its own
+neighbours' weighted centroid *without itself* (eq. point_projection_loo,
+:func:`project_leave_self_out`, ``vote_points``), so the displacement that chose it is
+not in its vote; a move above 3 sigma (a lone point, an edge) is not made.
+
+**The split-half variance** (``far.split_half``, default since session 13). The vote's own
+noise is estimated per query from the disagreement of votes on two halves of its
+neighbours (eq. split_half_var, :func:`_split_half`, three rank partitions) and added to
+eq. calibrated_var at weight 1; the log-linear part is then fitted to what that term and
+the kappa term leave of the squared error (eq. variance_quantile_target:
+``log(max(e^2 - kappa e^{-r^2/l^2} d^2 - v_half, 1e-30 h^2) / h^2)``, the 0.68 quantile;
+:data:`VARIANCE_COEF_SELF_OUT`). It is computed only where a variance is asked (queries,
+mesh vertices), never on the surface lattice, which needs the mean alone.
 
 Its own variance (eq. far_var) adds the sensor noise averaged over the effective
 number of neighbours, the weighted spread of the neighbours' plane distances
@@ -96,7 +117,12 @@ the scan observed; what it did not observe has its own terms. Checked on ``stree
 plus 1.27 on the street alone, which matched the mean of ``log z^2`` (a few far errors
 raise it: tests/test_variance_fit.py) and over-covered next to the data on every scene
 (0.74-0.94 within 1 sigma at 0-0.1 m x scale); most of the change comes from fitting on
-both tuned scenes, the rest from the quantile (docs/field.md).
+both tuned scenes, the rest from the quantile (docs/field.md). Those fits (VARIANCE_COEF
+& co.) took the log-linear part alone as the target, although the map adds the kappa
+term on top (up to 0.12 more 1-sigma coverage next to the data); the default's
+coefficients (:data:`VARIANCE_COEF_SELF_OUT`, session 13) fit the log-linear part to
+what the additive terms leave (eq. variance_quantile_target, above), so that the
+variance the map reports is the one calibrated.
 
 **Unseen geometry** (issue 15, fix-15c). The log-linear model is fitted on the typical
 query; it does not know what the scan cannot know. The worst queries of the held-out
@@ -504,35 +530,124 @@ def _split_half(xq, nbr_row, points, normals, u, w, a, k, sphere):
         v_half = (1 / B) sum_b (m_b^A - m_b^B)^2 / 4
 
     over the ``B`` partitions whose halves both hold weight. Each half's vote has about
-    twice the variance of the whole vote's noise part and the two are independent, so
-    ``E (m_A - m_B)^2 / 4`` is the whole vote's noise variance; the bias both halves
-    share (curvature, the selection of the neighbours) cancels. 0 when no partition has
-    two weighted halves (fewer than two neighbours)."""
-    uu = np.empty(k)
+    twice the variance of the whole vote's noise part and, for independent neighbours,
+    the two are independent, so ``E (m_A - m_B)^2 / 4`` is the whole vote's noise
+    variance; the bias both halves share (curvature, the selection of the neighbours)
+    cancels. (Leave-self-out vote points share raw points with their neighbours: then
+    it is a part of the variance, docs/field.md "Session 13".) 0 when no partition has
+    two weighted halves (fewer than two neighbours).
+
+    The neighbours' offsets and normals are gathered once for the six half votes; each
+    half's sphere is :func:`_sphere_vote`'s arithmetic on its members alone (the other
+    neighbours' weights are zeros there, which add nothing), without eq. sphere_spread,
+    which the distance does not use (``w``: unused, kept for the call's shape)."""
+    Y = np.empty((k, 3))
+    N = np.empty((k, 3))
+    if sphere:
+        for j in range(k):
+            p = nbr_row[j]
+            for c in range(3):
+                Y[j, c] = points[p, c] - xq[c]
+                N[j, c] = normals[p, c]
     tot = 0.0
     nb_ = 0
+    mv = np.zeros(2)
     for b in range(3):
-        mv = np.zeros(2)
         ok2 = True
         for side in range(2):
             us = 0.0
             ua = 0.0
             for j in range(k):
-                uu[j] = u[j] if ((j >> b) & 1) == side else 0.0
-                us += uu[j]
-                ua += uu[j] * a[j]
+                if ((j >> b) & 1) == side:
+                    us += u[j]
+                    ua += u[j] * a[j]
             if not us > 0:
                 ok2 = False
                 break
             mv[side] = ua / us
             if sphere:
-                dq, sq, vq, ssq, ok = _sphere_vote(xq, nbr_row, points, normals, uu, w, a, k)
+                dq, ok = _half_sphere(Y, N, u, k, b, side, us)
                 if ok:
                     mv[side] = dq
         if ok2:
             tot += (mv[0] - mv[1]) ** 2 / 4.0
             nb_ += 1
     return tot / nb_ if nb_ > 0 else 0.0
+
+
+@nb.njit(cache=True, nogil=True)
+def _half_sphere(Y, N, u, k, b, side, usum):
+    """Eq. sphere_vote's distance from the neighbours of rank bit ``b`` equal to
+    ``side`` (offsets ``Y`` from the query, normals ``N``, weights ``u``, their sum
+    ``usum``): :func:`_sphere_vote`'s operations in its order on those neighbours.
+    Returns (distance, usable)."""
+    if k < 4 or not usum > 0:
+        return 0.0, False
+    pb = np.zeros(3)
+    nb_ = np.zeros(3)
+    qb = 0.0
+    u2 = 0.0
+    for j in range(k):
+        if ((j >> b) & 1) != side:
+            continue
+        wj = u[j] / usum
+        u2 += wj * wj
+        for c in range(3):
+            y = Y[j, c]
+            pb[c] += wj * y
+            nb_[c] += wj * N[j, c]
+            qb += wj * y * y
+    num = 0.0
+    den = 0.0
+    den2 = 0.0
+    for j in range(k):
+        if ((j >> b) & 1) != side:
+            continue
+        wj = u[j] / usum
+        aa = 0.0
+        bb = 0.0
+        for c in range(3):
+            dp = Y[j, c] - pb[c]
+            aa += (N[j, c] - nb_[c]) * dp
+            bb += dp * dp
+        num += wj * aa
+        den += wj * bb
+        den2 += wj * wj * bb
+    if not den > 1e-10 * qb:
+        return 0.0, False
+    u4 = 0.5 * num / den
+    res = 0.0
+    for j in range(k):
+        if ((j >> b) & 1) != side:
+            continue
+        wj = u[j] / usum
+        for c in range(3):
+            dp = Y[j, c] - pb[c]
+            e = N[j, c] - nb_[c] - 2.0 * u4 * dp
+            res += wj * e * e
+    n_eff = 1.0 / u2
+    s2 = res / 3.0 * n_eff / max(n_eff - 4.0, 1.0)
+    var_u4 = s2 * den2 / (4.0 * den * den)
+    shrink = u4 * u4 / (u4 * u4 + var_u4) if u4 != 0.0 else 0.0
+    u4s = u4 * shrink
+    pp = pb[0] * pb[0] + pb[1] * pb[1] + pb[2] * pb[2]
+    dsdu = 2.0 * pp - qb
+    s0 = -(nb_[0] * pb[0] + nb_[1] * pb[1] + nb_[2] * pb[2])
+    g0 = math.sqrt(nb_[0] * nb_[0] + nb_[1] * nb_[1] + nb_[2] * nb_[2])
+    if not g0 > 1e-6:
+        return 0.0, False
+    s = s0 + u4s * dsdu
+    gx = nb_[0] - 2.0 * u4s * pb[0]
+    gy = nb_[1] - 2.0 * u4s * pb[1]
+    gz = nb_[2] - 2.0 * u4s * pb[2]
+    g = math.sqrt(gx * gx + gy * gy + gz * gz)
+    disc = g * g - 4.0 * u4s * s
+    if not disc > 0 or not g > 1e-6:
+        return 0.0, False
+    d = 2.0 * s / (g + math.sqrt(disc))
+    if d * u4s < 0 and abs(d) * 4.0 * abs(u4s) > 1.0:
+        return 0.0, False
+    return d, True
 
 
 @nb.njit(cache=True, nogil=True)
