@@ -537,23 +537,16 @@ def _split_half(xq, nbr_row, points, normals, u, w, a, k, sphere):
     it is a part of the variance, docs/field.md "Session 13".) 0 when no partition has
     two weighted halves (fewer than two neighbours).
 
-    The neighbours' offsets and normals are gathered once for the six half votes; each
-    half's sphere is :func:`_sphere_vote`'s arithmetic on its members alone (the other
-    neighbours' weights are zeros there, which add nothing), without eq. sphere_spread,
-    which the distance does not use (``w``: unused, kept for the call's shape)."""
-    Y = np.empty((k, 3))
-    N = np.empty((k, 3))
-    if sphere:
-        for j in range(k):
-            p = nbr_row[j]
-            for c in range(3):
-                Y[j, c] = points[p, c] - xq[c]
-                N[j, c] = normals[p, c]
+    Each half's sphere is :func:`_sphere_vote`'s arithmetic on its members alone (the
+    other neighbours' weights are zeros there, which add nothing), in scalars and
+    without eq. sphere_spread, which the distance does not use (``w``: unused, kept for
+    the call's shape)."""
     tot = 0.0
     nb_ = 0
-    mv = np.zeros(2)
     for b in range(3):
         ok2 = True
+        m0 = 0.0
+        m1 = 0.0
         for side in range(2):
             us = 0.0
             ua = 0.0
@@ -564,39 +557,56 @@ def _split_half(xq, nbr_row, points, normals, u, w, a, k, sphere):
             if not us > 0:
                 ok2 = False
                 break
-            mv[side] = ua / us
+            mv = ua / us
             if sphere:
-                dq, ok = _half_sphere(Y, N, u, k, b, side, us)
+                dq, ok = _half_sphere(xq, nbr_row, points, normals, u, k, b, side, us)
                 if ok:
-                    mv[side] = dq
+                    mv = dq
+            if side == 0:
+                m0 = mv
+            else:
+                m1 = mv
         if ok2:
-            tot += (mv[0] - mv[1]) ** 2 / 4.0
+            tot += (m0 - m1) ** 2 / 4.0
             nb_ += 1
     return tot / nb_ if nb_ > 0 else 0.0
 
 
 @nb.njit(cache=True, nogil=True)
-def _half_sphere(Y, N, u, k, b, side, usum):
+def _half_sphere(xq, nbr_row, points, normals, u, k, b, side, usum):
     """Eq. sphere_vote's distance from the neighbours of rank bit ``b`` equal to
-    ``side`` (offsets ``Y`` from the query, normals ``N``, weights ``u``, their sum
-    ``usum``): :func:`_sphere_vote`'s operations in its order on those neighbours.
-    Returns (distance, usable)."""
+    ``side`` (weights ``u``, their sum ``usum``): :func:`_sphere_vote`'s operations in
+    its order on those neighbours, in scalars (no allocation per call). Returns
+    (distance, usable)."""
     if k < 4 or not usum > 0:
         return 0.0, False
-    pb = np.zeros(3)
-    nb_ = np.zeros(3)
+    x0, x1, x2 = xq[0], xq[1], xq[2]
+    pb0 = 0.0
+    pb1 = 0.0
+    pb2 = 0.0
+    nb0 = 0.0
+    nb1 = 0.0
+    nb2 = 0.0
     qb = 0.0
     u2 = 0.0
     for j in range(k):
         if ((j >> b) & 1) != side:
             continue
         wj = u[j] / usum
+        p = nbr_row[j]
         u2 += wj * wj
-        for c in range(3):
-            y = Y[j, c]
-            pb[c] += wj * y
-            nb_[c] += wj * N[j, c]
-            qb += wj * y * y
+        y = points[p, 0] - x0
+        pb0 += wj * y
+        nb0 += wj * normals[p, 0]
+        qb += wj * y * y
+        y = points[p, 1] - x1
+        pb1 += wj * y
+        nb1 += wj * normals[p, 1]
+        qb += wj * y * y
+        y = points[p, 2] - x2
+        pb2 += wj * y
+        nb2 += wj * normals[p, 2]
+        qb += wj * y * y
     num = 0.0
     den = 0.0
     den2 = 0.0
@@ -604,12 +614,16 @@ def _half_sphere(Y, N, u, k, b, side, usum):
         if ((j >> b) & 1) != side:
             continue
         wj = u[j] / usum
-        aa = 0.0
-        bb = 0.0
-        for c in range(3):
-            dp = Y[j, c] - pb[c]
-            aa += (N[j, c] - nb_[c]) * dp
-            bb += dp * dp
+        p = nbr_row[j]
+        d0 = points[p, 0] - x0 - pb0
+        d1 = points[p, 1] - x1 - pb1
+        d2 = points[p, 2] - x2 - pb2
+        aa = (normals[p, 0] - nb0) * d0
+        aa += (normals[p, 1] - nb1) * d1
+        aa += (normals[p, 2] - nb2) * d2
+        bb = d0 * d0
+        bb += d1 * d1
+        bb += d2 * d2
         num += wj * aa
         den += wj * bb
         den2 += wj * wj * bb
@@ -621,25 +635,28 @@ def _half_sphere(Y, N, u, k, b, side, usum):
         if ((j >> b) & 1) != side:
             continue
         wj = u[j] / usum
-        for c in range(3):
-            dp = Y[j, c] - pb[c]
-            e = N[j, c] - nb_[c] - 2.0 * u4 * dp
-            res += wj * e * e
+        p = nbr_row[j]
+        e = normals[p, 0] - nb0 - 2.0 * u4 * (points[p, 0] - x0 - pb0)
+        res += wj * e * e
+        e = normals[p, 1] - nb1 - 2.0 * u4 * (points[p, 1] - x1 - pb1)
+        res += wj * e * e
+        e = normals[p, 2] - nb2 - 2.0 * u4 * (points[p, 2] - x2 - pb2)
+        res += wj * e * e
     n_eff = 1.0 / u2
     s2 = res / 3.0 * n_eff / max(n_eff - 4.0, 1.0)
     var_u4 = s2 * den2 / (4.0 * den * den)
     shrink = u4 * u4 / (u4 * u4 + var_u4) if u4 != 0.0 else 0.0
     u4s = u4 * shrink
-    pp = pb[0] * pb[0] + pb[1] * pb[1] + pb[2] * pb[2]
+    pp = pb0 * pb0 + pb1 * pb1 + pb2 * pb2
     dsdu = 2.0 * pp - qb
-    s0 = -(nb_[0] * pb[0] + nb_[1] * pb[1] + nb_[2] * pb[2])
-    g0 = math.sqrt(nb_[0] * nb_[0] + nb_[1] * nb_[1] + nb_[2] * nb_[2])
+    s0 = -(nb0 * pb0 + nb1 * pb1 + nb2 * pb2)
+    g0 = math.sqrt(nb0 * nb0 + nb1 * nb1 + nb2 * nb2)
     if not g0 > 1e-6:
         return 0.0, False
     s = s0 + u4s * dsdu
-    gx = nb_[0] - 2.0 * u4s * pb[0]
-    gy = nb_[1] - 2.0 * u4s * pb[1]
-    gz = nb_[2] - 2.0 * u4s * pb[2]
+    gx = nb0 - 2.0 * u4s * pb0
+    gy = nb1 - 2.0 * u4s * pb1
+    gz = nb2 - 2.0 * u4s * pb2
     g = math.sqrt(gx * gx + gy * gy + gz * gz)
     disc = g * g - 4.0 * u4s * s
     if not disc > 0 or not g > 1e-6:
