@@ -292,3 +292,23 @@ def test_maps_saved_before_the_options_load_as_they_were_and_new_ones_round_trip
                                   cand.distribution(q).logpdf(y))
     # the lattice's mean path is the same field without the split-half term
     np.testing.assert_array_equal(cand.predict_mean(q), cm)
+
+
+def test_lattice_mean_is_the_far_mean_with_self_out_votes():
+    """The surface lattice's field (``SurfaceMap.lattice_mean``, ``surface.lattice_field
+    = "far"``) is the far field's mean with the leave-self-out vote points, bit for bit,
+    and differs from a vote of the raw points: a mean-only path must vote from
+    ``FarField.vote_points`` as :meth:`FarField.components` does."""
+    from gmmgp_app.stages.farfield import _imls
+
+    m = _small_map([])
+    assert m.config.surface.lattice_field == "far" and m.far.self_out_cap == 3.0
+    rng = np.random.default_rng(9)
+    q = _unit(rng.normal(size=(400, 3))) * rng.uniform(0.7, 1.8, 400)[:, None]
+    want = m.far.components(q)["mean"]
+    np.testing.assert_array_equal(m.lattice_mean(q), want)
+    f = m.far
+    d, i = f.knn.query(q)
+    raw = _imls(q, d, i, f.points, f.normals, f.rho0, f.growth, f.noise, f.spread_weight,
+                f.beta, f.robust_scale, f.robust_iterations, False, True)[0]
+    assert np.abs(raw - want).max() > 1e-6
