@@ -44,7 +44,7 @@ each component is a Student-t of nu degrees of freedom scaled so that its centra
     p(e) = (1 - q) T_nu(e; s_1) + q T_nu(e; s_2),   s_1 = sqrt(v), s_2 = sqrt(v + w^2 / 3),
     T_nu(e; s) = (c / s) t_nu(c e / s),   c = t_nu^-1((1 + erf(1/sqrt 2)) / 2)
 
-(``t_nu`` the standard t density, ``c`` = 1.08 at nu = 7.1). The calibrated variance
+(``t_nu`` the standard t density, ``c`` = 1.076 at nu = 7.1). The calibrated variance
 (and so every 1-sigma coverage) is unchanged; the 95.45 % interval widens from 2 s to
 2.25 s at nu = 7.1 and the log density of a far error falls more slowly. nu = 0 keeps
 Gaussian components (what maps saved before it load with).
