@@ -518,7 +518,7 @@ def test_tiled_distribution_in_the_blend_is_the_weighted_mixture(street, tiled):
     """In the blend band the log density is that of sum_t w_t p_t / W (the tiles'
     densities from their own distributions), and half_width(level) holds exactly
     ``level`` of it about the stitched mean (against a 200-step bisection)."""
-    from scipy.special import ndtr
+    from scipy.special import ndtr, stdtr
 
     scan, sdf = street
     q = _blend_queries(scan, np.random.default_rng(6))
@@ -544,10 +544,13 @@ def test_tiled_distribution_in_the_blend_is_the_weighted_mixture(street, tiled):
         out = np.zeros(K)
         for rows, w, d in tiles:
             c = dist.mean[rows]
+            # the tiles' components: Student-t of d.dof with the Gaussians' 68.27 %
+            # half-widths (eq. unseen_mixture_t), Gaussian at dof 0
+            cdf = ndtr if d.dof == 0 else (lambda x, nu=d.dof: stdtr(nu, x))
             for p, v in ((1 - d.q, d.var_observed), (d.q, d.var_unseen)):
-                s = np.sqrt(v)
-                out[rows] += w * p * (ndtr((c + t[rows] - d.mean) / s)
-                                      - ndtr((c - t[rows] - d.mean) / s))
+                s = np.sqrt(v) / d.scale
+                out[rows] += w * p * (cdf((c + t[rows] - d.mean) / s)
+                                      - cdf((c - t[rows] - d.mean) / s))
         return out / np.where(W > 0, W, 1.0)
 
     for level in (0.3, 0.6827, 0.9545, 0.999):
