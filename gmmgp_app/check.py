@@ -47,9 +47,10 @@ carries the squared bias a smooth field has from the surface's shape there
 distances beyond their noise, 0 on planes, large at edges and small faces). When the
 scan carries its sensor origins (a Scan with ``origins``), the last stage reads ``s_i^2``
 (in the weights and in ``z_i``) at the point's ray foot, where its ray meets the field's
-zero level set (:func:`_ray_foot_variance`), not at the noisy point: the variance there
-depends on where the range noise put the point, and the weights correlate with the
-residuals they weigh.
+zero level set (:func:`_ray_foot_variance`), not at the noisy point, when
+``RAY_FOOT_VARIANCE`` is set (off by default): the variance at the noisy point depends on
+where the range noise put the point, and the weights correlate with the residuals they
+weigh; on the synthetic street that bias currently offsets part of the map's own.
 
 Parametrisation: each step is a left perturbation in the map frame about a pivot
 ``c`` (the weighted centroid of the aligned points)::
@@ -949,8 +950,10 @@ SHAPE_BIAS = True
 
 #: With the scan's ray directions (a Scan with sensor origins), the last stage's weights
 #: take the map's variance where each point's ray meets the field's zero level set
-#: (:func:`_ray_foot_variance`) instead of at the point.
-RAY_FOOT_VARIANCE = True
+#: (:func:`_ray_foot_variance`) instead of at the point. Off: it removes the noise part's
+#: bias it was written for, but on main's far field (field-15t) that bias cancels part of
+#: the map part's and the rotation gets worse (docs/check.md, Session 13).
+RAY_FOOT_VARIANCE = False
 
 
 def _coarse_to_fine(smap, x, x_dense, T0, frozen, frame, max_iter, kw,

@@ -133,8 +133,8 @@ def _run_o3d(kind, src, tgt, reg, init, max_dist):
 def _pair(name, smap, scan_pts, init, truth, *, noise, max_dist, target_pts, repeat, pose=None,
           origins=None):
     """One pair, every method. ``origins`` (optional, the scan's sensor origins, its
-    frame): gmmgp gets them (a Scan; its last stage reads the map's variance at the rays'
-    feet) unless ``--no-origins``; the ICPs take the points only."""
+    frame): gmmgp gets them (a Scan; with ``--ray-foot`` its last stage reads the map's
+    variance at the rays' feet) unless ``--no-origins``; the ICPs take the points only."""
     from gmmgp_app.check import check_scan
     from gmmgp_app.types import Scan
 
@@ -166,6 +166,7 @@ def _pair(name, smap, scan_pts, init, truth, *, noise, max_dist, target_pts, rep
         T[kind], secs[kind] = Tk, float(np.median(tt))
     row.update({
         "gmmgp_origins": scan_in is not scan_pts,
+        "gmmgp_ray_foot": bool(__import__("gmmgp_app.check").check.RAY_FOOT_VARIANCE),
         "seconds_align": secs, "seconds_check_only": float(np.median(ct)),
         # the first run on a freshly loaded map also fills the map's prior cell cache
         "seconds_align_first_run": times[0],
@@ -481,9 +482,16 @@ def main(argv=None) -> int:
     ap.add_argument("--no-origins", action="store_true",
                     help="give gmmgp the scans' points only, as the ICPs (without the sensor "
                          "origins its last stage reads the map's variance at the points)")
+    ap.add_argument("--ray-foot", action="store_true",
+                    help="set check.RAY_FOOT_VARIANCE (opt-in; with the scans' origins the "
+                         "last stage reads the map's variance at the rays' feet)")
     args = ap.parse_args(argv)
     global USE_ORIGINS
     USE_ORIGINS = not args.no_origins
+    if args.ray_foot:
+        import gmmgp_app.check as ck
+
+        ck.RAY_FOOT_VARIANCE = True
     rows = []
     if not args.no_synthetic:
         rows += synthetic(args)
