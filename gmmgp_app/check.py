@@ -1682,7 +1682,9 @@ def _ray_foot_variance(smap, y, m, g, u, var, min_cos: float = 0.3,
     synthetic street the weights taken at the noisy points make the scan's noise part of
     the rotation error 0.8-1.0 mdeg of roll on average over 20 drawn second drives, where
     the weights from the noise-free points' variance (an oracle) or from another noise
-    draw's leave 0.1-0.3 (docs/check.md, Session 13). Moving the point back along its ray
+    draw's leave 0.2-0.4 (+1.1 against +0.5 on seeds 17 with field-15t's far field;
+    docs/check.md, Session 13). Opt-in (``RAY_FOOT_VARIANCE``): with field-15t's far field
+    that bias offsets the map's own and removing it makes the rotation worse. Moving the point back along its ray
     by its residual removes the range noise (to the map's error) from where the variance
     is read, whichever way the ray meets the surface; the foot along the gradient
     (``y - m g / |g|^2``) keeps the noise's component along the surface and with it the
