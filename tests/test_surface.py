@@ -1054,3 +1054,26 @@ def test_far_field_mean_only_is_the_components_mean(vote, robust):
                         rng.normal(scale=3.0, size=(500, 3))])
     np.testing.assert_array_equal(f.mean(q), f.components(q)["mean"])
     assert f.mean(np.zeros((0, 3))).shape == (0,)
+
+
+def test_bounds_in_one_pass_are_numpys():
+    # the compiled per-column bounds equal numpy's min(0) / max(0); a non-finite
+    # coordinate is flagged (numpy's bounds are then NaN or infinite: the seeds' grid
+    # is not built, as before)
+    from gmmgp_app.stages.knn import _int_bounds3
+    from gmmgp_app.stages.surface import SeedReach, _finite_bounds, _int_bounds
+
+    rng = np.random.default_rng(4)
+    c = rng.integers(-10 ** 12, 10 ** 12, (5001, 3))
+    for lo, hi in (_int_bounds(c), _int_bounds3(c)):
+        np.testing.assert_array_equal(lo, c.min(0))
+        np.testing.assert_array_equal(hi, c.max(0))
+    p = rng.normal(size=(5001, 3))
+    lo, hi, ok = _finite_bounds(p)
+    assert ok and np.array_equal(lo, p.min(0)) and np.array_equal(hi, p.max(0))
+    for bad in (np.nan, np.inf, -np.inf):
+        q = p.copy()
+        q[1234, 1] = bad
+        assert not _finite_bounds(q)[2]
+        assert SeedReach(q, 0.3).table is None      # the k-d tree alone, as before
+    assert SeedReach(p, 0.3).table is not None
