@@ -1036,9 +1036,11 @@ def test_lattice_table_sized_up_front_is_not_rehashed_and_holds_the_same_values(
 
 @pytest.mark.parametrize("vote", ["plane", "sphere"])
 @pytest.mark.parametrize("robust", [0.0, 1.0])
-def test_far_field_mean_only_is_the_components_mean(vote, robust):
+@pytest.mark.parametrize("self_out", [0.0, 3.0])
+def test_far_field_mean_only_is_the_components_mean(vote, robust, self_out):
     # FarField.mean (what the surface lattice evaluates: no variance, spread, n_eff) is
-    # components()["mean"] bit for bit, for both votes, robust or not, near the data,
+    # components()["mean"] bit for bit, for both votes, robust or not, voting from the
+    # raw or the leave-self-out points (self_out_cap), near the data,
     # far from it and at a point of the data (some normals flipped: the robust
     # weights and the sphere's fallbacks are exercised)
     from gmmgp_app.stages.farfield import FarField
@@ -1049,7 +1051,10 @@ def test_far_field_mean_only_is_the_components_mean(vote, robust):
     n = p.copy()
     n[rng.random(len(n)) < 0.03] *= -1
     p[:2000, 2] *= 0.3                      # an uneven spacing and curvature
-    f = FarField(p, n, 0.05, 0.01, k=16, robust_scale=robust, vote=vote)
+    f = FarField(p, n, 0.05, 0.01, k=16, robust_scale=robust, vote=vote,
+                 self_out_cap=self_out)
+    # with the leave-self-out cap the neighbours vote from moved points
+    assert (f.vote_points is f.points) == (self_out == 0.0)
     q = np.concatenate([p[:50], p[::3] * (1 + rng.normal(scale=0.05, size=(len(p[::3]), 1))),
                         rng.normal(scale=3.0, size=(500, 3))])
     np.testing.assert_array_equal(f.mean(q), f.components(q)["mean"])

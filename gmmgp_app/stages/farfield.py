@@ -417,13 +417,15 @@ class FarField:
     def mean(self, xyz) -> np.ndarray:
         """(K,) the mean of :meth:`components` alone (eq. imls / rimls, plus eq.
         sphere_vote's correction with ``vote="sphere"``), the same values bit for bit:
-        what the surface lattice needs (``SurfaceMap.lattice_mean``). The variance, spread,
-        n_eff and the other per-query outputs are not computed (:func:`_imls_mean`)."""
+        what the surface lattice needs (``SurfaceMap.lattice_mean``). The neighbours vote
+        from :attr:`vote_points` as in :meth:`components`; the variance, spread, n_eff,
+        split-half term and the other per-query outputs are not computed
+        (:func:`_imls_mean`)."""
         x = np.ascontiguousarray(np.asarray(xyz, dtype=np.float64).reshape(-1, 3))
         if len(x) == 0:
             return np.zeros(0)
         d, i = self.knn.query(x)
-        return _imls_mean(x, d, i, self.points, self.normals, self.rho0, self.growth,
+        return _imls_mean(x, d, i, self.vote_points, self.normals, self.rho0, self.growth,
                           self.robust_scale, self.robust_iterations, self.vote == "sphere")
 
     def distance_to_data(self, xyz) -> np.ndarray:
