@@ -4,8 +4,8 @@ from gmmgp_app.stages import farfield as ff
 smap = load_map(sys.argv[1]); q = np.load(sys.argv[2])['lat'][:400000]
 f = smap.far
 d, i = f.knn.query(q)
-args = (q, d, i, f.points, f.normals, f.rho0, f.growth)
-full = lambda: ff._imls(*args, f.noise, f.spread_weight, f.beta, f.robust_scale, f.robust_iterations, False, f.vote == "sphere")[0]
+args = (q, d, i, getattr(f, "vote_points", f.points), f.normals, f.rho0, f.growth)
+full = lambda: f.components(q, neighbours=(d, i))["mean"]
 mo = lambda: ff._imls_mean(*args, f.robust_scale, f.robust_iterations, f.vote == "sphere")
 a, b = full(), mo()
 print("vote", f.vote, "robust", f.robust_scale, f.robust_iterations, "k", f.k, "equal", np.array_equal(a, b))
