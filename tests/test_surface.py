@@ -1082,3 +1082,23 @@ def test_bounds_in_one_pass_are_numpys():
         assert not _finite_bounds(q)[2]
         assert SeedReach(q, 0.3).table is None      # the k-d tree alone, as before
     assert SeedReach(p, 0.3).table is not None
+
+
+def test_sphere_vote_with_an_underflowing_curvature_does_not_raise():
+    # a fitted curvature u4 != 0 whose square underflows, with no residual (var(u4) = 0),
+    # made 0 / 0 in the shrink factor: ZeroDivisionError from the compiled kernels
+    # (KITTI 000000's lattice, main 8d8f356); such a curvature is none: the plane's vote
+    from gmmgp_app.stages.farfield import FarField
+
+    g = np.stack(np.meshgrid(np.arange(-3, 4) * 0.1, np.arange(-3, 4) * 0.1,
+                             indexing="ij"), -1).reshape(-1, 2)
+    p = np.c_[g, np.zeros(len(g))]
+    n = np.c_[1e-170 * g[:, 0], np.zeros(len(g)), np.ones(len(g))]   # |n| = 1 in float64
+    q = np.array([[0.01, 0.02, 0.05], [0.0, 0.0, 0.2]])
+    for self_out in (0.0, 3.0):
+        f = FarField(p, n, 0.05, 0.01, k=16, robust_scale=1.0, vote="sphere",
+                     self_out_cap=self_out)
+        c = f.components(q, split_half=True)
+        np.testing.assert_allclose(c["mean"], q[:, 2], rtol=0, atol=1e-12)
+        assert c["shrink"][0] == 0.0
+        np.testing.assert_array_equal(f.mean(q), c["mean"])

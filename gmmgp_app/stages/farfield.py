@@ -659,7 +659,9 @@ def _half_sphere(xq, nbr_row, points, normals, u, k, b, side, usum):
     n_eff = 1.0 / u2
     s2 = res / 3.0 * n_eff / max(n_eff - 4.0, 1.0)
     var_u4 = s2 * den2 / (4.0 * den * den)
-    shrink = u4 * u4 / (u4 * u4 + var_u4) if u4 != 0.0 else 0.0
+    # u4 != 0 whose square underflows with var(u4) = 0 (KITTI): 0 / 0 raised
+    # ZeroDivisionError in the compiled kernels; such a curvature is none (shrink 0)
+    shrink = u4 * u4 / (u4 * u4 + var_u4) if u4 * u4 + var_u4 > 0.0 else 0.0
     u4s = u4 * shrink
     pp = pb0 * pb0 + pb1 * pb1 + pb2 * pb2
     dsdu = 2.0 * pp - qb
@@ -805,7 +807,9 @@ def _sphere_vote(xq, nbr_row, points, normals, u, w, dist, k):
     n_eff = 1.0 / u2
     s2 = res / 3.0 * n_eff / max(n_eff - 4.0, 1.0)
     var_u4 = s2 * den2 / (4.0 * den * den)
-    shrink = u4 * u4 / (u4 * u4 + var_u4) if u4 != 0.0 else 0.0
+    # u4 != 0 whose square underflows with var(u4) = 0 (KITTI): 0 / 0 raised
+    # ZeroDivisionError in the compiled kernels; such a curvature is none (shrink 0)
+    shrink = u4 * u4 / (u4 * u4 + var_u4) if u4 * u4 + var_u4 > 0.0 else 0.0
     u4s = u4 * shrink
     pp = pb[0] * pb[0] + pb[1] * pb[1] + pb[2] * pb[2]
     dsdu = 2.0 * pp - qb  # ds(0)/du4 at the query
