@@ -310,11 +310,12 @@ class SurfaceMap:
     def lattice_mean(self, xyz) -> np.ndarray:
         """(K,) the field the surface lattice is evaluated with (``surface.lattice_field``):
         the far field's mean ("far": robust IMLS, which carries :meth:`predict`'s mean at
-        the lattice, blend weight median 0.99), or :meth:`predict_mean` ("map", and for a
-        map without a far field)."""
+        the lattice, blend weight median 0.99; :meth:`FarField.mean`, its mean alone, the
+        same values as ``components``'), or :meth:`predict_mean` ("map", and for a map
+        without a far field)."""
         if self.far is None or getattr(self.config.surface, "lattice_field", "map") != "far":
             return self.predict_mean(xyz)
-        return self.far.components(as_queries(xyz))["mean"]
+        return self.far.mean(as_queries(xyz))     # components()'s mean, nothing else
 
     def _predict_with_grad(self, xyz):
         return self.predict(xyz, return_grad=True)

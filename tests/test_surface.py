@@ -640,6 +640,18 @@ def test_overlap_gives_the_serial_mesh_bit_for_bit():
     over = extract_surface(lambda x: ell(x)[:2], seeds, project=counted, overlap=True, **kw)
     assert sum(calls) > 5 and 0 < len(serial.faces)
     _assert_same_mesh(serial, over)
+    # a std cut and the trim to the reach without projection (the overlap tests the
+    # faces' reach before the worker's last variances): the serial mesh
+    kw = dict(voxel_size=0.1, block_cells=4, batch=101, max_std=0.0101, reach=0.12,
+              trim_to_reach=True)
+    ell2 = lambda x: ell(x)[:2]  # noqa: E731
+    serial = extract_surface(ell2, seeds, overlap=False, **kw)
+    loose = extract_surface(ell2, seeds, overlap=False, **{**kw, "trim_to_reach": False,
+                                                           "max_std": None})
+    counted, calls = _worker_calls(ell2)
+    over = extract_surface(counted, seeds, overlap=True, **kw)
+    assert sum(calls) > 5 and 0 < len(serial.faces) < 0.95 * len(loose.faces)
+    _assert_same_mesh(serial, over)
 
 
 def test_overlap_gives_the_serial_mesh_of_a_map_bit_for_bit(box_scene):
@@ -959,3 +971,134 @@ def test_seed_reach_without_a_grid_is_the_tree():
         got = sr.within(x, closed=closed)
         np.testing.assert_array_equal(got, [True, False, True])
         np.testing.assert_array_equal(got, _tree_within(seeds, x, 1e-3, closed))
+
+
+def test_seed_cells_through_the_hash_set_are_the_sorted_unique_cells():
+    # the seed cells found from each cell's first seed (hashed), then sorted: the rows
+    # np.unique of every seed's cell gives, in its order; non-finite seeds fall back
+    from gmmgp_app.stages.surface import _seed_cells_sorted, _unique_rows
+
+    rng = np.random.default_rng(5)
+    seeds = rng.normal(scale=3.0, size=(50000, 3)) - 1.0
+    for h in (0.05, 0.3, 2.0):
+        want = np.unique(np.floor(seeds / h).astype(np.int64), axis=0)
+        got = _seed_cells_sorted(seeds, h)
+        assert got.dtype == np.int64
+        np.testing.assert_array_equal(got, want)
+    bad = seeds.copy()
+    bad[7] = np.inf
+    with np.errstate(invalid="ignore"):
+        np.testing.assert_array_equal(_seed_cells_sorted(bad, 0.3),
+                                      _unique_rows(np.floor(bad / 0.3).astype(np.int64)))
+
+
+def test_median_spacing_asked_twice_is_computed_once_and_follows_the_points():
+    from gmmgp_app.stages import surface as S
+
+    rng = np.random.default_rng(6)
+    p = rng.uniform(size=(30000, 3))
+    S._SPACING_LAST = None
+    a = S._median_spacing(p)
+    last = S._SPACING_LAST
+    assert S._median_spacing(p.copy()) == a and S._SPACING_LAST is last   # same rows
+    q = p * 2.0                         # other points, same count: computed afresh
+    assert S._median_spacing(q) == pytest.approx(2 * a, rel=1e-12)
+    assert S._SPACING_LAST is not last
+    # the value a fresh process computes
+    sample = p[np.random.default_rng(0).permutation(len(p))[:20000]]
+    from scipy.spatial import cKDTree
+    want = float(np.median(cKDTree(sample).query(sample, k=2)[0][:, 1])) * \
+        float(np.sqrt(len(sample) / len(p)))
+    S._SPACING_LAST = None
+    assert S._median_spacing(p) == want
+
+
+def test_lattice_table_sized_up_front_is_not_rehashed_and_holds_the_same_values():
+    from gmmgp_app.stages import surface as S
+    from gmmgp_app.stages.surface import _LatticeValues, _Packer
+
+    rng = np.random.default_rng(8)
+    cells = np.unique(rng.integers(-40, 40, (30000, 3)), axis=0)
+    pack = _Packer(cells.min(0) - 2, cells.max(0) + 2)
+    field = lambda x: x @ np.array([0.3, -1.0, 2.0]) - 0.1  # noqa: E731
+    small = _LatticeValues(field, 0.5, pack, 4096)
+    big = _LatticeValues(field, 0.5, pack, 4096,
+                         expect=S.LATTICE_NODES_PER_SEED_CELL * len(cells) * 4)
+    size = len(big.keys)
+    assert size > len(small.keys)
+    for lat in (small, big):
+        lat.evaluate_corners(cells, chunk=5000)
+    assert len(big.keys) == size and big.count == small.count     # never rehashed
+    corners = np.stack(np.meshgrid(*([0, 1],) * 3, indexing="ij"), -1).reshape(-1, 3)
+    nodes = np.unique((cells[:, None, :] + corners).reshape(-1, 3), axis=0)
+    np.testing.assert_array_equal(big(nodes), small(nodes))
+
+
+@pytest.mark.parametrize("vote", ["plane", "sphere"])
+@pytest.mark.parametrize("robust", [0.0, 1.0])
+@pytest.mark.parametrize("self_out", [0.0, 3.0])
+def test_far_field_mean_only_is_the_components_mean(vote, robust, self_out):
+    # FarField.mean (what the surface lattice evaluates: no variance, spread, n_eff) is
+    # components()["mean"] bit for bit, for both votes, robust or not, voting from the
+    # raw or the leave-self-out points (self_out_cap), near the data,
+    # far from it and at a point of the data (some normals flipped: the robust
+    # weights and the sphere's fallbacks are exercised)
+    from gmmgp_app.stages.farfield import FarField
+
+    rng = np.random.default_rng(11)
+    p = rng.normal(size=(4000, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    n = p.copy()
+    n[rng.random(len(n)) < 0.03] *= -1
+    p[:2000, 2] *= 0.3                      # an uneven spacing and curvature
+    f = FarField(p, n, 0.05, 0.01, k=16, robust_scale=robust, vote=vote,
+                 self_out_cap=self_out)
+    # with the leave-self-out cap the neighbours vote from moved points
+    assert (f.vote_points is f.points) == (self_out == 0.0)
+    q = np.concatenate([p[:50], p[::3] * (1 + rng.normal(scale=0.05, size=(len(p[::3]), 1))),
+                        rng.normal(scale=3.0, size=(500, 3))])
+    np.testing.assert_array_equal(f.mean(q), f.components(q)["mean"])
+    assert f.mean(np.zeros((0, 3))).shape == (0,)
+
+
+def test_bounds_in_one_pass_are_numpys():
+    # the compiled per-column bounds equal numpy's min(0) / max(0); a non-finite
+    # coordinate is flagged (numpy's bounds are then NaN or infinite: the seeds' grid
+    # is not built, as before)
+    from gmmgp_app.stages.knn import _int_bounds3
+    from gmmgp_app.stages.surface import SeedReach, _finite_bounds, _int_bounds
+
+    rng = np.random.default_rng(4)
+    c = rng.integers(-10 ** 12, 10 ** 12, (5001, 3))
+    for lo, hi in (_int_bounds(c), _int_bounds3(c)):
+        np.testing.assert_array_equal(lo, c.min(0))
+        np.testing.assert_array_equal(hi, c.max(0))
+    p = rng.normal(size=(5001, 3))
+    lo, hi, ok = _finite_bounds(p)
+    assert ok and np.array_equal(lo, p.min(0)) and np.array_equal(hi, p.max(0))
+    for bad in (np.nan, np.inf, -np.inf):
+        q = p.copy()
+        q[1234, 1] = bad
+        assert not _finite_bounds(q)[2]
+        assert SeedReach(q, 0.3).table is None      # the k-d tree alone, as before
+    assert SeedReach(p, 0.3).table is not None
+
+
+def test_sphere_vote_with_an_underflowing_curvature_does_not_raise():
+    # a fitted curvature u4 != 0 whose square underflows, with no residual (var(u4) = 0),
+    # made 0 / 0 in the shrink factor: ZeroDivisionError from the compiled kernels
+    # (KITTI 000000's lattice, main 8d8f356); such a curvature is none: the plane's vote
+    from gmmgp_app.stages.farfield import FarField
+
+    g = np.stack(np.meshgrid(np.arange(-3, 4) * 0.1, np.arange(-3, 4) * 0.1,
+                             indexing="ij"), -1).reshape(-1, 2)
+    p = np.c_[g, np.zeros(len(g))]
+    n = np.c_[1e-170 * g[:, 0], np.zeros(len(g)), np.ones(len(g))]   # |n| = 1 in float64
+    q = np.array([[0.01, 0.02, 0.05], [0.0, 0.0, 0.2]])
+    for self_out in (0.0, 3.0):
+        f = FarField(p, n, 0.05, 0.01, k=16, robust_scale=1.0, vote="sphere",
+                     self_out_cap=self_out)
+        c = f.components(q, split_half=True)
+        np.testing.assert_allclose(c["mean"], q[:, 2], rtol=0, atol=1e-12)
+        assert c["shrink"][0] == 0.0
+        np.testing.assert_array_equal(f.mean(q), c["mean"])

@@ -414,6 +414,20 @@ class FarField:
                     n_eff=n_eff, grad=g if return_grad else None, delta=delta,
                     shrink=shrink, v_curv=v_curv, spread2_sphere=spread2_s, half=half)
 
+    def mean(self, xyz) -> np.ndarray:
+        """(K,) the mean of :meth:`components` alone (eq. imls / rimls, plus eq.
+        sphere_vote's correction with ``vote="sphere"``), the same values bit for bit:
+        what the surface lattice needs (``SurfaceMap.lattice_mean``). The neighbours vote
+        from :attr:`vote_points` as in :meth:`components`; the variance, spread, n_eff,
+        split-half term and the other per-query outputs are not computed
+        (:func:`_imls_mean`)."""
+        x = np.ascontiguousarray(np.asarray(xyz, dtype=np.float64).reshape(-1, 3))
+        if len(x) == 0:
+            return np.zeros(0)
+        d, i = self.knn.query(x)
+        return _imls_mean(x, d, i, self.vote_points, self.normals, self.rho0, self.growth,
+                          self.robust_scale, self.robust_iterations, self.vote == "sphere")
+
     def distance_to_data(self, xyz) -> np.ndarray:
         """(K,) distance of each query to the nearest hit point."""
         return self.tree.query(np.asarray(xyz, dtype=np.float64).reshape(-1, 3),
@@ -645,7 +659,9 @@ def _half_sphere(xq, nbr_row, points, normals, u, k, b, side, usum):
     n_eff = 1.0 / u2
     s2 = res / 3.0 * n_eff / max(n_eff - 4.0, 1.0)
     var_u4 = s2 * den2 / (4.0 * den * den)
-    shrink = u4 * u4 / (u4 * u4 + var_u4) if u4 != 0.0 else 0.0
+    # u4 != 0 whose square underflows with var(u4) = 0 (KITTI): 0 / 0 raised
+    # ZeroDivisionError in the compiled kernels; such a curvature is none (shrink 0)
+    shrink = u4 * u4 / (u4 * u4 + var_u4) if u4 * u4 + var_u4 > 0.0 else 0.0
     u4s = u4 * shrink
     pp = pb0 * pb0 + pb1 * pb1 + pb2 * pb2
     dsdu = 2.0 * pp - qb
@@ -665,6 +681,68 @@ def _half_sphere(xq, nbr_row, points, normals, u, k, b, side, usum):
     if d * u4s < 0 and abs(d) * 4.0 * abs(u4s) > 1.0:
         return 0.0, False
     return d, True
+
+
+_MEAN_CHUNK = 256     # queries per scratch allocation in _imls_mean
+
+
+@nb.njit(parallel=True, cache=True, nogil=True)
+def _imls_mean(x, d, nbr, points, normals, rho0, growth, robust_scale, robust_iterations,
+               sphere):
+    """The mean of :func:`_imls` alone (eqs. imls, rimls; eq. sphere_vote's correction
+    through the same :func:`_sphere_vote` with ``sphere``): the same operations in the
+    same order per query, so the same values bit for bit, without the variance, spread,
+    n_eff and the sphere vote's diagnostics, and with the per-query scratch allocated once
+    per chunk of ``_MEAN_CHUNK`` queries. Kept in step with :func:`_imls` by
+    tests/test_surface.py (equal means for both votes, robust or not)."""
+    K, k = d.shape
+    mean = np.empty(K)
+    n_chunks = (K + _MEAN_CHUNK - 1) // _MEAN_CHUNK
+    for c in nb.prange(n_chunks):
+        w = np.empty(k)
+        u = np.empty(k)
+        a = np.empty(k)
+        for q in range(c * _MEAN_CHUNK, min(K, (c + 1) * _MEAN_CHUNK)):
+            r = d[q, 0]
+            rho = max(rho0, growth * r)
+            rho2 = rho * rho
+            r2 = r * r
+            wsum = 0.0
+            wa = 0.0
+            for j in range(k):
+                wj = math.exp(-(d[q, j] * d[q, j] - r2) / rho2)
+                p = nbr[q, j]
+                aj = ((x[q, 0] - points[p, 0]) * normals[p, 0]
+                      + (x[q, 1] - points[p, 1]) * normals[p, 1]) \
+                    + (x[q, 2] - points[p, 2]) * normals[p, 2]
+                w[j] = wj
+                u[j] = wj
+                a[j] = aj
+                wsum += wj
+                wa += wj * aj
+            m = wa / wsum
+            if robust_scale > 0:
+                s_r2 = (robust_scale * rho) ** 2
+                for _ in range(robust_iterations):
+                    usum = 0.0
+                    ua = 0.0
+                    for j in range(k):
+                        u[j] = w[j] * math.exp(-(a[j] - m) ** 2 / s_r2)
+                        usum += u[j]
+                        ua += u[j] * a[j]
+                    if usum > 0:
+                        m = ua / usum
+                    else:
+                        for j in range(k):
+                            u[j] = w[j]
+                        break
+            delta = 0.0
+            if sphere:
+                dq, sq, vq, ssq, ok = _sphere_vote(x[q], nbr[q], points, normals, u, w, a, k)
+                if ok:
+                    delta = dq - m
+            mean[q] = m + delta
+    return mean
 
 
 @nb.njit(cache=True, nogil=True)
@@ -729,7 +807,9 @@ def _sphere_vote(xq, nbr_row, points, normals, u, w, dist, k):
     n_eff = 1.0 / u2
     s2 = res / 3.0 * n_eff / max(n_eff - 4.0, 1.0)
     var_u4 = s2 * den2 / (4.0 * den * den)
-    shrink = u4 * u4 / (u4 * u4 + var_u4) if u4 != 0.0 else 0.0
+    # u4 != 0 whose square underflows with var(u4) = 0 (KITTI): 0 / 0 raised
+    # ZeroDivisionError in the compiled kernels; such a curvature is none (shrink 0)
+    shrink = u4 * u4 / (u4 * u4 + var_u4) if u4 * u4 + var_u4 > 0.0 else 0.0
     u4s = u4 * shrink
     pp = pb[0] * pb[0] + pb[1] * pb[1] + pb[2] * pb[2]
     dsdu = 2.0 * pp - qb  # ds(0)/du4 at the query

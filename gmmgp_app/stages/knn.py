@@ -137,8 +137,9 @@ class GridKNN:
         by cube); (distances, indices, done)."""
         g = self.group * self.cell
         c = np.floor(x / g).astype(np.int64)
-        c -= c.min(0)
-        dims = c.max(0) + 1
+        lo, hi = _int_bounds3(c)
+        c -= lo
+        dims = hi - lo + 1
         if float(np.prod(dims.astype(np.float64))) >= 2.0 ** 62:
             return (np.empty((len(x), self.k)), np.empty((len(x), self.k), np.int64),
                     np.zeros(len(x), np.bool_))
@@ -847,3 +848,19 @@ def _ball_pass(x, r, cell, lo, dims, tk, ts, te, pts, order, ptr, idx, fill):
                             n += 1
         counts[q] = n
     return counts
+
+
+@nb.njit(cache=True, nogil=True)
+def _int_bounds3(c):
+    """``(c.min(0), c.max(0))`` of a non-empty (n, 3) int64 array in one pass (numpy's
+    reduction along axis 0 of an (n, 3) array walks it with a stride: ~10x slower)."""
+    lo = c[0].copy()
+    hi = c[0].copy()
+    for i in range(1, c.shape[0]):
+        for d in range(3):
+            v = c[i, d]
+            if v < lo[d]:
+                lo[d] = v
+            if v > hi[d]:
+                hi[d] = v
+    return lo, hi

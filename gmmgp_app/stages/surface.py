@@ -54,23 +54,28 @@ class GridTooLargeError(MemoryError):
     """The requested surface grid would not fit the machine; message has the estimate."""
 
 
-def estimate_grid_nodes(seeds: np.ndarray, voxel_size: float, dilate: int = 1) -> int:
+def estimate_grid_nodes(seeds: np.ndarray, voxel_size: float, dilate: int = 1,
+                        n_cells: Optional[int] = None) -> int:
     """Field evaluations the surface grid may need, estimated up front.
 
     Surface following grows a sheet of cells around each seed cell, so the bound
     is the seed cells times the area of a (2 dilate + 1)^2 patch, times 2 nodes.
+    ``n_cells``: the number of seed cells when the caller has counted them.
     """
-    n_cells = _distinct.cell_count(np.asarray(seeds, dtype=np.float64), voxel_size)
+    if n_cells is None:
+        n_cells = _distinct.cell_count(np.asarray(seeds, dtype=np.float64), voxel_size)
     if n_cells is None:
         n_cells = len(_unique_rows(np.floor(np.asarray(seeds) / voxel_size).astype(np.int64)))
     return int(2 * n_cells * (2 * dilate + 1) ** 2)
 
 
-def check_grid_size(seeds: np.ndarray, voxel_size: float, dilate: Optional[int] = None) -> int:
+def check_grid_size(seeds: np.ndarray, voxel_size: float, dilate: Optional[int] = None,
+                    n_cells: Optional[int] = None) -> int:
     """Refuse, before any work, a surface grid that would not fit the machine.
 
     Returns the ``dilate`` that :func:`extract_surface` will use (default: enough
-    cells to bridge the median seed spacing, at least 2).
+    cells to bridge the median seed spacing, at least 2). ``n_cells``: the number of
+    distinct seed cells at ``voxel_size`` when the caller has them (counted otherwise).
 
     Raises
     ------
@@ -80,7 +85,7 @@ def check_grid_size(seeds: np.ndarray, voxel_size: float, dilate: Optional[int] 
     h = float(voxel_size)
     if dilate is None:
         dilate = max(2, int(np.ceil(_median_spacing(seeds) / h)) + 1)
-    bound = estimate_grid_nodes(seeds, h, dilate)
+    bound = estimate_grid_nodes(seeds, h, dilate, n_cells)
     if bound > MAX_GRID_NODES:
         raise GridTooLargeError(
             f"A surface grid at voxel_size={h} m needs up to {bound:,} field evaluations "
@@ -259,7 +264,8 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     if not voxel_size > 0:
         raise ValueError(f"Expected voxel_size > 0 m, found {voxel_size}.")
     h = float(voxel_size)
-    dilate = check_grid_size(seeds, h, dilate)
+    cells = _seed_cells_sorted(seeds, h)
+    dilate = check_grid_size(seeds, h, dilate, n_cells=len(cells))
 
     # 1. Follow the zero crossing from the seed cells (cells by their lower corner), but
     #    only into cells near a seed: beyond the data a planar component's zero set goes
@@ -275,7 +281,7 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
     try:
         return _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress,
                         reach, predict_mean, project, project_steps, project_clamp, tick,
-                        pool, marching_cubes, trim_to_reach)
+                        pool, marching_cubes, trim_to_reach, cells)
     finally:
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)
@@ -283,11 +289,12 @@ def extract_surface(predict: Callable, seeds: np.ndarray, voxel_size: float = 0.
 
 def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, reach,
              predict_mean, project, project_steps, project_clamp, tick, pool,
-             marching_cubes, trim_to_reach=False) -> SurfaceMesh:
+             marching_cubes, trim_to_reach=False, cells=None) -> SurfaceMesh:
     """:func:`extract_surface` after its checks; ``pool`` (one worker thread, or None
     for the serial path) evaluates the fields beside the rest (one call at a time: a
     map's field is not called from two threads at once). The seeds' reach test
-    (:class:`SeedReach`) is kept to the end with ``trim_to_reach``."""
+    (:class:`SeedReach`) is kept to the end with ``trim_to_reach``. ``cells``: the seed
+    cells (:func:`_seed_cells_sorted`) when the caller has them."""
     follow_pool = pool if FOLLOW_PIPELINED else None
     if reach is None:
         reach = surface_reach(seeds, h)
@@ -302,11 +309,15 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
         tree = None
     else:
         tree = SeedReach(seeds, reach)
-    cells = _unique_rows(np.floor(seeds / h).astype(np.int64))
-    pack = _Packer(cells.min(0) - dilate - block_cells - 2,
-                   cells.max(0) + dilate + block_cells + 2)
+    if cells is None:
+        cells = _seed_cells_sorted(seeds, h)
+    clo, chi = _int_bounds(cells)
+    pack = _Packer(clo - dilate - block_cells - 2, chi + dilate + block_cells + 2)
+    # the node table sized for ~2 nodes per seed cell (the street: 2.1) so that it is
+    # not rehashed on the way (where each node sits changes no value)
     lattice = _LatticeValues(predict_mean if predict_mean is not None
-                             else (lambda x: predict(x)[0]), h, pack, batch)
+                             else (lambda x: predict(x)[0]), h, pack, batch,
+                             expect=LATTICE_NODES_PER_SEED_CELL * len(cells))
     # the followed cells (and those refused as too far from a seed: never proposed
     # twice), by packed key in a hash set
     followed = _KeySet(2 * len(cells))
@@ -410,6 +421,7 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
     faces = _stitched_faces(inverse.reshape(-1), faces_all)
     del faces_all, inverse
     release_free_memory()     # and of their faces
+    within = None             # the trim's face test when done before the variances
     if stream is None:
         del ukeys
         verts, faces, _ = _drop_unused(verts, faces, np.zeros(len(verts)))
@@ -421,6 +433,11 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
             var = _variance(predict, verts, batch)
     else:
         tick("stitch")
+        if trim_to_reach and project is None:
+            # the vertices are final: the trim's face test while the worker finishes
+            # the variances (the same faces kept as after the max_std cut below)
+            within = faces_within_reach(verts, faces, tree, reach, batch)
+            tree = None
         # the worker's values of every stitched vertex (in ukeys' order); the vertices
         # that only degenerate faces used are dropped with their values
         moved, var = stream.result(ukeys)
@@ -444,10 +461,14 @@ def _extract(predict, seeds, h, dilate, max_std, block_cells, batch, progress, r
     tick("vertices")
     if max_std is not None:
         bad = np.sqrt(np.maximum(var, 0)) > max_std
-        faces = faces[~bad[faces].any(1)]
+        keep = ~bad[faces].any(1)
+        faces = faces[keep]
+        if within is not None:
+            within = within[keep]
     if trim_to_reach:
-        faces = faces[faces_within_reach(verts, faces, tree, reach, batch)]
-    del tree
+        faces = faces[faces_within_reach(verts, faces, tree, reach, batch)
+                      if within is None else within]
+    del tree, within
     verts, faces, var = _drop_unused(verts, faces, var)
     tick("final")
     return SurfaceMesh(verts, faces, var)
@@ -510,9 +531,10 @@ class SeedReach:
             self.table = None
             return
         # floor(min / cell) is the least cell (division and floor are monotonic)
-        lo = np.floor(self.seeds.min(0) / self.cell) - 1
-        hi = np.floor(self.seeds.max(0) / self.cell) + 1
-        if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+        smin, smax, finite = _finite_bounds(self.seeds)
+        lo = np.floor(smin / self.cell) - 1
+        hi = np.floor(smax / self.cell) + 1
+        if not (finite and np.isfinite(lo).all() and np.isfinite(hi).all()):
             self.table = None
             return
         dims = hi - lo + 1
@@ -948,13 +970,68 @@ def _median_spacing(points: np.ndarray, n: int = 20000) -> float:
 
     if len(points) < 2:
         return 0.0
-    sample = points[np.random.default_rng(0).permutation(len(points))[:n]]
+    global _SPACING_LAST
+    N = len(points)
+    pick = _SPACING_PICKS.get((N, n))
+    if pick is None:
+        pick = np.random.default_rng(0).permutation(N)[:n]
+        _SPACING_PICKS.clear()          # one set of picks kept (20k indices)
+        _SPACING_PICKS[(N, n)] = pick
+    sample = points[pick]
+    last = _SPACING_LAST
+    # the same sample rows give the same value: a map's surface asks twice per mesh
+    # (its reach, then the grid's dilate)
+    if last is not None and last[0] == N and np.array_equal(last[1], sample):
+        return last[2]
     spacing = float(np.median(cKDTree(sample).query(sample, k=2)[0][:, 1]))
     # A sample of a surface is sqrt(N / n) times sparser than the whole set.
-    return spacing * float(np.sqrt(len(sample) / len(points)))
+    out = spacing * float(np.sqrt(len(sample) / N))
+    _SPACING_LAST = (N, sample, out)
+    return out
+
+
+_SPACING_PICKS: dict = {}
+_SPACING_LAST = None
 
 
 _CORNERS = np.stack(np.meshgrid(*([0, 1],) * 3, indexing="ij"), -1).reshape(-1, 3)
+
+
+def _int_bounds(rows: np.ndarray):
+    """``(rows.min(0), rows.max(0))`` of a non-empty (n, 3) integer array in one compiled
+    pass (numpy reduces an (n, 3) array along axis 0 with a stride: ~10x slower)."""
+    return _distinct._bounds(np.ascontiguousarray(rows, dtype=np.int64))
+
+
+@nb.njit(cache=True, nogil=True)
+def _finite_bounds(points):
+    """Per-column minimum and maximum of non-empty (n, 3) float64 ``points`` in one pass,
+    and whether every coordinate is finite (``points.min(0)``/``max(0)`` where it is;
+    a NaN makes those NaN, which the caller must see: hence the flag)."""
+    lo = points[0].copy()
+    hi = points[0].copy()
+    finite = True
+    for i in range(points.shape[0]):
+        for d in range(3):
+            v = points[i, d]
+            if not math.isfinite(v):
+                finite = False
+            if v < lo[d]:
+                lo[d] = v
+            if v > hi[d]:
+                hi[d] = v
+    return lo, hi, finite
+
+
+def _seed_cells_sorted(seeds: np.ndarray, h: float) -> np.ndarray:
+    """The distinct cells ``floor(seeds / h)`` (int64 rows) in lexicographic order, as
+    ``_unique_rows(np.floor(seeds / h).astype(np.int64))``: the first seed of each cell
+    found through a hash set (:func:`_distinct.cell_first`, linear) and only those rows
+    sorted (the street: 425k of 1.09M)."""
+    first = _distinct.cell_first(seeds, h)
+    if first is None:               # 2^62 cells or more, or a non-finite seed: sort all
+        return _unique_rows(np.floor(seeds / h).astype(np.int64))
+    return _unique_rows(np.floor(seeds[first] / h).astype(np.int64))
 
 
 def _unique_rows(cells: np.ndarray, pack=None) -> np.ndarray:
@@ -963,7 +1040,7 @@ def _unique_rows(cells: np.ndarray, pack=None) -> np.ndarray:
     if len(cells) == 0:
         return cells.reshape(0, 3)
     if pack is None:
-        pack = _Packer(cells.min(0), cells.max(0))
+        pack = _Packer(*_int_bounds(cells))
     _, first = np.unique(pack(cells), return_index=True)
     return cells[first]
 
@@ -984,7 +1061,11 @@ def _block_nodes(node_keys, values, pack, blocks, block_cells: int, dense=None,
     8 cells per block or 1M cells; False: always by binary search).
     """
     blocks = np.asarray(blocks, dtype=np.int64).reshape(-1, 3)
-    bpack = _Packer(blocks.min(0) - 1, blocks.max(0) + 1) if len(blocks) else None
+    if len(blocks):
+        blo, bhi = _int_bounds(blocks)
+        bpack = _Packer(blo - 1, bhi + 1)
+    else:
+        bpack = None
     if bpack is None or len(node_keys) == 0:
         return np.zeros(len(blocks) + 1, np.int64), np.zeros(0, np.int32), np.zeros(0)
     bkeys = bpack(blocks)
@@ -1152,11 +1233,12 @@ class _LatticeValues:
     ``values``), so that looking up a cell's corners costs a probe, not a binary search
     of every node evaluated so far."""
 
-    def __init__(self, predict_mean, h: float, pack, batch: int):
-        # predict_mean(xyz) -> (K,) mean
+    def __init__(self, predict_mean, h: float, pack, batch: int, expect: int = 0):
+        # predict_mean(xyz) -> (K,) mean; room for ``expect`` nodes before a rehash
         self.predict, self.h, self.pack, self.batch = predict_mean, h, pack, batch
-        self.keys = np.full(1 << 16, -1, np.int64)
-        self.values = np.zeros(1 << 16)
+        size = max(1 << 16, _table_size(int(expect)))
+        self.keys = np.full(size, -1, np.int64)
+        self.values = np.zeros(size)
         self.count = 0
 
     def evaluate_corners(self, cells: np.ndarray, followed: Optional["_KeySet"] = None,
@@ -1255,6 +1337,8 @@ class _KeySet:
 
 
 _MAX_LOAD = 0.7
+#: Lattice nodes expected per seed cell, to size the node table up front (street 2.14).
+LATTICE_NODES_PER_SEED_CELL = 2
 #: The most of a lattice table that a chunk's worst case may fill (:meth:`_LatticeValues._reserve`).
 _FULL_LOAD = 0.9
 
