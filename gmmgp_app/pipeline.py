@@ -891,7 +891,8 @@ def run_stages(names, state: dict, ctx: RunContext, *, observer=None,
 def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gmmgp",
               observer=None, *, stop_after: Optional[str] = None, executor=None,
               progress=None, loggpis_lambda: Optional[float] = None,
-              check_grid: bool = False, tree=None, resolved=None) -> SurfaceMap:
+              check_grid: bool = False, tree=None, resolved=None,
+              early_mesh: Optional["EarlyMesh"] = None) -> SurfaceMap:
     """Map a scan into a probabilistic signed distance field.
 
     Parameters
@@ -927,6 +928,11 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
         ``(cfg, record)``, what :func:`resolve_config` returned for this ``scan`` and
         ``cfg``, or :func:`check_surface_grid`'s ``(cfg, record, seeds)``, when the caller
         has it: not measured again (nor the surface seeds sought again).
+    early_mesh : EarlyMesh, optional
+        Started on the map's far field, seeds and configuration right after the far
+        field is fitted (then before the HGMM) when the mesh needs nothing else
+        (:func:`mesh_needs_far_only`; a whole recipe, not ``stop_after``); its
+        :meth:`EarlyMesh.finish` then takes the returned map and gives its mesh.
 
     Returns
     -------
@@ -959,8 +965,128 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
     observer.on_stage("scan", StagePayload(scan, 0.0))
     ctx = RunContext(cfg, method, executor=executor, progress=progress,
                      loggpis_lambda=loggpis_lambda, auto_fields=auto_fields(summary["auto"]))
-    state = run_stages(recipe + ("map",), state, ctx, observer=observer, summary=summary)
+    on_stage = None
+    if early_mesh is not None and stop_after is None and "far" in recipe \
+            and method != "loggpis" and mesh_needs_far_only(cfg, True):
+        # the far field takes only the prepared data: fitted first, the mesh starts on
+        # it while the rest is fitted
+        recipe = ("prepare", "far") + tuple(s for s in recipe if s not in ("prepare", "far"))
+
+        def on_stage(name, st):
+            if name == "far" and mesh_needs_far_only(cfg, st["far"]):
+                if "seeds" not in st or st["seeds"][0] != cfg.surface:
+                    st["seeds"] = (cfg.surface, surface_seeds(st["scan"], cfg))
+                early_mesh.start(SurfaceMap(method, cfg, st["scan"].offset, None,
+                                            seed_points=st["seeds"][1], far=st["far"],
+                                            up=st["scan"].up))
+    try:
+        state = run_stages(recipe + ("map",), state, ctx, observer=observer,
+                           summary=summary, on_stage=on_stage)
+    except BaseException:
+        if early_mesh is not None:
+            early_mesh.cancel()
+        raise
     return state["smap"]
+
+
+def mesh_needs_far_only(cfg: MappingConfig, far) -> bool:
+    """Whether :meth:`SurfaceMap.extract_surface`'s mesh, but for its vertices' variance,
+    is a function of the far field, the surface seeds and ``cfg.surface`` alone: the
+    lattice is the far field's mean (``surface.lattice_field`` "far", with a far field)
+    and the vertices stay on the lattice edges (``surface.project_steps`` 0). Then
+    :class:`EarlyMesh` can mesh while the prior and the GPs are fitted."""
+    s = cfg.surface
+    return (far is not None and getattr(s, "lattice_field", "map") == "far"
+            and int(s.project_steps) == 0)
+
+
+class EarlyMesh:
+    """:meth:`SurfaceMap.extract_surface` of a map on a thread of its own, started as
+    soon as the map's lattice field exists (``build_map(early_mesh=...)``, right after
+    the far field, which then comes before the HGMM: it takes only the prepared data),
+    while the calling thread fits the HGMM, the GMR and the GPs. The extraction is the
+    map's own (``overlap=True``), called on a :class:`SurfaceMap` holding the far field,
+    the seeds and the configuration; its vertex pass, which needs the whole map
+    (:meth:`SurfaceMap.predict`: the variance), waits in :meth:`finish` for the
+    complete map. The mesh is the one ``smap.extract_surface(overlap=True)`` gives
+    after ``build_map``, bit for bit (tests/test_pipeline.py); only the order of the
+    work changes. On 2 cores the fits' and the surface's serial parts (per-fit Python,
+    marching cubes) then run beside each other (docs/speed.md, session 13).
+
+    Not started (:attr:`started` False; mesh the map afterwards as usual) when the
+    mesh needs more than the far field (:func:`mesh_needs_far_only`), for a run that
+    stops early, or a method without a zero level set.
+    """
+
+    def __init__(self):
+        import threading
+
+        self._ready = threading.Event()
+        self._thread = None
+        self._partial = self._map = self._mesh = self._error = None
+        self.seconds = 0.0          # the extraction's wall time on its thread
+
+    @property
+    def started(self) -> bool:
+        return self._thread is not None
+
+    def start(self, partial: SurfaceMap) -> None:
+        """Mesh ``partial`` (a map with its far field, seeds and configuration, no fits
+        yet) on a new daemon thread."""
+        import threading
+
+        if self._thread is not None:
+            raise PipelineError("EarlyMesh.start was called twice; use one EarlyMesh per map.")
+        self._partial = partial
+        # the vertex pass's field: the complete map's, once finish() hands it over
+        partial.predict = self._predict
+        self._thread = threading.Thread(target=self._extract, daemon=True,
+                                        name="gmmgp-mesh")
+        self._thread.start()
+
+    def _predict(self, xyz, **kw):
+        self._ready.wait()
+        if self._map is None:
+            raise PipelineError("The map was not completed (an earlier stage failed); "
+                                "its mesh was abandoned.")
+        return self._map.predict(xyz, **kw)
+
+    def _extract(self) -> None:
+        t = time.perf_counter()
+        try:
+            self._mesh = self._partial.extract_surface(overlap=True)
+        except BaseException as exc:    # raised again on the calling thread by finish()
+            self._error = exc
+        finally:
+            self.seconds = time.perf_counter() - t
+
+    def finish(self, smap: SurfaceMap) -> SurfaceMesh:
+        """Hand the complete map (``build_map``'s, the one this mesh was started for) to
+        the vertex pass; wait for the mesh and return it, or raise the extraction's
+        error."""
+        p = self._partial
+        if p is None:
+            raise PipelineError("EarlyMesh.finish before start; mesh with "
+                                "smap.extract_surface() instead.")
+        if smap.far is not p.far or smap.seed_points is not p.seed_points \
+                or smap.config.surface != p.config.surface:
+            self.cancel()
+            raise PipelineError("EarlyMesh.finish was given another map than the one its "
+                                "mesh was started for; mesh with smap.extract_surface().")
+        self._map = smap
+        self._ready.set()
+        self._thread.join()
+        self._partial = self._map = None
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
+        mesh, self._mesh = self._mesh, None
+        return mesh
+
+    def cancel(self) -> None:
+        """Let a started extraction end (its vertex pass raises) without waiting for it:
+        the map it waits for will not come."""
+        self._ready.set()
 
 
 def update_map(smap: SurfaceMap, all_points, all_origins, new_points,
@@ -1011,6 +1137,25 @@ def resolve_config(cfg: MappingConfig, scan: Scan, *, tree=None) -> tuple:
     (~5 s on 1.3M points).
     """
     return _resolve_config(cfg, scan, tree)
+
+
+def first_kernel_calls() -> tuple:
+    """Callables that make numba's first dispatch in the process and load the first
+    kernels a map of a scan calls (the automatic voxel's and the surface seeds' hashed
+    passes, the normals' covariances), on tiny inputs of the run's argument types: what
+    the run would otherwise pay on the calling thread at their first call (~0.15 CPU-s
+    for numba's typing context, then a few ms per kernel's cache load). ``gmmgp run``
+    calls them while its reading thread is still reading (docs/speed.md, session 13)."""
+    from .stages import _distinct
+
+    pts = np.zeros((2, 3))
+    dist = np.zeros((1, 2))
+    idx = np.zeros((1, 2), np.int64)
+    return (lambda: _distinct._bounds(pts),
+            lambda: _distinct.voxel_count(pts, 1.0),
+            lambda: _distinct.cell_first(pts, 1.0),
+            lambda: _prepare._neighbourhood_covariances(pts, np.zeros(1, np.int64), dist,
+                                                        idx, 2))
 
 
 def scan_tree(scan: Scan, built=None):
