@@ -1128,15 +1128,16 @@ def with_map_values(cfg: MappingConfig, map_cfg: MappingConfig) -> MappingConfig
     return cfg.replace(updates) if updates else cfg
 
 
-def resolve_config(cfg: MappingConfig, scan: Scan, *, tree=None) -> tuple:
+def resolve_config(cfg: MappingConfig, scan: Scan, *, tree=None, on_lengths=None) -> tuple:
     """``cfg`` with every ``"auto"`` field computed from ``scan`` (stages/autoscale.py),
     and the record of the chosen values and their reasons (empty when nothing was auto).
     ``tree``: the k-d tree of ``scan.points`` (:func:`scan_tree`) when the caller has it.
     A caller that needs the resolution before :func:`build_map` (``gmmgp run`` checks the
     surface grid first) passes it on with ``build_map(resolved=...)``: measured once
-    (~5 s on 1.3M points).
+    (~5 s on 1.3M points). ``on_lengths``: :func:`stages.autoscale.resolve_config`'s
+    (called with every length resolved, before the training subset's voxel is sought).
     """
-    return _resolve_config(cfg, scan, tree)
+    return _resolve_config(cfg, scan, tree, on_lengths)
 
 
 def first_kernel_calls() -> tuple:
@@ -1172,7 +1173,7 @@ def scan_tree(scan: Scan, built=None):
     return points_tree(pts) if built is None else built
 
 
-def _resolve_config(cfg: MappingConfig, scan: Scan, tree=None) -> tuple:
+def _resolve_config(cfg: MappingConfig, scan: Scan, tree=None, on_lengths=None) -> tuple:
     from .config import concrete
     from .stages.autoscale import AutoScaleError
     from .stages.autoscale import resolve_config as _resolve
@@ -1182,7 +1183,7 @@ def _resolve_config(cfg: MappingConfig, scan: Scan, tree=None) -> tuple:
     if len(pts) < MIN_POINTS or not np.isfinite(pts).all():
         return cfg, {}          # prepare raises the one-line error for such scans
     try:
-        return _resolve(cfg, pts, scan.origins, tree=tree)
+        return _resolve(cfg, pts, scan.origins, tree=tree, on_lengths=on_lengths)
     except AutoScaleError as exc:
         # too few or coincident points to measure: the urban values, and prepare
         # gives its own one-line error if the scan cannot be mapped at all
@@ -1257,9 +1258,28 @@ def check_surface_grid(scan: Scan, cfg: MappingConfig, *, tree=None) -> tuple:
     k-d tree of its points when the caller has it). Returns the resolution
     (:func:`resolve_config`'s ``(cfg, record)``) and the surface seeds the check was made
     with (:func:`surface_seeds`), ``(cfg, record, seeds)``, for ``build_map(resolved=...)``:
-    the map keeps those seeds instead of seeking them again (0.3 s on 1.3M points)."""
-    resolved = resolve_config(cfg, scan, tree=tree)
-    return (*resolved, _checked_seeds(scan, resolved[0]))
+    the map keeps those seeds instead of seeking them again (0.3 s on 1.3M points).
+
+    The seeds need only the surface's lengths: they are sought (and the grid checked) on
+    a thread while the training subset's voxel is (both hashed passes over the points,
+    which release the GIL), the same seeds as after it."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    early = {}
+    pool = ThreadPoolExecutor(1, thread_name_prefix="gmmgp-seeds")
+
+    def on_lengths(c):
+        early["surface"], early["job"] = c.surface, pool.submit(_checked_seeds, scan, c)
+
+    try:
+        resolved = resolve_config(cfg, scan, tree=tree, on_lengths=on_lengths)
+        if "job" in early and early["surface"] == resolved[0].surface:
+            seeds = early["job"].result()      # or its GridTooLargeError
+        else:
+            seeds = _checked_seeds(scan, resolved[0])
+    finally:
+        pool.shutdown(wait=True)
+    return (*resolved, seeds)
 
 
 def _checked_seeds(scan: Scan, cfg: MappingConfig) -> np.ndarray:

@@ -505,3 +505,30 @@ def test_first_kernel_calls_load_the_runs_signatures():
     _distinct.cell_first(pts, 0.1)
     prep.estimate_normals(pts, 0.2, 10, query=np.arange(0, 500, 3, dtype=np.int64))
     assert [set(k.signatures) for k in kernels] == before
+
+
+def test_check_surface_grid_seeks_the_seeds_beside_the_voxel_search(sphere, monkeypatch):
+    """check_surface_grid seeks the seeds on a thread while the training voxel is sought:
+    the same configuration, record and seeds as resolving first and seeking after, and
+    an impossible grid is still refused (from the seeds' thread)."""
+    from gmmgp_app.pipeline import check_surface_grid, resolve_config, surface_seeds
+    from gmmgp_app.stages import autoscale, surface
+
+    scan, _ = sphere
+    cfg = gm.MappingConfig()
+    calls = []
+    real = autoscale.resolve_config
+
+    def spy(*a, **k):
+        calls.append(k.get("on_lengths") is not None)
+        return real(*a, **k)
+
+    monkeypatch.setattr(autoscale, "resolve_config", spy)
+    got_cfg, got_rec, seeds = check_surface_grid(scan, cfg)
+    want_cfg, want_rec = resolve_config(cfg, scan)
+    assert calls == [True, False]
+    assert got_cfg == want_cfg and got_rec == want_rec
+    np.testing.assert_array_equal(seeds, surface_seeds(scan, want_cfg))
+    monkeypatch.setattr(surface, "MAX_GRID_NODES", 10)
+    with pytest.raises(surface.GridTooLargeError, match="use a larger voxel size"):
+        check_surface_grid(scan, cfg)
