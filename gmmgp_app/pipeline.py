@@ -979,6 +979,9 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
                 early_mesh.start(SurfaceMap(method, cfg, st["scan"].offset, None,
                                             seed_points=st["seeds"][1], far=st["far"],
                                             up=st["scan"].up))
+                start = getattr(observer, "on_stage_start", None)
+                if start is not None:    # the console says the surface is under way
+                    start("surface")
     try:
         state = run_stages(recipe + ("map",), state, ctx, observer=observer,
                            summary=summary, on_stage=on_stage)
