@@ -965,6 +965,7 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
     observer.on_stage("scan", StagePayload(scan, 0.0))
     ctx = RunContext(cfg, method, executor=executor, progress=progress,
                      loggpis_lambda=loggpis_lambda, auto_fields=auto_fields(summary["auto"]))
+    del scan        # the state's reference only (an early mesh lets it go: below)
     on_stage = None
     if early_mesh is not None and stop_after is None and "far" in recipe \
             and method != "loggpis" and mesh_needs_far_only(cfg, True):
@@ -976,9 +977,17 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
             if name == "far" and mesh_needs_far_only(cfg, st["far"]):
                 if "seeds" not in st or st["seeds"][0] != cfg.surface:
                     st["seeds"] = (cfg.surface, surface_seeds(st["scan"], cfg))
-                early_mesh.start(SurfaceMap(method, cfg, st["scan"].offset, None,
+                scan_ = st["scan"]
+                early_mesh.start(SurfaceMap(method, cfg, scan_.offset, None,
                                             seed_points=st["seeds"][1], far=st["far"],
-                                            up=st["scan"].up))
+                                            up=scan_.up))
+                # the rest takes the prepared data, and the map only the scan's frame
+                # (its seeds are sought, under a surface configuration that the GP's
+                # hyper-parameters leave alone): the scan's points are let go while the
+                # mesh and the fits run (-60 MB of peak memory on the 1.3M-point
+                # street when the caller let go of it too, as ``gmmgp run`` does)
+                st["scan"] = Scan(np.zeros((0, 3)), offset=scan_.offset, up=scan_.up)
+                del scan_
                 start = getattr(observer, "on_stage_start", None)
                 if start is not None:    # the console says the surface is under way
                     start("surface")

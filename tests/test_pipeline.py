@@ -532,3 +532,36 @@ def test_check_surface_grid_seeks_the_seeds_beside_the_voxel_search(sphere, monk
     monkeypatch.setattr(surface, "MAX_GRID_NODES", 10)
     with pytest.raises(surface.GridTooLargeError, match="use a larger voxel size"):
         check_surface_grid(scan, cfg)
+
+
+def test_early_mesh_lets_the_scan_go_during_the_fits(sphere, monkeypatch):
+    """With an early mesh, build_map keeps only the scan's frame once the far field is
+    fitted: a scan handed over (no caller reference) is freed before the GP is fitted,
+    and the map keeps its offset and up axis."""
+    import gc
+    import weakref
+
+    import gmmgp_app.pipeline as P
+    from gmmgp_app.types import Scan
+
+    src, _ = sphere
+    scan = Scan(src.points.copy(), origins=src.origins, offset=np.array([1.0, 2.0, 3.0]))
+    ref = weakref.ref(scan.points)
+    alive = []
+    real = P.STAGES["gp"].fn
+
+    def gp_stage(ctx, **kw):
+        gc.collect()
+        alive.append(ref() is not None)
+        return real(ctx, **kw)
+
+    monkeypatch.setitem(P.STAGES, "gp", dataclasses.replace(P.STAGES["gp"], fn=gp_stage))
+    held = [scan]
+    del scan
+    early = P.EarlyMesh()
+    smap = gm.build_map(held.pop(), gm.MappingConfig().replace("hgmm.max_levels", 3),
+                        early_mesh=early)
+    early.finish(smap)
+    assert alive == [False]
+    np.testing.assert_array_equal(smap.offset, [1.0, 2.0, 3.0])
+    assert len(smap.seed_points) > 100

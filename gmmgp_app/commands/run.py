@@ -145,15 +145,17 @@ def run(args) -> int:
         # no bar to draw (-q): the GP blocks are fitted in one call instead of 50 (a
         # parallel region each: their barriers cost ~0.2 CPU-s on the street); the
         # tree handed over, not kept here: build_map frees it after the prepare stage
-        held = [tree]
-        del tree
-        smap = build_map(scan, cfg, method=args.method, observer=observer, stop_after=stop,
-                         executor=executor, progress=bar if console.enabled else None,
-                         tree=held.pop(), resolved=resolved, early_mesh=early)
+        # and the scan: build_map lets it go once an early mesh starts
+        held = {"tree": tree, "scan": scan}
+        del tree, scan
+        smap = build_map(held.pop("scan"), cfg, method=args.method, observer=observer,
+                         stop_after=stop, executor=executor,
+                         progress=bar if console.enabled else None,
+                         tree=held.pop("tree"), resolved=resolved, early_mesh=early)
         bar.close()
-    # the map keeps what it needs (seeds, GP points): free the scan (its k-d tree, ~50
-    # MB on the 1.3M-point street, went after the prepare stage) before meshing
-    del scan, resolved
+    # the map keeps what it needs (seeds, GP points); the scan went with build_map (its
+    # k-d tree, ~50 MB on the 1.3M-point street, after the prepare stage)
+    del resolved
     smap.summary["seconds"] = {"read": read_s, **smap.summary["seconds"]}
     if smap.summary.get("auto") and not args.quiet:
         from ..pipeline import format_auto
