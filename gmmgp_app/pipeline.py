@@ -42,7 +42,8 @@ from .stages import octree as _octree
 from .stages import prepare as _prepare
 from .stages import surface as _surface
 from .stages import unseen as _unseen
-from .types import GaussianMixture, HGMMLevel, HierarchicalGMM, Scan, SurfaceMesh, as_up_axis
+from .types import (GaussianMixture, HGMMLevel, HierarchicalGMM, Scan, SurfaceMesh, TrainingSet,
+                    as_up_axis)
 
 if TYPE_CHECKING:
     from concurrent.futures import Future
@@ -488,6 +489,10 @@ class RunContext:
         Node fits kept by the caller between runs on the same rows (the desktop app
         re-fitting after a split-threshold change); the ``hgmm`` stage reuses and
         adds to it, with the same result as without it.
+    on_hits : callable(points, normals), optional
+        Given to :func:`stages.prepare.prepare` (the training hit points and normals as
+        soon as they exist): :func:`build_map` fits the far field on them there and
+        starts its :class:`EarlyMesh`.
     """
 
     cfg: MappingConfig
@@ -499,6 +504,7 @@ class RunContext:
     loggpis_lambda: Optional[float] = None
     auto_fields: tuple = ()
     hgmm_cache: Any = None
+    on_hits: Optional[Callable] = None
 
 
 @dataclass(frozen=True)
@@ -540,7 +546,8 @@ class Stage:
 def _prepare_stage(ctx, scan, tree=None):
     # the scan's k-d tree (build_map's, shared with the scale measurement) is used here
     # last: handed on as None, so that the run does not keep it while fitting
-    return {"data": _prepare.prepare(scan, ctx.cfg, tree=tree), "tree": None}
+    return {"data": _prepare.prepare(scan, ctx.cfg, tree=tree, on_hits=ctx.on_hits),
+            "tree": None}
 
 
 def _hgmm_stage(ctx, data):
@@ -659,7 +666,10 @@ def _loggpis_stage(ctx, data):
     return {"gp": field_, "gp_points": data.points}
 
 
-def _far_stage(ctx, data):
+def _far_stage(ctx, data, early_far=None):
+    # fitted already on these very hit points (build_map's early mesh, during prepare)
+    if early_far is not None and early_far[0] is data.points:
+        return {"far": early_far[1], "early_far": None}
     return {"far": far_field(data, ctx.cfg)}
 
 
@@ -803,7 +813,8 @@ STAGES = {s.name: s for s in (
           payload=lambda o, i: (o["gp"], {"points": i["gp_points"], "normals": i["gp_normals"]}),
           counts=_info_counts, when=lambda i, c: len(i["gp_points"]) > 0),
     Stage("loggpis", _loggpis_stage, ("data",), ("gp", "gp_points"), counts=_info_counts),
-    Stage("far", _far_stage, ("data",), ("far",), when=lambda i, c: c.cfg.far.enabled),
+    Stage("far", _far_stage, ("data",), ("far",), optional=("early_far",),
+          when=lambda i, c: c.cfg.far.enabled),
     Stage("map", _map_stage, ("scan",), ("smap",), reported=False,
           optional=("summary", "prior", "hgmm", "gp", "gp_points", "gp_normals", "far",
                     "seeds")),
@@ -968,29 +979,40 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
     del scan        # the state's reference only (an early mesh lets it go: below)
     on_stage = None
     if early_mesh is not None and stop_after is None and "far" in recipe \
-            and method != "loggpis" and mesh_needs_far_only(cfg, True):
-        # the far field takes only the prepared data: fitted first, the mesh starts on
-        # it while the rest is fitted
+            and "prepare" in recipe and method != "loggpis" and cfg.far.enabled \
+            and mesh_needs_far_only(cfg, True):
+        # the far field takes only the training hit points and their normals: fitted
+        # inside the prepare stage as soon as they exist (the far stage, right after
+        # prepare, then takes it), and the mesh starts on it while the virtual points,
+        # the HGMM, the GMR and the GPs are made
         recipe = ("prepare", "far") + tuple(s for s in recipe if s not in ("prepare", "far"))
+        if "seeds" not in state or state["seeds"][0] != cfg.surface:
+            state["seeds"] = (cfg.surface, surface_seeds(state["scan"], cfg))
+
+        def on_hits(points, normals):
+            far = far_field(TrainingSet(np.zeros((0, 4)), np.zeros(0, np.int8), points,
+                                        normals, 0.0), cfg)
+            state["early_far"] = (points, far)
+            scan_ = state["scan"]
+            early_mesh.start(SurfaceMap(method, cfg, scan_.offset, None,
+                                        seed_points=state["seeds"][1], far=far,
+                                        up=scan_.up))
+            start = getattr(observer, "on_stage_start", None)
+            if start is not None:    # the console says the surface is under way
+                start("surface")
+
+        ctx = dataclasses.replace(ctx, on_hits=on_hits)
 
         def on_stage(name, st):
-            if name == "far" and mesh_needs_far_only(cfg, st["far"]):
-                if "seeds" not in st or st["seeds"][0] != cfg.surface:
-                    st["seeds"] = (cfg.surface, surface_seeds(st["scan"], cfg))
-                scan_ = st["scan"]
-                early_mesh.start(SurfaceMap(method, cfg, scan_.offset, None,
-                                            seed_points=st["seeds"][1], far=st["far"],
-                                            up=scan_.up))
+            if name == "far" and early_mesh.started:
                 # the rest takes the prepared data, and the map only the scan's frame
                 # (its seeds are sought, under a surface configuration that the GP's
                 # hyper-parameters leave alone): the scan's points are let go while the
                 # mesh and the fits run (-60 MB of peak memory on the 1.3M-point
                 # street when the caller let go of it too, as ``gmmgp run`` does)
+                scan_ = st["scan"]
                 st["scan"] = Scan(np.zeros((0, 3)), offset=scan_.offset, up=scan_.up)
                 del scan_
-                start = getattr(observer, "on_stage_start", None)
-                if start is not None:    # the console says the surface is under way
-                    start("surface")
     try:
         state = run_stages(recipe + ("map",), state, ctx, observer=observer,
                            summary=summary, on_stage=on_stage)

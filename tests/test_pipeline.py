@@ -417,21 +417,27 @@ def test_select_neighbours_selects_on_the_neighbourhoods_mean_residual(sphere):
 
 def test_early_mesh_is_the_maps_mesh_bit_for_bit(sphere):
     """build_map(early_mesh=...) meshes on a thread from the far field on, beside the
-    fits: the same map (the far field fitted first takes only the prepared data) and the
-    same mesh as extract_surface after build_map; the stages' order puts far first."""
+    fits: the same map (the far field, fitted inside prepare on the hit points and their
+    normals before the virtual points, takes nothing else) and the same mesh as
+    extract_surface after build_map; the stages' order puts far first."""
     from gmmgp_app.pipeline import EarlyMesh
 
     scan, _ = sphere
     cfg = gm.MappingConfig()
-    seen = []
+    seen, started = [], []
 
     class Recorder:
+        def on_stage_start(self, name):
+            started.append((name, list(seen)))
+
         def on_stage(self, name, payload):
             seen.append(name)
 
     early = EarlyMesh()
     smap = gm.build_map(scan, cfg, early_mesh=early, observer=Recorder())
     assert early.started and seen == ["scan", "prepare", "far", "hgmm", "gmr", "gp"]
+    # the mesh started while the prepare stage ran (after it began, before it ended)
+    assert ("surface", ["scan"]) in started and started[0] == ("prepare", ["scan"])
     mesh = early.finish(smap)
     ref = gm.build_map(scan, cfg)
     a, b = ref.to_arrays(), smap.to_arrays()
