@@ -1056,6 +1056,7 @@ class EarlyMesh:
         import threading
 
         self._ready = threading.Event()
+        self._cancelled = False
         self._thread = None
         self._partial = self._map = self._mesh = self._error = None
         self.seconds = 0.0          # the extraction's wall time on its thread
@@ -1072,15 +1073,26 @@ class EarlyMesh:
         if self._thread is not None:
             raise PipelineError("EarlyMesh.start was called twice; use one EarlyMesh per map.")
         self._partial = partial
-        # the vertex pass's field: the complete map's, once finish() hands it over
+        # the vertex pass's field: the complete map's, once finish() hands it over; the
+        # lattice's and the progress bars' calls end the extraction once cancelled
         partial.predict = self._predict
+        lattice = partial.lattice_mean
+        partial.lattice_mean = lambda xyz: self._check() or lattice(xyz)
         self._thread = threading.Thread(target=self._extract, daemon=True,
                                         name="gmmgp-mesh")
         self._thread.start()
 
+    def _check(self) -> None:
+        if self._cancelled:
+            raise PipelineError("The map was not completed (an earlier stage failed or "
+                                "the run was interrupted); its mesh was abandoned.")
+
+    def _progress(self, total, desc):
+        return _CancelBar(self._check)
+
     def _predict(self, xyz, **kw):
         self._ready.wait()
-        if self._map is None:
+        if self._map is None or self._cancelled:
             raise PipelineError("The map was not completed (an earlier stage failed); "
                                 "its mesh was abandoned.")
         return self._map.predict(xyz, **kw)
@@ -1088,7 +1100,7 @@ class EarlyMesh:
     def _extract(self) -> None:
         t = time.perf_counter()
         try:
-            self._mesh = self._partial.extract_surface(overlap=True)
+            self._mesh = self._partial.extract_surface(overlap=True, progress=self._progress)
         except BaseException as exc:    # raised again on the calling thread by finish()
             self._error = exc
         finally:
@@ -1109,7 +1121,11 @@ class EarlyMesh:
                                 "mesh was started for; mesh with smap.extract_surface().")
         self._map = smap
         self._ready.set()
-        self._thread.join()
+        try:
+            self._thread.join()
+        except BaseException:       # Ctrl-C while waiting: stop the extraction first
+            self.cancel()
+            raise
         self._partial = self._map = None
         if self._error is not None:
             error, self._error = self._error, None
@@ -1118,9 +1134,27 @@ class EarlyMesh:
         return mesh
 
     def cancel(self) -> None:
-        """Let a started extraction end (its vertex pass raises) without waiting for it:
-        the map it waits for will not come."""
+        """End a started extraction (the map it waits for will not come) and wait for its
+        thread: the extraction raises at its next lattice batch, marching-cubes block or
+        vertex batch, so the process does not exit (e.g. on Ctrl-C) while it runs."""
+        self._cancelled = True
         self._ready.set()
+        if self._thread is not None:
+            self._thread.join()
+
+
+class _CancelBar:
+    """The progress bar :class:`EarlyMesh` gives its extraction: draws nothing; each
+    update calls ``check`` (which raises once the mesh is cancelled)."""
+
+    def __init__(self, check):
+        self.check = check
+
+    def update(self, n=1):
+        self.check()
+
+    def close(self):
+        pass
 
 
 def update_map(smap: SurfaceMap, all_points, all_origins, new_points,
