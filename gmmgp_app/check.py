@@ -44,7 +44,13 @@ see docs/check.md and scripts/check_error_budget.py. In the last stage (the blen
 field's mean, :func:`_surface_correction`) the map's variance in these weights also
 carries the squared bias a smooth field has from the surface's shape there
 (:func:`_shape_bias_variance`: the far field's neighbours' spread of tangent-plane
-distances beyond their noise, 0 on planes, large at edges and small faces).
+distances beyond their noise, 0 on planes, large at edges and small faces). When the
+scan carries its sensor origins (a Scan with ``origins``), the last stage reads ``s_i^2``
+(in the weights and in ``z_i``) at the point's ray foot, where its ray meets the field's
+zero level set (:func:`_ray_foot_variance`), not at the noisy point, when
+``RAY_FOOT_VARIANCE`` is set (off by default): the variance at the noisy point depends on
+where the range noise put the point, and the weights correlate with the residuals they
+weigh; on the synthetic street that bias currently offsets part of the map's own.
 
 Parametrisation: each step is a left perturbation in the map frame about a pivot
 ``c`` (the weighted centroid of the aligned points)::
@@ -707,7 +713,7 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
                   max_iter, cell_factors=False, frame=None, tol_t=5e-5, tol_r=5e-6,
                   max_step_t=0.5, max_step_r=0.05, refactor_tol=None,
                   accelerate=True, prune=False, inner=0, correct=False, known=None,
-                  knn=None):
+                  knn=None, rays=None):
     """Robust Gauss-Newton from ``T0``, never stepping along the ``frozen`` directions.
 
     ``frozen`` holds unit vectors of the scaled space (rotation times the lever of
@@ -731,9 +737,13 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
     ``knn``: a previous run's far-field neighbour lists of ``x`` (its ``last["knn"]``),
     which the surface correction takes instead of searching again
     (:func:`_surface_correction`); ``last["knn"]`` is then that one.
+    ``rays`` (optional, with ``correct``): unit ray directions of the rows of ``x`` (scan
+    frame); the weights then take the map's variance where each ray meets the field's
+    zero level set (:func:`_ray_foot_variance`), measured at the first iteration with
+    the correction and kept (``last["var_w"]``).
     """
     T = T0.copy()
-    corr, knn_kept, bias2 = None, None, None
+    corr, knn_kept, bias2, var_w = None, None, None, None
     last = None
     history, converged, it = [], False, 0
     pivot, D = (None, None) if frame is None else frame
@@ -765,6 +775,10 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
                                        bias_out=bias_out)
             if SHAPE_BIAS:
                 bias2 = bias_out.get("bias2")
+            if rays is not None and RAY_FOOT_VARIANCE:
+                u = rays[index] @ T[:3, :3].T
+                var_w = _ray_foot_variance(smap, y, m if corr is None else m + corr, g, u,
+                                           var)
         elif correct and CORRECTION_EVERY_ITERATION:
             corr = _surface_correction(smap, y, m, var, g, keep=knn_kept, rows=index)
         if prune and _REUSE_DENSE_VAR:  # study (docs/check.md, Session 8): off
@@ -777,8 +791,8 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
             m = m + corr
         if cell_factors and moved > refactor_tol:
             factor, moved = _factors_here(y, m, var, g, noise2, known_std, cell), 0.0
-        w, scale = _weights(m, var, noise2, np.sqrt(var) < known_std, c_robust, loss, n_share,
-                            factor, bias2)
+        w, scale = _weights(m, var if var_w is None else var_w, noise2,
+                            np.sqrt(var) < known_std, c_robust, loss, n_share, factor, bias2)
         n_used = int((w > 0).sum())
         if n_used < 6:
             raise CheckError(
@@ -797,14 +811,14 @@ def _gauss_newton(smap, x, T0, frozen, *, noise2, known_std, c_robust, loss, sha
                             "converged": "Gauss-Newton step below the tolerance, not applied"})
             converged, last = True, dict(y=y, m=m_field, var=var, g=g, factor=factor,
                                          n_share=n_share, index=index, corr=corr,
-                                         knn=knn_kept or None, bias2=bias2)
+                                         knn=knn_kept or None, bias2=bias2, var_w=var_w)
             break
         n_inner = 1
         if inner > 1:
             step, n_inner = _linear_irls(J, m, var, step, D, P, noise2=noise2,
                                          known_std=known_std, c_robust=c_robust, loss=loss,
                                          n_share=n_share, factor=factor, bias2=bias2,
-                                         max_iter=inner,
+                                         var_w=var_w, max_iter=inner,
                                          tol_t=0.1 * tol_t, tol_r=0.1 * tol_r)
         step, prev, extra = _aitken(step, prev, D, accelerate)
         # cap the step (far from the surface the field's gradient is only a guide)
@@ -850,7 +864,7 @@ def _solve_step(H, b, D, P):
 
 
 def _linear_irls(J, m, var, step, D, P, *, noise2, known_std, c_robust, loss, n_share,
-                 factor, max_iter, tol_t, tol_r, bias2=None):
+                 factor, max_iter, tol_t, tol_r, bias2=None, var_w=None):
     """IRLS on the residuals linearised at the current pose, from its Gauss-Newton
     ``step``: ``m_i + J_i xi`` (the map's prediction ``m``, its gradient in ``J``)
     with the robust weights recomputed from them, until the change of ``xi`` is under
@@ -869,12 +883,15 @@ def _linear_irls(J, m, var, step, D, P, *, noise2, known_std, c_robust, loss, n_
     caller as before. The next prediction, at the pose reached, checks it: the
     registration converges where the Gauss-Newton step at the map's own prediction is
     under the tolerance, the same fixed point as without the inner solves. The cell
-    variance factors and the share counts stay those of the prediction."""
+    variance factors and the share counts stay those of the prediction. ``var_w``
+    (optional): the map's variance the weights take (:func:`_ray_foot_variance`), ``var``
+    deciding which points the map knows."""
     xi = step.copy()
     k = 1
+    vw = var if var_w is None else var_w
     for k in range(2, max_iter + 1):
         ml = m + J @ xi
-        w, _ = _weights(ml, var, noise2, np.sqrt(var) < known_std, c_robust, loss, n_share,
+        w, _ = _weights(ml, vw, noise2, np.sqrt(var) < known_std, c_robust, loss, n_share,
                         factor, bias2)
         Jw = J * w[:, None]
         d = _solve_step(Jw.T @ J, -np.einsum("ij,i->j", Jw, ml), D, P)
@@ -931,10 +948,17 @@ COARSE_ROBUST_FACTOR = 2.0
 #: shape (:func:`_shape_bias_variance`) to the map's variance in its weights.
 SHAPE_BIAS = True
 
+#: With the scan's ray directions (a Scan with sensor origins), the last stage's weights
+#: take the map's variance where each point's ray meets the field's zero level set
+#: (:func:`_ray_foot_variance`) instead of at the point. Off: it removes the noise part's
+#: bias it was written for, but on main's far field (field-15t) that bias cancels part of
+#: the map part's and the rotation gets worse (docs/check.md, Session 13).
+RAY_FOOT_VARIANCE = False
+
 
 def _coarse_to_fine(smap, x, x_dense, T0, frozen, frame, max_iter, kw,
                     coarse_points=_COARSE_POINTS, tol=None, correct=False, dense_rows=None,
-                    start=None):
+                    start=None, rays=None, rays_dense=None):
     """Gauss-Newton on every ``len(x) // coarse_points``-th point until the steps are
     under 1 mm and 0.006 deg (with the Tukey constant ``COARSE_ROBUST_FACTOR`` times
     wider), then on all of ``x`` until they are under 0.2 mm and
@@ -949,7 +973,9 @@ def _coarse_to_fine(smap, x, x_dense, T0, frozen, frame, max_iter, kw,
     row of ``x``, -1 for none) and predicts the others only. ``start``, optional: the
     GP field's ``(m, var, g)`` at ``T0`` of ``x[::max(len(x) // coarse_points, 1)]``
     (the caller's test whether the map knows anything there), the first stage's first
-    prediction."""
+    prediction. ``rays`` / ``rays_dense`` (optional): unit ray directions of the rows of
+    ``x`` / ``x_dense`` (scan frame) for the last stage's weights
+    (:func:`_ray_foot_variance`)."""
     history: list = []
     it = 0
     T = T0
@@ -979,7 +1005,8 @@ def _coarse_to_fine(smap, x, x_dense, T0, frozen, frame, max_iter, kw,
                                                 frame=frame, tol_t=tol[0], tol_r=tol[1],
                                                 inner=INNER_IRLS,
                                                 correct=correct and x_dense is None,
-                                                known=known, **kw)
+                                                known=known,
+                                                rays=rays if x_dense is None else None, **kw)
     if x_dense is None:
         return T, it + it2, converged, history + h2, last
     history += [dict(h, stage="fine") for h in h2]
@@ -988,7 +1015,7 @@ def _coarse_to_fine(smap, x, x_dense, T0, frozen, frame, max_iter, kw,
                                                 frame=frame, tol_t=DENSE_TOL[0],
                                                 tol_r=DENSE_TOL[1], prune=True,
                                                 inner=INNER_IRLS, correct=correct,
-                                                known=known, **kw)
+                                                known=known, rays=rays_dense, **kw)
     history += [dict(h, stage="dense") for h in h3]
     for again in range(DENSE_RESTARTS):
         if last is None:
@@ -999,7 +1026,7 @@ def _coarse_to_fine(smap, x, x_dense, T0, frozen, frame, max_iter, kw,
             smap, x_dense, T, frozen, max_iter=max_iter, frame=frame,
             tol_t=DENSE_RESTART_TOL[0], tol_r=DENSE_RESTART_TOL[1], prune=True, inner=INNER_IRLS, correct=correct,
             known=(last["index"], last["m"], last["var"], last["g"]), knn=last.get("knn"),
-            **kw)
+            rays=rays_dense, **kw)
         it3 += it4
         history += [dict(h, stage=f"dense again {again + 1}") for h in h4]
     return T, it + it2 + it3, converged, history, last
@@ -1057,15 +1084,17 @@ def _information(smap, x, T, *, noise2, known_std, c_robust, loss, share_cell,
     # weights: the covariance's (_register)
     corr = None if last is None else last.get("corr")
     bias2 = None if last is None else last.get("bias2")
+    var_w = None if last is None else last.get("var_w")
     m_fit, w_fit = m, w
     if corr is not None:
         m_fit = m + corr
-        w_fit, _ = _weights(m_fit, var, noise2, np.sqrt(var) < known_std, c_robust, loss,
-                            n_share, factor, bias2)
+        w_fit, _ = _weights(m_fit, var if var_w is None else var_w, noise2,
+                            np.sqrt(var) < known_std, c_robust, loss, n_share, factor, bias2)
     return dict(y=y, m=m, m_field=m_field, var=var, n_share=n_share, factor=factor, w=w,
                 scale=scale, pivot=pivot, lever=lever, J=J, H=H, D=D, w_geo=w_geo, H_geo=H_geo,
                 corr=corr, m_fit=m_fit, w_fit=w_fit, noise2=noise2,
-                bias2=bias2 if corr is not None else None)
+                bias2=bias2 if corr is not None else None,
+                var_w=var_w if corr is not None else None)
 
 
 def _finite_information(smap, x, T, info, v, delta, stride: int = 4):
@@ -1101,7 +1130,7 @@ def _finite_information(smap, x, T, info, v, delta, stride: int = 4):
 def _register(smap, x, x_dense, T0, *, noise, known_std, c_robust, loss, max_iter,
               degeneracy_ratio, cluster_size, share_cell, candidate_ratio=0.02, probe=0.2,
               min_clusters=24, probe_points=7000, cell_factors=True, surface=None,
-              dense_rows=None, start=None):
+              dense_rows=None, start=None, rays=None, rays_dense=None):
     """Gauss-Newton/IRLS on d(T x) with the map's gradient (see module docstring).
 
     1. Gauss-Newton from ``T0``. 2. At the solution, eigen-directions of the scaled
@@ -1116,7 +1145,8 @@ def _register(smap, x, x_dense, T0, *, noise, known_std, c_robust, loss, max_ite
     information and covariance.
     ``dense_rows``
     (optional): the row of ``x_dense`` of each row of ``x`` (-1: none); ``start``
-    (optional): the first stage's first prediction (:func:`_coarse_to_fine`).
+    (optional): the first stage's first prediction (:func:`_coarse_to_fine`); ``rays`` /
+    ``rays_dense`` (optional): the unit ray directions of ``x`` / ``x_dense``.
     """
     noise2 = noise * noise
     surface = SURFACE_CORRECTION if surface is None else surface
@@ -1125,7 +1155,8 @@ def _register(smap, x, x_dense, T0, *, noise, known_std, c_robust, loss, max_ite
               share_cell=share_cell, cell_factors=cell_factors)
     T, it, converged, history, last = _coarse_to_fine(smap, x, x_dense, T0, [], None,
                                                       max_iter, kw, correct=surface,
-                                                      dense_rows=dense_rows, start=start)
+                                                      dense_rows=dense_rows, start=start,
+                                                      rays=rays, rays_dense=rays_dense)
     info = _information(smap, xs, T, last=last, **kw)
     stride = max(4, int((info["w"] > 0).sum()) // probe_points)
     Hs = info["H_geo"] * info["D"][:, None] * info["D"][None, :]
@@ -1144,7 +1175,7 @@ def _register(smap, x, x_dense, T0, *, noise, known_std, c_robust, loss, max_ite
         T, it2, converged, history2, last = _coarse_to_fine(
             smap, x, x_dense, T0, [d.vector for d in degenerate],
             (info["pivot"], info["D"]), max_iter, kw, correct=surface, dense_rows=dense_rows,
-            start=start)
+            start=start, rays=rays, rays_dense=rays_dense)
         history = history + [{"restart": "frozen " + ", ".join(d.name for d in degenerate)}] \
             + history2
         it += it2
@@ -1344,8 +1375,10 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
     t0 = time.perf_counter()
     from .types import Scan
 
+    org = None
     if isinstance(scan, Scan):
         pts, s_off, src = scan.points, scan.offset, scan.source or "the scan"
+        org = scan.origins
     else:
         pts = np.asarray(scan, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
@@ -1368,6 +1401,7 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
     T_loc = T_orig.copy()
     T_loc[:3, 3] = T_orig[:3, :3] @ s_off + T_orig[:3, 3] - m_off
     x = pts[finite]
+    rays = None if org is None else _ray_directions(x, org[finite])
 
     # refuse a scan that lies far outside the map before asking the map anything
     box = _map_box(smap)
@@ -1399,17 +1433,19 @@ def check_scan(scan, smap, *, align: bool = False, init=None, z_threshold: float
         if not (np.sqrt(v0) < known_std).any():
             raise _nothing_known(src, known_std, float(np.sqrt(v0.min())))
         ta = time.perf_counter()
-        dense, dense_rows = None, None
+        dense, dense_rows, rays_dense = None, None, None
         if dense_points > 0 and len(x) > len(sample):
             if len(x) <= dense_points:
-                dense, dense_rows = x, sample
+                dense, dense_rows, rays_dense = x, sample, rays
             else:
                 sel = np.sort(rng.choice(len(x), dense_points, replace=False))
                 dense = x[sel]
+                rays_dense = None if rays is None else rays[sel]
                 pos = np.minimum(np.searchsorted(sel, sample), len(sel) - 1)
                 dense_rows = np.where(sel[pos] == sample, pos, -1)
         fit = _register(smap, x[sample], dense, T_loc, noise=noise, known_std=known_std,
                         dense_rows=dense_rows, start=start,
+                        rays=None if rays is None else rays[sample], rays_dense=rays_dense,
                         share_cell=share_cell,
                         c_robust=robust_c, loss=loss, max_iter=max_iter,
                         degeneracy_ratio=degeneracy_ratio, cluster_size=cluster_size)
@@ -1617,6 +1653,55 @@ def _surface_correction(smap, y, m, var, g, keep=None, rows=None, bias_out=None)
     return corr if np.any(corr != 0) else None
 
 
+def _ray_directions(x, origins):
+    """Unit ray directions ``(x - o) / |x - o|`` of scan points ``x`` from their sensor
+    origins ``o`` (scan frame); rows whose origin is not finite or equals the point: NaN
+    (no ray: the weights take the variance at the point, :func:`_ray_foot_variance`)."""
+    d = x - origins
+    n = np.linalg.norm(d, axis=1)
+    ok = np.isfinite(n) & (n > 0)
+    out = np.full_like(d, np.nan)
+    out[ok] = d[ok] / n[ok, None]
+    return out
+
+
+def _ray_foot_variance(smap, y, m, g, u, var, min_cos: float = 0.3,
+                       max_step: float = 0.05):
+    """Per point, the map's variance (GP field, as :func:`_predict`) at the point's ray
+    foot: where its ray (unit direction ``u``, map frame) meets the zero level set of
+    the field ``m`` (gradient ``g``), one Newton step along the ray::
+
+        y_f = y - t u,   t = m / (g . u)   (|t| <= max_step)
+
+    ``var`` (the variance at ``y``) where the ray meets the surface at a grazing angle
+    (``|g . u| / |g| < min_cos``) or has no direction (NaN), and where ``y`` is the foot.
+
+    Why: a LiDAR's noise is along its rays. The variance at the noisy point is the map's
+    variance where the noise put the point, so the weight ``1 / (var + ...)`` of a point
+    depends on its own noise and the weighted residuals do not average to zero: on the
+    synthetic street the weights taken at the noisy points make the scan's noise part of
+    the rotation error 0.8-1.0 mdeg of roll on average over 20 drawn second drives, where
+    the weights from the noise-free points' variance (an oracle) or from another noise
+    draw's leave 0.2-0.4 (+1.1 against +0.5 on seeds 17 with field-15t's far field;
+    docs/check.md, Session 13). Opt-in (``RAY_FOOT_VARIANCE``): with field-15t's far field
+    that bias offsets the map's own and removing it makes the rotation worse. Moving the point back along its ray
+    by its residual removes the range noise (to the map's error) from where the variance
+    is read, whichever way the ray meets the surface; the foot along the gradient
+    (``y - m g / |g|^2``) keeps the noise's component along the surface and with it the
+    correlation (Session 5)."""
+    u = np.asarray(u, dtype=np.float64)
+    gu = np.einsum("ij,ij->i", g, u)
+    gn = np.maximum(np.linalg.norm(g, axis=1), 1e-12)
+    ok = np.isfinite(gu) & (np.abs(gu) >= min_cos * gn)
+    t = np.zeros(len(y))
+    t[ok] = np.clip(m[ok] / gu[ok], -max_step, max_step)
+    move = ok & (t != 0)
+    out = np.asarray(var, dtype=np.float64).copy()
+    if move.any():
+        out[move] = _predict(smap, y[move] - t[move, None] * u[move])[1]
+    return out
+
+
 def _shape_bias_variance(smap, y, neighbours=None):
     """Per point, the squared bias a smooth field may have at ``y`` from the shape of
     the surface around it: the far field's neighbours' spread of plane distances (the
@@ -1773,6 +1858,8 @@ def _map_error_covariance(info, P, cell):
     faces: an upper bound of the cell's share for cells of one surface."""
     y, J, D, w = info["y"], info["J"], info["D"], info["w_fit"]
     var, factor, noise2 = info["var"], info.get("factor"), info["noise2"]
+    if info.get("var_w") is not None:  # the variance the weights took
+        var = info["var_w"]
     use = w > 0
     Js = J[use] * D[None, :]
     ws = w[use]

@@ -347,7 +347,7 @@ class FarFieldConfig:
         "sigma 5 -> 2, courtyard 2 sigma 6 -> 4, street2 0.1-0.2 m above the plane): not "
         "the default")
     vote: str = _f(
-        "plane", "How each far-field neighbourhood votes for the distance: 'plane' (eq. "
+        "sphere", "How each far-field neighbourhood votes for the distance: 'plane' (eq. "
         "rimls in stages/farfield.py: the robust average of the neighbours' tangent-plane "
         "distances); 'sphere' (eq. sphere_vote): the distance from the algebraic sphere "
         "fitted to the same neighbours with their robust weights (APSS, Guennebaud & "
@@ -356,10 +356,46 @@ class FarFieldConfig:
         "before this field load with 'plane'.", choices=("plane", "sphere"),
         source="measured (scripts/bench_accuracy.py, docs/field.md 'Session 10'): the "
         "RMSE is below the tangent plane in 41 of the bench's 42 bins (plane vote 38; "
-        "e.g. sphere 1-2 m 22.2 -> 8.7 mm, street 1-2 m 188 -> 156 mm), but with eq. "
-        "calibrated_var refitted (VARIANCE_COEF_SPHERE) the coverage bins in target fall "
-        "from 26 / 32 to 18 / 28 (held-out four 22 / 24 -> 13 / 20; the bunny over-covered): "
-        "not the default")
+        "e.g. sphere 1-2 m 22.2 -> 8.7 mm, street 1-2 m 188 -> 156 mm); alone, with eq. "
+        "calibrated_var refitted (VARIANCE_COEF_SPHERE), the coverage bins in target fall "
+        "from 26 / 32 to 18 / 28 (session 10); the default since session 13 together with "
+        "far.leave_self_out, far.split_half and far.predictive_dof (docs/field.md "
+        "'Session 13': bench 32 / 35 / 42 / 41 bins in target against 26 / 32 / 42 / 38)")
+    leave_self_out: float = _f(
+        3.0, "Where the far field's neighbours vote from: > 0, each of a query's k nearest "
+        "hit points (still chosen among the raw points) votes from its position moved "
+        "along its normal onto the plane through its own neighbours' weighted centroid "
+        "with itself left out (eq. point_projection_loo in stages/farfield.py), a move "
+        "larger than this many noise sigmas not made (the neighbours are on another "
+        "surface); 0: from the raw hit points. Removes the nearest-neighbour selection "
+        "bias far from the data. Maps saved before this field load with 0.", 0.0, 100.0,
+        unit="sigma", symbol="c_lso",
+        source="the bias measured in docs/field.md 'Session 12' (sphere 1-2 m median "
+        "+1.2 sigma -> +0.2); the 3 sigma cap fixed a priori (2 sigma and no cap measured "
+        "worse, session 12); with far.vote = 'sphere', far.split_half and "
+        "far.predictive_dof the bench's bins in target go from 26 / 32 / 42 / 38 to 32 / 35 "
+        "/ 42 / 41 (held-out four 22 / 24 / 28 / 24 -> 22 / 23 / 28 / 27; docs/field.md "
+        "'Session 13')")
+    split_half: bool = _f(
+        True, "Add the far-field vote's split-half variance (eq. split_half_var in "
+        "stages/farfield.py: the vote repeated on two halves of the neighbours, three "
+        "rank partitions, mean (m_A - m_B)^2 / 4) to the calibrated variance at weight 1 "
+        "(eq. calibrated_var); evaluated where the variance is, not on the surface "
+        "lattice. Maps saved before this field load with false.",
+        source="docs/field.md 'Session 12' and 'Session 13': with far.leave_self_out (the "
+        "bias both halves share removed) and the log-linear part fitted to what it leaves "
+        "(VARIANCE_COEF_SELF_OUT), the bench's 1-sigma bins in target 25 -> 32 of 42 "
+        "(2 sigma 33 -> 31, back to 35 with far.predictive_dof); cost: three times the "
+        "far field's own CPU at the points whose variance is asked (mesh vertices, "
+        "queries), none on the surface lattice")
+    predictive_dof: float = _f(
+        7.1, "Degrees of freedom nu of the predictive's components (eq. unseen_mixture_t "
+        "in stages/unseen.py): > 0, Student-t components with the Gaussians' central "
+        "68.27 % half-widths (1-sigma coverage unchanged, heavier tails); 0: Gaussian. "
+        "Maps saved before this field load with 0.", 0.0, 1000.0, symbol="nu",
+        source="maximum likelihood of the tuned scenes' (street, sphere) standardised "
+        "errors where the scan saw the surface, with far.leave_self_out = 3 and "
+        "far.split_half (scripts/fit_variance.py --fit): 7.1 (docs/field.md 'Session 13')")
     spread_weight: float = _f(
         1.0, "Weight a of the neighbours' plane disagreement in the far-field variance.",
         0.0, 100.0, symbol="a", source="chosen on the synthetic street")

@@ -245,17 +245,21 @@ class SurfaceMap:
                             else self.config.gp.length_scale,
                             self.config.far.unseen_weight, self.config.far.min_thickness,
                             self.config.far.edge_gap, self.config.far.unseen_predictive,
-                            self.config.far.blend, self.resolved_variance_coef())
+                            self.config.far.blend, self.resolved_variance_coef(),
+                            self.config.far.split_half, self.config.far.predictive_dof)
 
     def resolved_variance_coef(self) -> tuple:
         """Eq. calibrated_var's coefficients the map predicts with: its own
         (:attr:`variance_coef`, e.g. loaded with it) or the library's fit for its
-        ``far.blend``, ``far.project_points`` and ``far.vote``."""
+        ``far.blend``, ``far.project_points``, ``far.vote``, ``far.leave_self_out`` and
+        ``far.split_half``."""
         if self.variance_coef is not None:
             return self.variance_coef
         return tuple(_farfield.variance_coef(self.config.far.blend,
                                              self.config.far.project_points,
-                                             self.config.far.vote))
+                                             self.config.far.vote,
+                                             self.config.far.leave_self_out > 0,
+                                             self.config.far.split_half))
 
     @property
     def signed(self) -> bool:
@@ -353,6 +357,8 @@ class SurfaceMap:
             arrays.update({f"gp/{k}": v for k, v in self.gp.to_arrays().items()})
         if self.far is not None:
             arrays.update({"far/points": self.far.points, "far/normals": self.far.normals})
+            if self.far.vote_points is not self.far.points:  # eq. point_projection_loo
+                arrays["far/vote_points"] = self.far.vote_points
         return arrays
 
     def save(self, directory) -> Path:
@@ -431,6 +437,12 @@ def load_map(directory) -> SurfaceMap:
     if isinstance(far_cfg, dict) and "vote" not in far_cfg:
         # saved before eq. sphere_vote: its far field votes with tangent planes (eq. rimls)
         far_cfg["vote"] = "plane"
+    for key, before in (("leave_self_out", 0.0), ("split_half", False),
+                        ("predictive_dof", 0.0)):
+        if isinstance(far_cfg, dict) and key not in far_cfg:
+            # saved before eqs. point_projection_loo, split_half_var, unseen_mixture_t:
+            # raw vote points, no split-half term, Gaussian components
+            far_cfg[key] = before
     surf_cfg = cfg_dict.setdefault("surface", {})
     if isinstance(surf_cfg, dict) and "trim_to_reach" not in surf_cfg:
         # saved before surface.trim_to_reach: the map is meshed as it was (cells whole)
@@ -450,7 +462,8 @@ def load_map(directory) -> SurfaceMap:
     if meta.get("far_params") is not None and "far/points" in arrays:
         fp = dict(meta["far_params"])
         far = _farfield.FarField(arrays["far/points"], arrays["far/normals"], fp.pop("rho0"),
-                                 fp.pop("noise"), **fp)
+                                 fp.pop("noise"), vote_points=arrays.get("far/vote_points"),
+                                 **fp)
     coef = meta.get("variance_coef")
     if coef is None and far is not None:
         # saved before the coefficients were saved with the map: the fit of that time
@@ -683,7 +696,8 @@ def far_field(data, cfg: MappingConfig):
                               max(g.value_noise, 1e-30) ** 0.5, k=f.neighbours,
                               growth=f.kernel_growth, spread_weight=f.spread_weight,
                               beta=f.growth, robust_scale=f.robust_scale,
-                              robust_iterations=f.robust_iterations, vote=f.vote)
+                              robust_iterations=f.robust_iterations, vote=f.vote,
+                              self_out_cap=f.leave_self_out)
 
 
 def _far_points(data, project: bool, rho0: float, k: int) -> np.ndarray:
@@ -765,9 +779,25 @@ def _refit_stage(ctx, smap, touched, gp_points, gp_normals, all_points, far):
     out = SurfaceMap(smap.method, smap.config, smap.offset, smap.prior, hgmm=smap.hgmm,
                      gp=field_, gp_points=gpp, gp_normals=gpn,
                      seed_points=surface_seeds(Scan(points=all_points), ctx.cfg),
-                     summary=smap.summary, far=far, up=smap.up,
-                     variance_coef=smap.variance_coef)
+                     summary=_updated_summary(smap.summary, field_, len(gpp), len(all_points),
+                                              n_refit),
+                     far=far, up=smap.up, variance_coef=smap.variance_coef)
     return {"smap": out, "n_refit": n_refit}
+
+
+def _updated_summary(summary: dict, gp, n_gp_points: int, n_points: int,
+                     n_refit: int) -> dict:
+    """The build's ``summary`` after an update (a copy): the scan's point count and the
+    GP's point and block counts are the updated map's; ``updates`` lists the updates with
+    the blocks each refitted. The stages' seconds and their other counts stay the build's."""
+    import copy
+
+    out = copy.deepcopy(summary) if summary else {"seconds": {}, "counts": {}}
+    out["n_scan_points"] = int(n_points)
+    gp_counts = out.setdefault("counts", {}).setdefault("gp", {})
+    gp_counts.update(n_points=int(n_gp_points), n_blocks=int(gp.info["n_blocks"]))
+    out["updates"] = list(out.get("updates", [])) + [{"refitted_blocks": int(n_refit)}]
+    return out
 
 
 def _info_counts(out, ctx):
@@ -1359,9 +1389,11 @@ def _checked_seeds(scan: Scan, cfg: MappingConfig) -> np.ndarray:
     return seeds
 
 
-def surface_seeds(scan: Scan, cfg: MappingConfig) -> np.ndarray:
-    """Where a map of ``scan`` seeks its surface (:func:`stages.surface.surface_seeds`)."""
-    return _surface.surface_seeds(scan.points, cfg.surface)
+def surface_seeds(scan, cfg: MappingConfig) -> np.ndarray:
+    """Where a map of ``scan`` (a Scan, or its (N, 3) points) seeks its surface
+    (:func:`stages.surface.surface_seeds`)."""
+    points = scan.points if isinstance(scan, Scan) else np.asarray(scan, dtype=np.float64)
+    return _surface.surface_seeds(points, cfg.surface)
 
 
 def as_queries(xyz) -> np.ndarray:

@@ -130,8 +130,16 @@ def _run_o3d(kind, src, tgt, reg, init, max_dist):
     return np.asarray(r.transformation), time.perf_counter() - t
 
 
-def _pair(name, smap, scan_pts, init, truth, *, noise, max_dist, target_pts, repeat, pose=None):
+def _pair(name, smap, scan_pts, init, truth, *, noise, max_dist, target_pts, repeat, pose=None,
+          origins=None):
+    """One pair, every method. ``origins`` (optional, the scan's sensor origins, its
+    frame): gmmgp gets them (a Scan; with ``--ray-foot`` its last stage reads the map's
+    variance at the rays' feet) unless ``--no-origins``; the ICPs take the points only."""
     from gmmgp_app.check import check_scan
+    from gmmgp_app.types import Scan
+
+    scan_in = scan_pts if origins is None or not USE_ORIGINS else \
+        Scan(scan_pts, origins=origins)
 
     tm = _TimedMap(smap)
     row = {"pair": name, "points": int(len(scan_pts))}
@@ -139,13 +147,13 @@ def _pair(name, smap, scan_pts, init, truth, *, noise, max_dist, target_pts, rep
     for _ in range(repeat):
         tm.reset()
         t = time.perf_counter()
-        res = check_scan(scan_pts, tm, align=True, init=init, noise=noise)
+        res = check_scan(scan_in, tm, align=True, init=init, noise=noise)
         times.append(time.perf_counter() - t)
     pred_s, pred_pts, calls = tm.seconds, tm.points, tm.calls
     ct = []
     for _ in range(repeat):
         t = time.perf_counter()
-        check_scan(scan_pts, smap, init=res.transform, noise=noise)
+        check_scan(scan_in, smap, init=res.transform, noise=noise)
         ct.append(time.perf_counter() - t)
     T = {"gmmgp": res.transform}
     secs = {"gmmgp": float(np.median(times))}
@@ -157,6 +165,8 @@ def _pair(name, smap, scan_pts, init, truth, *, noise, max_dist, target_pts, rep
             tt.append(s)
         T[kind], secs[kind] = Tk, float(np.median(tt))
     row.update({
+        "gmmgp_origins": scan_in is not scan_pts,
+        "gmmgp_ray_foot": bool(__import__("gmmgp_app.check").check.RAY_FOOT_VARIANCE),
         "seconds_align": secs, "seconds_check_only": float(np.median(ct)),
         # the first run on a freshly loaded map also fills the map's prior cell cache
         "seconds_align_first_run": times[0],
@@ -205,7 +215,8 @@ def synthetic(args):
     T[:3, 3] = (0.03, -0.035, 0.02)
     moved = (second.points - T[:3, 3]) @ T[:3, :3]
     row, res = _pair("synthetic street", smap, moved, np.eye(4), T, noise=0.01, max_dist=0.5,
-                     target_pts=first.points, repeat=args.repeat)
+                     target_pts=first.points, repeat=args.repeat,
+                     origins=(second.origins - T[:3, 3]) @ T[:3, :3])
     van = second.labels == 8
     far = van & (np.abs(street.sdf(second.points)) > 0.2)
     row["van_flagged"] = float(res.changed[far].mean())
@@ -257,7 +268,8 @@ def synthetic_pairs(args, smap, first, street):
                                     scene_params=dict(length=args.length), lane_y=-1.5)
         moved = (second.points - T[:3, 3]) @ T[:3, :3]
         row, res = _pair(f"synthetic draw {k} (noise seed {nseed})", smap, moved, np.eye(4),
-                         T, noise=0.01, max_dist=0.5, target_pts=first.points, repeat=1)
+                         T, noise=0.01, max_dist=0.5, target_pts=first.points, repeat=1,
+                         origins=(second.origins - T[:3, 3]) @ T[:3, :3])
         van = second.labels == 8
         far = van & (np.abs(street.sdf(second.points)) > 0.2)
         row["van_flagged"] = float(res.changed[far].mean())
@@ -272,6 +284,9 @@ def synthetic_pairs(args, smap, first, street):
 
 
 METHODS = ("gmmgp", "p2plane", "gicp")
+
+#: give gmmgp the scans' sensor origins (``--no-origins``: off)
+USE_ORIGINS = True
 
 
 def pairs_summary(rows):
@@ -360,7 +375,7 @@ def kitti(args):
         truth = np.eye(4) if i == 0 else None
         row, _ = _pair(f"kitti {i:06d}", smap, scan.points, init, truth, noise=0.02,
                        max_dist=1.0, target_pts=scans[0].points, repeat=args.repeat,
-                       pose=P)
+                       pose=P, origins=scan.origins)
         row["map_build_seconds"] = build
         row["init_vs_pose_file"] = dict(zip(("deg", "m"), _diff(P, init)))
         rows.append(row)
@@ -386,7 +401,8 @@ def _kitti_half(scan, init, args):
     smap = gm.build_map(even, _config(args))
     build = time.perf_counter() - t
     row, _ = _pair("kitti 000000 odd onto even", smap, pts[1::2], init, np.eye(4),
-                   noise=0.02, max_dist=1.0, target_pts=pts[0::2], repeat=args.repeat)
+                   noise=0.02, max_dist=1.0, target_pts=pts[0::2], repeat=args.repeat,
+                   origins=None if scan.origins is None else scan.origins[1::2])
     row["map_build_seconds"] = build
     return row
 
@@ -463,7 +479,19 @@ def main(argv=None) -> int:
     ap.add_argument("--no-half", dest="half", action="store_false",
                     help="without the pair 'KITTI 000000 odd points onto the map of its even "
                          "points'")
+    ap.add_argument("--no-origins", action="store_true",
+                    help="give gmmgp the scans' points only, as the ICPs (without the sensor "
+                         "origins its last stage reads the map's variance at the points)")
+    ap.add_argument("--ray-foot", action="store_true",
+                    help="set check.RAY_FOOT_VARIANCE (opt-in; with the scans' origins the "
+                         "last stage reads the map's variance at the rays' feet)")
     args = ap.parse_args(argv)
+    global USE_ORIGINS
+    USE_ORIGINS = not args.no_origins
+    if args.ray_foot:
+        import gmmgp_app.check as ck
+
+        ck.RAY_FOOT_VARIANCE = True
     rows = []
     if not args.no_synthetic:
         rows += synthetic(args)

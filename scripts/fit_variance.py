@@ -128,7 +128,7 @@ def scene_case(name, seed, cache: Path, overrides=()):
     the queries (``seed`` is ignored)."""
     tag = "".join(f"_{o.replace('=', '-')}" for o in overrides)
     path = cache / f"{name}_seed{seed}{tag}.npz"
-    if path.exists() and "spread2_p" in np.load(path).files and (
+    if path.exists() and "half" in np.load(path).files and (
             "far.vote=sphere" not in overrides or "spread2_sphere" in np.load(path).files):
         d = dict(np.load(path))
         for k in ("delta", "shrink", "v_curv"):  # cached before eq. sphere_vote: plane vote
@@ -148,7 +148,7 @@ def scene_case(name, seed, cache: Path, overrides=()):
     mean, var = smap.predict(q)[:2]
     base = smap.gp if smap.gp is not None else smap.prior
     m_gp, v_gp = base.predict(q)[:2]
-    c = smap.far.components(q, True)
+    c = smap.far.components(q, True, split_half=True)   # eq. split_half_var, always kept
     f = smap.config.far
     d = dict(y=y, bin=np.digitize(dist, [b * spec["scale"] for b in B.BINS]) - 1,
              scale=spec["scale"],
@@ -157,6 +157,7 @@ def scene_case(name, seed, cache: Path, overrides=()):
              delta=c["delta"], shrink=c["shrink"], v_curv=c["v_curv"],  # eq. sphere_vote
              spread2_sphere=c["spread2_sphere"],
              spread2=c["spread2"], h=smap.far.rho0, noise=smap.far.noise,
+             half=c["half"], split_half=f.split_half, dof=f.predictive_dof,
              disp=1.0 - np.linalg.norm(c["grad"], axis=1),  # the normals' dispersion
              length_scale=concrete(smap.config.gp).length_scale,
              kappa=f.disagreement_weight, lam=f.unseen_weight,
@@ -184,11 +185,15 @@ def local_ingredients(far, q, c):
 
 
 def terms(d, coef=F.VARIANCE_COEF):
-    """The four additive terms of the variance: log-linear, kappa d^2, behind, extent."""
+    """The additive terms of the variance: log-linear, kappa d^2 (plus the split-half
+    variance of eq. split_half_var when the map adds it, ``far.split_half``), behind,
+    extent."""
     d2 = (d["m_gp"] - d["m_far"]) ** 2
     v_ll = F.calibrated_variance(d["h"], d["noise"], d["r"], d["spread2"], d2, d["v_gp"],
                                  coef=coef, disagreement_weight=0.0)
     v_k = d["kappa"] * np.exp(-(d["r"] / d["length_scale"]) ** 2) * d2
+    if d.get("split_half", False):
+        v_k = v_k + d["half"]
     w_b = F.behind_width(d["mean"], d["t_min"])
     w_e = F.extent_width(d["mean"], d["r"], d["gap"])
     return dict(ll=v_ll, kap=v_k, beh=(d["lam"] * w_b) ** 2, ext=(d["lam"] * w_e) ** 2,
@@ -218,7 +223,8 @@ def scored(d, coef=F.VARIANCE_COEF, predictive="gaussian", lam=None, two_sigma=F
         z = np.abs(d["y"] - d["mean"]) / np.sqrt(v)
         ll = -0.5 * np.log(2 * np.pi * v) - 0.5 * z * z
     else:
-        mix = UnseenMixture(d["mean"], t["ll"] + t["kap"], t["w_b"], t["w_e"], lam)
+        mix = UnseenMixture(d["mean"], t["ll"] + t["kap"], t["w_b"], t["w_e"], lam,
+                            dof=d.get("dof", 0.0))
         v = mix.var
         z = np.abs(d["y"] - d["mean"]) / np.sqrt(v)
         ll = mix.logpdf(d["y"])
@@ -313,17 +319,59 @@ def score_coefs(names, coefs: dict, cache, seed=0, baselines=None, overrides=())
     return "\n".join(lines) + "\n\n" + "\n".join(detail)
 
 
-def fit(cases, tau=0.68):
-    """Eq. variance_quantile_fit over the observed queries (both unseen widths 0)."""
+def fit(cases, tau=0.68, target="kappa"):
+    """Eq. variance_quantile_fit over the observed queries (both unseen widths 0).
+
+    ``target="kappa"`` (eq. variance_quantile_target): the log-linear part is fitted to
+    what the additive terms leave of the squared error, ``log(max(e^2 - kappa
+    e^{-r^2/l^2} d^2 [- v_half], 1e-30 h^2) / h^2)``, so that the variance the map
+    reports (log-linear part plus those terms) covers ``tau`` of the queries (a query
+    the additive terms cover is covered whatever X t); ``"plain"``: ``log(e^2 / h^2)``,
+    the log-linear part alone (the fit of VARIANCE_COEF, VARIANCE_COEF_PROJECTED,
+    VARIANCE_COEF_CORRELATED and VARIANCE_COEF_SPHERE, which ignored the kappa term)."""
+    if target not in ("kappa", "plain"):
+        raise ValueError(f"Expected a fit target 'kappa' or 'plain', found {target!r}.")
     X, Y = [], []
     for d in cases:
         t = terms(d)
         keep = (t["w_b"] == 0) & (t["w_e"] == 0)
-        e2 = np.maximum((d["y"] - d["mean"]) ** 2, 1e-30)[keep]
+        if target == "kappa":
+            e2 = np.maximum((d["y"] - d["mean"]) ** 2 - t["kap"], 1e-30 * d["h"] ** 2)[keep]
+        else:
+            e2 = np.maximum((d["y"] - d["mean"]) ** 2, 1e-30)[keep]
         X.append(F.variance_features(d["h"], d["noise"], d["r"][keep], d["spread2"][keep],
                                      ((d["m_gp"] - d["m_far"]) ** 2)[keep], d["v_gp"][keep]))
         Y.append(np.log(e2 / d["h"] ** 2))
     return F.fit_variance_quantile(np.concatenate(X), np.concatenate(Y), tau)
+
+
+def fit_dof(cases, coef):
+    """nu of eq. unseen_mixture_t by maximum likelihood of the observed queries' (both
+    unseen widths 0) standardised errors ``z = (y - m) / sigma``, sigma the reported
+    std (log-linear part with ``coef`` plus the additive terms), under the Student-t
+    of nu dof scaled so that P(|z| <= 1) = erf(1/sqrt 2):
+
+        nu = argmax_nu  mean_i [ log t_nu(c_nu z_i) + log c_nu ],
+        c_nu = t_nu^-1((1 + erf(1/sqrt 2)) / 2)
+
+    (bounded scalar search of log nu on [log 1, log 200])."""
+    from scipy.optimize import minimize_scalar
+    from gmmgp_app.stages.unseen import _logpdf, component_scale
+
+    z = []
+    for d in cases:
+        t = terms(d, coef)
+        keep = (t["w_b"] == 0) & (t["w_e"] == 0)
+        z.append((np.abs(d["y"] - d["mean"]) / np.sqrt(t["ll"] + t["kap"]))[keep])
+    z = np.concatenate(z)
+
+    def nll(lognu):
+        nu = float(np.exp(lognu))
+        c = component_scale(nu)
+        return -float(np.mean(_logpdf(c * z, nu) + np.log(c)))
+
+    return float(np.exp(minimize_scalar(nll, bounds=(0.0, np.log(200.0)), method="bounded",
+                                        options=dict(xatol=1e-6)).x))
 
 
 def _design(d, mask_obs):
@@ -615,6 +663,13 @@ def main(argv=None) -> int:
     p.add_argument("--predictive", default="gaussian", choices=("gaussian", "mixture"),
                    help="predictive of --categories (default: gaussian, eq. unseen_var)")
     p.add_argument("--tau", type=float, default=0.68)
+    p.add_argument("--target", default="kappa", choices=("kappa", "plain"),
+                   help="--fit's target: 'kappa' (default; eq. variance_quantile_target, the "
+                   "log-linear part fitted to what the kappa and split-half terms leave) or "
+                   "'plain' (log e^2, the fit of the coefficients before session 13)")
+    p.add_argument("--dof", action="store_true",
+                   help="with --fit: also nu of eq. unseen_mixture_t by maximum likelihood "
+                   "(fit_dof) on the same scenes")
     p.add_argument("--coef", default=None,
                    help="t0,...,t4 for --categories (default: VARIANCE_COEF)")
     p.add_argument("--seed", type=int, default=0)
@@ -641,9 +696,13 @@ def main(argv=None) -> int:
     fitted_coef = None
     if a.fit:
         tuned = train_set(a.train_set) if a.train else [n for n in B.SCENES if B.SCENES[n]["tuned"]]
-        t = fitted_coef = fit([scene_case(n, a.seed, cache, a.set) for n in tuned], a.tau)
+        cs = [scene_case(n, a.seed, cache, a.set) for n in tuned]
+        t = fitted_coef = fit(cs, a.tau, a.target)
         text.append(f"VARIANCE_COEF = ({', '.join(f'{x:.4f}' for x in t)})  "
-                    f"# tau {a.tau}, fitted on {', '.join(tuned)}")
+                    f"# tau {a.tau}, target {a.target}, fitted on {', '.join(tuned)}")
+        if a.dof:
+            text.append(f"nu = {fit_dof(cs, t):.2f}  # eq. unseen_mixture_t, observed queries "
+                        f"of {', '.join(tuned)}")
     if a.categories:
         for n in names:
             if n == "bunny" and not B.BUNNY.is_dir():

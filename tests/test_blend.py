@@ -113,8 +113,11 @@ def test_map_of_a_plane_and_maps_saved_before_load_with_the_growth_blend(tmp_pat
     assert gm.MappingConfig().far.project_points is False
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
+        # the far field of the maps before session 13 (plane vote of the raw points, no
+        # split-half term, Gaussian components), which the maps this test loads had
         smap = gm.build_map(_plane_scan(), gm.MappingConfig().with_overrides(
-            ["far.blend=correlated", "far.project_points=true"]))
+            ["far.blend=correlated", "far.project_points=true", "far.vote=plane",
+             "far.leave_self_out=0", "far.split_half=false", "far.predictive_dof=0"]))
     rng = np.random.default_rng(5)
     q = np.c_[rng.uniform(-1, 1, (500, 2)), rng.uniform(-0.3, 0.3, 500)]
     m, v = smap.predict(q)

@@ -518,7 +518,7 @@ def test_tiled_distribution_in_the_blend_is_the_weighted_mixture(street, tiled):
     """In the blend band the log density is that of sum_t w_t p_t / W (the tiles'
     densities from their own distributions), and half_width(level) holds exactly
     ``level`` of it about the stitched mean (against a 200-step bisection)."""
-    from scipy.special import ndtr
+    from scipy.special import ndtr, stdtr
 
     scan, sdf = street
     q = _blend_queries(scan, np.random.default_rng(6))
@@ -544,10 +544,13 @@ def test_tiled_distribution_in_the_blend_is_the_weighted_mixture(street, tiled):
         out = np.zeros(K)
         for rows, w, d in tiles:
             c = dist.mean[rows]
+            # the tiles' components: Student-t of d.dof with the Gaussians' 68.27 %
+            # half-widths (eq. unseen_mixture_t), Gaussian at dof 0
+            cdf = ndtr if d.dof == 0 else (lambda x, nu=d.dof: stdtr(nu, x))
             for p, v in ((1 - d.q, d.var_observed), (d.q, d.var_unseen)):
-                s = np.sqrt(v)
-                out[rows] += w * p * (ndtr((c + t[rows] - d.mean) / s)
-                                      - ndtr((c - t[rows] - d.mean) / s))
+                s = np.sqrt(v) / d.scale
+                out[rows] += w * p * (cdf((c + t[rows] - d.mean) / s)
+                                      - cdf((c - t[rows] - d.mean) / s))
         return out / np.where(W > 0, W, 1.0)
 
     for level in (0.3, 0.6827, 0.9545, 0.999):
@@ -1123,6 +1126,57 @@ def test_tiled_build_refuses_a_too_large_surface_grid_before_mapping_a_tile(stre
     with pytest.raises(Mapping):
         build_tiled_map(scan, gm.MappingConfig(), spec)
     assert mapped and mapped[0] > 1
+
+
+def test_streamed_build_checks_the_stitched_grid_before_mapping_a_tile(street, tmp_path,
+                                                                      monkeypatch):
+    """A streamed LAS build with ``check_grid`` checks the stitched surface's grid before
+    any tile is mapped, on exactly the seeds the tile maps will have (those the
+    region-by-region mesh checks at the end), reading one tile at a time."""
+    import gmmgp_app.pipeline as pipeline
+    import gmmgp_app.stages.surface as surface
+    import gmmgp_app.tiling.las as las
+
+    scan, _ = street
+    off = (500000.0, 5400000.0, 100.0)
+    write_laz(tmp_path / "street.laz", scan, off)
+    spec = TileSpec(size=8.0, overlap=2.0)
+    checked = []
+    check = pipeline.check_grid_size
+
+    def recording(seeds, voxel, *a):
+        checked.append((np.array(seeds), voxel))
+        return check(seeds, voxel, *a)
+
+    monkeypatch.setattr(pipeline, "check_grid_size", recording)
+
+    def build(work, **kw):
+        return build_tiled_map_from_las(tmp_path / "street.laz", gm.MappingConfig(), spec,
+                                        work_dir=tmp_path / work, chunk_size=3000, offset=off,
+                                        **kw)
+
+    tm = build("a", check_grid=True)
+    assert len(checked) == 1 and len(tm.tiles) > 1
+    seeds, voxel = checked[0]
+    assert voxel == tm.config.surface.voxel_size
+    assert np.array_equal(seeds, tm.stitched_seeds())
+    # an impossible grid ends the build before a tile is mapped
+    mapped = []
+
+    class Mapping(Exception):
+        pass
+
+    def map_tiles(*a, **k):
+        mapped.append(1)
+        raise Mapping
+
+    monkeypatch.setattr(las, "map_tiles_to_store", map_tiles)
+    monkeypatch.setattr(surface, "MAX_GRID_NODES", 1000)
+    with pytest.raises(surface.GridTooLargeError, match=f"voxel_size={voxel} m"):
+        build("b", check_grid=True)
+    assert mapped == []
+    with pytest.raises(Mapping):                 # without the check it maps the tiles
+        build("c")
 
 
 def test_tiled_surface_of_a_map_whose_tiles_resolved_their_own_values_uses_the_median(

@@ -366,6 +366,13 @@ def test_update_map_rebuilds_the_far_field_of_the_new_points(floor_and_wall, tmp
     before = base.predict(far_q)
     upd, n_refit = update_map(base, every, origins, wall)
     assert n_refit > 0
+    # the summary counts the updated map, and says how many blocks the update refitted
+    assert upd.summary["n_scan_points"] == len(every)
+    assert upd.summary["updates"] == [{"refitted_blocks": n_refit}]
+    assert upd.summary["counts"]["gp"]["n_points"] == len(upd.gp_points) \
+        > base.summary["counts"]["gp"]["n_points"] == len(base.gp_points)
+    assert upd.summary["counts"]["gp"]["n_blocks"] == len(upd.gp.blocks)
+    assert base.summary["n_scan_points"] == len(floor) and "updates" not in base.summary
     g = np.meshgrid(np.linspace(2.6, 2.9, 4), np.linspace(1.5, 2.5, 5),
                     np.linspace(0.5, 0.9, 3), indexing="ij")
     q = np.column_stack([a.ravel() for a in g])

@@ -10,13 +10,14 @@ import numpy as np
 import pytest
 from scipy import integrate
 from scipy.stats import norm
+from scipy.stats import t as t_dist
 
 import json
 import warnings
 
 import gmmgp_app as gm
 from gmmgp_app.stages.farfield import behind_width
-from gmmgp_app.stages.unseen import ONE_SIGMA, UnseenMixture, unseen_prior
+from gmmgp_app.stages.unseen import ONE_SIGMA, UnseenMixture, component_scale, unseen_prior
 from gmmgp_app.types import Scan
 
 
@@ -165,8 +166,12 @@ def test_map_behind_a_thin_wall_and_old_maps_load_with_the_gaussian(tmp_path):
     # (the others face a gap in the scan: a small extent width) and the std barely moves
     assert np.mean(np.isclose(mix_f.std, np.sqrt(gvf), rtol=0.05)) > 0.8
     np.testing.assert_allclose(mix_f.var[same], gvf[same], rtol=1e-12)
-    np.testing.assert_allclose(mix_f.logpdf(yf)[same], norm.logpdf(yf, gf, np.sqrt(gvf))[same],
-                               rtol=1e-9)
+    # (the map's components: Student-t with nu = far.predictive_dof and the Gaussian's
+    # 68.27 % half-width, eq. unseen_mixture_t; Gaussian at nu = 0)
+    nu = smap.config.far.predictive_dof
+    want = t_dist.logpdf(yf, nu, gf, np.sqrt(gvf) / component_scale(nu)) if nu > 0 \
+        else norm.logpdf(yf, gf, np.sqrt(gvf))
+    np.testing.assert_allclose(mix_f.logpdf(yf)[same], want[same], rtol=1e-9)
     # save / load: identical predictive; an old map's config loads as the Gaussian
     smap.save(tmp_path / "new")
     new = gm.load_map(tmp_path / "new")

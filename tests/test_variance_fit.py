@@ -186,7 +186,10 @@ def test_saved_maps_keep_their_variance_coefficients(tmp_path, monkeypatch):
                 origins=np.tile([0.0, 0.0, 3.0], (3000, 1)))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        smap = gm.build_map(scan, gm.MappingConfig())
+        # the plane vote of raw points, whose coefficients are VARIANCE_COEF (the
+        # default before session 13)
+        smap = gm.build_map(scan, gm.MappingConfig().with_overrides(
+            ["far.vote=plane", "far.leave_self_out=0", "far.split_half=false"]))
     q = np.c_[rng.uniform(-1, 1, (400, 2)), rng.uniform(0.01, 0.3, 400)]
     m, v = smap.predict(q)
     plain = ~smap.distribution(q).mixed  # no unseen width: v is eq. calibrated_var

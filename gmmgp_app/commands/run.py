@@ -282,12 +282,14 @@ def _run_tiled(args, cfg, spec, scan, out: Path, console, t0: float, read_s: flo
             bar = _TaskBar(console, "tiles")
             out.mkdir(parents=True, exist_ok=True)
             work = Path(tempfile.mkdtemp(prefix=".stream-" if stream else ".tiles-", dir=out))
+            check_grid = not args.no_mesh and args.method != "loggpis"
             if stream is None:
                 tmap = build_tiled_map(scan, cfg, spec, method=args.method, executor=executor,
                                        progress=bar, keep_points=True, work_dir=work,
-                                       check_grid=not args.no_mesh and args.method != "loggpis")
+                                       check_grid=check_grid)
             else:
-                tmap = stream_tiles(stream, cfg, spec, args.method, work, executor, bar)
+                tmap = stream_tiles(stream, cfg, spec, args.method, work, executor, bar,
+                                    check_grid=check_grid)
             bar.close()
         seconds = {"read": read_s, "tiles": time.perf_counter() - t1}
         # per tile: a streamed map loads each tile from its work folder, a few at a time

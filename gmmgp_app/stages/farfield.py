@@ -30,7 +30,8 @@ current estimate, a few passes from ``f^0`` = eq. imls (eq. rimls):
 with ``c_r`` = ``FarFieldConfig.robust_scale`` (1: residuals are measured against the
 kernel width, so near the data, where residuals are noise, nothing changes).
 
-**The sphere vote** (``far.vote = "sphere"``, opt-in; docs/field.md, "Session 10"). A
+**The sphere vote** (``far.vote = "sphere"``, the default since session 13; docs/field.md,
+"Session 10"). A
 tangent plane is biased by the curvature 0.1-2 m from a curved surface. With the final
 robust weights ``u_j`` of eq. rimls the neighbours fit an algebraic sphere
 (APSS, Guennebaud & Gross 2007) in coordinates centred on the query,
@@ -53,6 +54,26 @@ the radius keep eq. rimls. The variance's ingredients stay the plane vote's; per
 the kernel also reports the shrink factor, the distance's variance from var(u4) and the
 spread of the neighbours' plane distances about the ones the sphere predicts (eq.
 sphere_spread), which a variance model may use (none of them helped: "Session 10").
+
+**The leave-self-out vote** (``far.leave_self_out`` = 3, the default since session 13;
+docs/field.md, "Session 12" and "Session 13"). Beyond a few spacings the kernel is as
+wide as ``r``, all ``k`` weights are about 1, and which hit points are a query's nearest
+is decided by their noise: they are the ones displaced most towards it, so every plane
+distance is short (sphere scene 1-2 m: a median bias of 1.2 sigma). The query still picks
+its ``k`` nearest raw hit points (``points``: the k-NN, ``r``, the kernel weights), but
+each votes from its position moved along its normal onto the plane through its own
+neighbours' weighted centroid *without itself* (eq. point_projection_loo,
+:func:`project_leave_self_out`, ``vote_points``), so the displacement that chose it is
+not in its vote; a move above 3 sigma (a lone point, an edge) is not made.
+
+**The split-half variance** (``far.split_half``, default since session 13). The vote's own
+noise is estimated per query from the disagreement of votes on two halves of its
+neighbours (eq. split_half_var, :func:`_split_half`, three rank partitions) and added to
+eq. calibrated_var at weight 1; the log-linear part is then fitted to what that term and
+the kappa term leave of the squared error (eq. variance_quantile_target:
+``log(max(e^2 - kappa e^{-r^2/l^2} d^2 - v_half, 1e-30 h^2) / h^2)``, the 0.68 quantile;
+:data:`VARIANCE_COEF_SELF_OUT`). It is computed only where a variance is asked (queries,
+mesh vertices), never on the surface lattice, which needs the mean alone.
 
 Its own variance (eq. far_var) adds the sensor noise averaged over the effective
 number of neighbours, the weighted spread of the neighbours' plane distances
@@ -96,7 +117,12 @@ the scan observed; what it did not observe has its own terms. Checked on ``stree
 plus 1.27 on the street alone, which matched the mean of ``log z^2`` (a few far errors
 raise it: tests/test_variance_fit.py) and over-covered next to the data on every scene
 (0.74-0.94 within 1 sigma at 0-0.1 m x scale); most of the change comes from fitting on
-both tuned scenes, the rest from the quantile (docs/field.md).
+both tuned scenes, the rest from the quantile (docs/field.md). Those fits (VARIANCE_COEF
+& co.) took the log-linear part alone as the target, although the map adds the kappa
+term on top (up to 0.12 more 1-sigma coverage next to the data); the default's
+coefficients (:data:`VARIANCE_COEF_SELF_OUT`, session 13) fit the log-linear part to
+what the additive terms leave (eq. variance_quantile_target, above), so that the
+variance the map reports is the one calibrated.
 
 **Unseen geometry** (issue 15, fix-15c). The log-linear model is fitted on the typical
 query; it does not know what the scan cannot know. The worst queries of the held-out
@@ -155,12 +181,13 @@ __all__ = ["FarField", "FarFieldError", "blend_fields", "blend_correlated", "fie
            "VARIANCE_COEF_PROJECTED", "variance_coef", "variance_coef_unsaved",
            "BlendedField", "VARIANCE_COEF",
            "calibrated_variance", "variance_features", "fit_variance_quantile",
-           "behind_width", "extent_width", "unseen_variance", "project_to_local_planes"]
+           "behind_width", "extent_width", "unseen_variance", "project_to_local_planes",
+           "project_leave_self_out", "VARIANCE_COEF_SELF_OUT"]
 
 #: (t0, ..., t4) of eq. calibrated_var: the 0.68-quantile regression (eq.
 #: variance_quantile_fit) on the tuned scenes' observed queries (synthetic street and
 #: sphere, 10 % handed, seed 0, with the robust far field of the raw hit points and
-#: ``far.gp_growth`` = 4; ``python scripts/fit_variance.py --fit``). A map saves the
+#: ``far.gp_growth`` = 4; ``python scripts/fit_variance.py --fit --target plain``). A map saves the
 #: coefficients it predicts with (map.json ``variance_coef``), so refitting these leaves
 #: saved maps alone; refits are scored with ``fit_variance.py --score`` on the bench and
 #: on the random training scenes (``--train``; docs/field.md, "Session 7").
@@ -168,32 +195,46 @@ VARIANCE_COEF = (-0.4745, -0.2282, 1.0088, 0.1706, 0.1404)
 
 #: VARIANCE_COEF for a far field of projected hit points (``far.project_points = true``,
 #: eq. point_projection, opt-in): the same fit with that mean (``python
-#: scripts/fit_variance.py --fit --set far.project_points=true``).
+#: scripts/fit_variance.py --fit --target plain --set far.project_points=true``).
 VARIANCE_COEF_PROJECTED = (-0.5797, -0.1890, 1.0619, 0.1583, 0.0675)
 
 #: (t0, ..., t4) of eq. calibrated_var for the mean of eq. blend_correlated
 #: (``far.blend = "correlated"``, opt-in), raw far-field points: the same fit with that
-#: mean (``python scripts/fit_variance.py --fit --set far.blend=correlated``).
+#: mean (``python scripts/fit_variance.py --fit --target plain --set far.blend=correlated``).
 VARIANCE_COEF_CORRELATED = (0.8599, -0.9298, 0.9000, 0.2607, 0.5194)
 
 
 #: (t0, ..., t4) of eq. calibrated_var for the sphere vote (``far.vote = "sphere"``, eq.
 #: sphere_vote; growth blend, raw points): the same fit as VARIANCE_COEF with that mean
-#: (``python scripts/fit_variance.py --fit --set far.vote=sphere``). Curvature-aware
+#: (``python scripts/fit_variance.py --fit --target plain --set far.vote=sphere``). Curvature-aware
 #: extra features (the shrink factor, the curvature's variance, the sphere-plane
 #: difference, the spread about the sphere) and fits on the training scenes did not
 #: calibrate the held-out scenes better (docs/field.md, "Session 10").
 VARIANCE_COEF_SPHERE = (-0.7772, -0.3368, 0.9240, 0.1470, 0.1894)
 
 
-def variance_coef(blend: str = "growth", projected: bool = False, vote: str = "plane"):
+#: (t0, ..., t4) of eq. calibrated_var for the leave-self-out sphere vote with the
+#: split-half term (``far.vote = "sphere"``, ``far.leave_self_out = 3``, ``far.split_half
+#: = true``; growth blend): the 0.68-quantile fit of the log-linear part to what the
+#: kappa and split-half terms leave of the squared error (eq. variance_quantile_fit with
+#: the target of eq. variance_quantile_target; ``python scripts/fit_variance.py --fit
+#: --set far.vote=sphere --set far.leave_self_out=3 --set far.split_half=true``).
+VARIANCE_COEF_SELF_OUT = (-3.2441, 0.1324, 1.1044, 0.0043, -0.0684)
+
+
+def variance_coef(blend: str = "growth", projected: bool = False, vote: str = "plane",
+                  self_out: bool = False, split_half: bool = False):
     """The coefficients of eq. calibrated_var fitted with the map's mean: ``blend``
     (``far.blend``), whether the far field's points were projected (eq.
     point_projection, ``far.project_points``) and how its neighbourhoods vote
     (``far.vote``; the sphere vote's fit is :data:`VARIANCE_COEF_SPHERE`, for the growth
     blend of raw points; its other combinations use the plane vote's coefficients, not
     refitted). The correlated blend was fitted with raw points only; with projected
-    points it uses the same coefficients (not refitted)."""
+    points it uses the same coefficients (not refitted). The leave-self-out sphere vote
+    with the split-half term (``self_out``, ``split_half``; growth blend, raw points) has
+    :data:`VARIANCE_COEF_SELF_OUT`; either alone keeps the coefficients without it."""
+    if vote == "sphere" and blend == "growth" and not projected and self_out and split_half:
+        return VARIANCE_COEF_SELF_OUT
     if vote == "sphere" and blend == "growth" and not projected:
         return VARIANCE_COEF_SPHERE
     if blend == "correlated":
@@ -264,12 +305,21 @@ class FarField:
         what maps saved before the option load with); ``"sphere"``: eq. rimls plus the
         curvature correction of eq. sphere_vote (an algebraic sphere fitted to the
         neighbours, its curvature shrunk by its significance).
+    self_out_cap : float
+        ``c``, in units of the noise sigma, of eq. point_projection_loo: > 0, the
+        neighbours (still the query's ``k`` nearest raw hit points, ``points``) vote from
+        their leave-self-out projections (:func:`project_leave_self_out`, moves larger
+        than ``c sigma`` not made); 0 (what maps saved before it load with): from the raw
+        hit points.
+    vote_points : (P, 3), optional
+        The points the neighbours vote from when the caller has them (a saved map's
+        ``far/vote_points``); default: computed from ``self_out_cap``.
     """
 
     def __init__(self, points, normals, rho0: float, noise: float, *, k: int = 16,
                  growth: float = 1.0, spread_weight: float = 1.0, beta: float = 0.3,
                  robust_scale: float = 0.0, robust_iterations: int = 3,
-                 vote: str = "plane"):
+                 vote: str = "plane", self_out_cap: float = 0.0, vote_points=None):
         p = np.ascontiguousarray(np.asarray(points, dtype=np.float64))
         n = np.ascontiguousarray(np.asarray(normals, dtype=np.float64))
         if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0 or n.shape != p.shape:
@@ -291,7 +341,24 @@ class FarField:
             raise FarFieldError(f"Expected vote 'plane' or 'sphere', found {vote!r}; set "
                                 f"far.vote to one of them.")
         self.vote = vote
+        if not (self_out_cap >= 0 and math.isfinite(self_out_cap)):
+            raise FarFieldError(f"Expected a leave-self-out cap >= 0 (units of the noise), "
+                                f"found {self_out_cap!r}; set far.leave_self_out to 0 (off) "
+                                f"or a positive number.")
+        self.self_out_cap = float(self_out_cap)
         self.tree = cKDTree(p)
+        # where each neighbour votes from (eq. point_projection_loo; the raw points when off)
+        if vote_points is not None:
+            v = np.ascontiguousarray(np.asarray(vote_points, dtype=np.float64))
+            if v.shape != p.shape:
+                raise FarFieldError(f"Expected vote points of the hit points' shape {p.shape}, "
+                                    f"found {v.shape}.")
+            self.vote_points = v
+        elif self.self_out_cap > 0:
+            self.vote_points = project_leave_self_out(p, n, self.rho0, self.noise, k=self.k,
+                                                      cap=self.self_out_cap, tree=self.tree)
+        else:
+            self.vote_points = p
 
     @property
     def knn(self):
@@ -305,7 +372,7 @@ class FarField:
         return dict(rho0=self.rho0, noise=self.noise, k=self.k, growth=self.growth,
                     spread_weight=self.spread_weight, beta=self.beta,
                     robust_scale=self.robust_scale, robust_iterations=self.robust_iterations,
-                    vote=self.vote)
+                    vote=self.vote, self_out_cap=self.self_out_cap)
 
     def predict(self, xyz, return_grad: bool = False):
         """IMLS mean (K,), variance (K,)[, gradient (K, 3): the weighted normal]."""
@@ -313,7 +380,8 @@ class FarField:
         return (out["mean"], out["var"], out["grad"]) if return_grad else \
             (out["mean"], out["var"])
 
-    def components(self, xyz, return_grad: bool = False, neighbours=None) -> dict:
+    def components(self, xyz, return_grad: bool = False, neighbours=None,
+                   split_half: bool = False) -> dict:
         """Mean (eq. imls; eq. rimls when ``robust_scale > 0``; plus eq. sphere_vote's
         correction with ``vote="sphere"``), variance (eq. far_var) and their
         ingredients: ``r`` the distance to the nearest hit point, ``spread2`` the
@@ -322,13 +390,15 @@ class FarField:
         (sphere minus plane distance), ``shrink`` (u4^2 / (u4^2 + var u4)) and
         ``v_curv`` (the distance's variance from var u4), zeros for the plane vote.
         ``neighbours``: the queries' ``k`` nearest hit points ``(d, i)`` as :attr:`knn`
-        returns them, when the caller has them (the scan check reuses its earlier search)."""
+        returns them, when the caller has them (the scan check reuses its earlier search).
+        ``split_half``: also ``half``, the vote's split-half variance (eq. split_half_var;
+        zeros when not asked: the mean does not need it)."""
         x = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
         K = len(x)
         if K == 0:
             z = np.zeros(0)
             return dict(mean=z, var=z, r=z, spread2=z, n_eff=z, grad=np.zeros((0, 3)),
-                        delta=z, shrink=z, v_curv=z, spread2_sphere=z)
+                        delta=z, shrink=z, v_curv=z, spread2_sphere=z, half=z)
         if neighbours is not None:
             d, i = (np.ascontiguousarray(a) for a in neighbours)
             if d.shape != (K, self.k) or i.shape != (K, self.k):
@@ -336,13 +406,13 @@ class FarField:
                                     f"found {d.shape} and {i.shape}.")
         else:
             d, i = self.knn.query(x)
-        mean, var, spread2, n_eff, g, delta, shrink, v_curv, spread2_s = _imls(
-            x, d, i, self.points, self.normals, self.rho0, self.growth, self.noise,
+        mean, var, spread2, n_eff, g, delta, shrink, v_curv, spread2_s, half = _imls(
+            x, d, i, self.vote_points, self.normals, self.rho0, self.growth, self.noise,
             self.spread_weight, self.beta, self.robust_scale, self.robust_iterations,
-            bool(return_grad), self.vote == "sphere")
+            bool(return_grad), self.vote == "sphere", bool(split_half))
         return dict(mean=mean, var=var, r=np.ascontiguousarray(d[:, 0]), spread2=spread2,
                     n_eff=n_eff, grad=g if return_grad else None, delta=delta,
-                    shrink=shrink, v_curv=v_curv, spread2_sphere=spread2_s)
+                    shrink=shrink, v_curv=v_curv, spread2_sphere=spread2_s, half=half)
 
     def distance_to_data(self, xyz) -> np.ndarray:
         """(K,) distance of each query to the nearest hit point."""
@@ -352,7 +422,7 @@ class FarField:
 
 @nb.njit(parallel=True, cache=True, nogil=True)
 def _imls(x, d, nbr, points, normals, rho0, growth, noise, spread_weight, beta, robust_scale,
-          robust_iterations, with_grad, sphere):
+          robust_iterations, with_grad, sphere, split_half=False):
     """Eqs. imls, rimls and far_var per query from its ``k`` nearest hit points (distances
     ``d`` ascending, indices ``nbr``): mean, variance, weighted plane-distance spread,
     effective neighbour count and (``with_grad``) the weighted normal; one pass per query,
@@ -362,8 +432,12 @@ def _imls(x, d, nbr, points, normals, rho0, growth, noise, spread_weight, beta, 
     disagreement. With ``sphere`` the mean gains the curvature correction of eq.
     sphere_vote (:func:`_sphere_vote`, from the final robust weights); ``delta``, ``shrink``
     and ``v_curv`` are its per-query outputs (0 for the plane vote or where it falls back).
-    The spread, n_eff, variance and gradient are the plane vote's in both cases."""
+    The spread, n_eff, variance and gradient are the plane vote's in both cases.
+    ``points`` are the positions the neighbours vote from (the far field's vote points);
+    ``d`` and ``nbr`` come from the search among the raw hit points. With
+    ``split_half``, ``half`` is eq. split_half_var (:func:`_split_half`), else zeros."""
     K, k = d.shape
+    half = np.zeros(K)
     spread2_s = np.empty(K)
     delta = np.zeros(K)
     shrink = np.zeros(K)
@@ -431,6 +505,8 @@ def _imls(x, d, nbr, points, normals, rho0, growth, noise, spread_weight, beta, 
         else:
             spread2_s[q] = s2
         mean[q] = m + delta[q]
+        if split_half:
+            half[q] = _split_half(x[q], nbr[q], points, normals, u, w, a, k, sphere)
         spread2[q] = s2
         n_eff[q] = ne
         var[q] = noise * noise / ne + spread_weight * s2 + (beta * r) ** 2
@@ -440,7 +516,155 @@ def _imls(x, d, nbr, points, normals, rho0, growth, noise, spread_weight, beta, 
                 for j in range(k):
                     gc += u[j] * normals[nbr[q, j], c]
                 grad[q, c] = gc / usum
-    return mean, var, spread2, n_eff, grad, delta, shrink, v_curv, spread2_s
+    return mean, var, spread2, n_eff, grad, delta, shrink, v_curv, spread2_s, half
+
+
+@nb.njit(cache=True, nogil=True)
+def _split_half(xq, nbr_row, points, normals, u, w, a, k, sphere):
+    """Eq. split_half_var at one query: the vote (eq. rimls's plane vote, or eq.
+    sphere_vote's distance with ``sphere``, the half's plane vote where the sphere is
+    not usable) repeated on the two halves of the neighbours for three partitions of
+    their ranks (even / odd, pairs, quads: bit ``b`` of the rank, ``b`` = 0, 1, 2), with
+    the final robust weights ``u`` kept:
+
+        v_half = (1 / B) sum_b (m_b^A - m_b^B)^2 / 4
+
+    over the ``B`` partitions whose halves both hold weight. Each half's vote has about
+    twice the variance of the whole vote's noise part and, for independent neighbours,
+    the two are independent, so ``E (m_A - m_B)^2 / 4`` is the whole vote's noise
+    variance; the bias both halves share (curvature, the selection of the neighbours)
+    cancels. (Leave-self-out vote points share raw points with their neighbours: then
+    it is a part of the variance, docs/field.md "Session 13".) 0 when no partition has
+    two weighted halves (fewer than two neighbours).
+
+    Each half's sphere is :func:`_sphere_vote`'s arithmetic on its members alone (the
+    other neighbours' weights are zeros there, which add nothing), in scalars and
+    without eq. sphere_spread, which the distance does not use (``w``: unused, kept for
+    the call's shape)."""
+    tot = 0.0
+    nb_ = 0
+    for b in range(3):
+        ok2 = True
+        m0 = 0.0
+        m1 = 0.0
+        for side in range(2):
+            us = 0.0
+            ua = 0.0
+            for j in range(k):
+                if ((j >> b) & 1) == side:
+                    us += u[j]
+                    ua += u[j] * a[j]
+            if not us > 0:
+                ok2 = False
+                break
+            mv = ua / us
+            if sphere:
+                dq, ok = _half_sphere(xq, nbr_row, points, normals, u, k, b, side, us)
+                if ok:
+                    mv = dq
+            if side == 0:
+                m0 = mv
+            else:
+                m1 = mv
+        if ok2:
+            tot += (m0 - m1) ** 2 / 4.0
+            nb_ += 1
+    return tot / nb_ if nb_ > 0 else 0.0
+
+
+@nb.njit(cache=True, nogil=True)
+def _half_sphere(xq, nbr_row, points, normals, u, k, b, side, usum):
+    """Eq. sphere_vote's distance from the neighbours of rank bit ``b`` equal to
+    ``side`` (weights ``u``, their sum ``usum``): :func:`_sphere_vote`'s operations in
+    its order on those neighbours, in scalars (no allocation per call). Returns
+    (distance, usable)."""
+    if k < 4 or not usum > 0:
+        return 0.0, False
+    x0, x1, x2 = xq[0], xq[1], xq[2]
+    pb0 = 0.0
+    pb1 = 0.0
+    pb2 = 0.0
+    nb0 = 0.0
+    nb1 = 0.0
+    nb2 = 0.0
+    qb = 0.0
+    u2 = 0.0
+    for j in range(k):
+        if ((j >> b) & 1) != side:
+            continue
+        wj = u[j] / usum
+        p = nbr_row[j]
+        u2 += wj * wj
+        y = points[p, 0] - x0
+        pb0 += wj * y
+        nb0 += wj * normals[p, 0]
+        qb += wj * y * y
+        y = points[p, 1] - x1
+        pb1 += wj * y
+        nb1 += wj * normals[p, 1]
+        qb += wj * y * y
+        y = points[p, 2] - x2
+        pb2 += wj * y
+        nb2 += wj * normals[p, 2]
+        qb += wj * y * y
+    num = 0.0
+    den = 0.0
+    den2 = 0.0
+    for j in range(k):
+        if ((j >> b) & 1) != side:
+            continue
+        wj = u[j] / usum
+        p = nbr_row[j]
+        d0 = points[p, 0] - x0 - pb0
+        d1 = points[p, 1] - x1 - pb1
+        d2 = points[p, 2] - x2 - pb2
+        aa = (normals[p, 0] - nb0) * d0
+        aa += (normals[p, 1] - nb1) * d1
+        aa += (normals[p, 2] - nb2) * d2
+        bb = d0 * d0
+        bb += d1 * d1
+        bb += d2 * d2
+        num += wj * aa
+        den += wj * bb
+        den2 += wj * wj * bb
+    if not den > 1e-10 * qb:
+        return 0.0, False
+    u4 = 0.5 * num / den
+    res = 0.0
+    for j in range(k):
+        if ((j >> b) & 1) != side:
+            continue
+        wj = u[j] / usum
+        p = nbr_row[j]
+        e = normals[p, 0] - nb0 - 2.0 * u4 * (points[p, 0] - x0 - pb0)
+        res += wj * e * e
+        e = normals[p, 1] - nb1 - 2.0 * u4 * (points[p, 1] - x1 - pb1)
+        res += wj * e * e
+        e = normals[p, 2] - nb2 - 2.0 * u4 * (points[p, 2] - x2 - pb2)
+        res += wj * e * e
+    n_eff = 1.0 / u2
+    s2 = res / 3.0 * n_eff / max(n_eff - 4.0, 1.0)
+    var_u4 = s2 * den2 / (4.0 * den * den)
+    shrink = u4 * u4 / (u4 * u4 + var_u4) if u4 != 0.0 else 0.0
+    u4s = u4 * shrink
+    pp = pb0 * pb0 + pb1 * pb1 + pb2 * pb2
+    dsdu = 2.0 * pp - qb
+    s0 = -(nb0 * pb0 + nb1 * pb1 + nb2 * pb2)
+    g0 = math.sqrt(nb0 * nb0 + nb1 * nb1 + nb2 * nb2)
+    if not g0 > 1e-6:
+        return 0.0, False
+    s = s0 + u4s * dsdu
+    gx = nb0 - 2.0 * u4s * pb0
+    gy = nb1 - 2.0 * u4s * pb1
+    gz = nb2 - 2.0 * u4s * pb2
+    g = math.sqrt(gx * gx + gy * gy + gz * gz)
+    disc = g * g - 4.0 * u4s * s
+    if not disc > 0 or not g > 1e-6:
+        return 0.0, False
+    d = 2.0 * s / (g + math.sqrt(disc))
+    if d * u4s < 0 and abs(d) * 4.0 * abs(u4s) > 1.0:
+        return 0.0, False
+    return d, True
 
 
 @nb.njit(cache=True, nogil=True)
@@ -628,6 +852,92 @@ def _project(p, n, start, d, nbr, rho0, min_cos, out):
                  + (p[g, 2] - c2 / ws) * n[g, 2])
         else:
             t = 0.0
+        for c in range(3):
+            out[g, c] = p[g, c] - t * n[g, c]
+
+
+def project_leave_self_out(points, normals, rho0: float, noise: float, k: int = 16,
+                           cap: float = 3.0, min_cos: float = 0.7, tree=None,
+                           chunk: int = 200_000) -> np.ndarray:
+    """Where each hit point votes from in the far field: moved along its normal onto the
+    plane through the weighted centroid of its neighbours *without itself* (eq.
+    point_projection_loo; eq. point_projection with ``w_ii = 0``):
+
+        p_i' = p_i - t_i n_i,   t_i = n_i . (p_i - c_i)  if |t_i| <= cap sigma, else 0,
+        c_i = sum_{j != i} w_ij p_j / sum_{j != i} w_ij,
+        w_ij = exp(-|p_i - p_j|^2 / rho0^2) [n_i . n_j > min_cos]
+
+    over the ``k`` nearest other hit points. Far from the data a query's ``k`` nearest
+    hit points are the ones the range noise displaced most towards it, so every plane
+    distance comes out short (the nearest-neighbour selection bias, docs/field.md
+    "Session 12"). The query still picks its neighbours among the raw points, but each
+    votes from ``p_i'``, whose offset along the normal is its neighbours' average and no
+    longer holds the displacement that chose it. A move larger than ``cap`` sigma is more
+    than the noise explains (the neighbours lie on another surface: an edge, a lone
+    point) and is not made.
+
+    Parameters
+    ----------
+    points, normals : (P, 3), unit normals
+    rho0 : float, kernel width (m), the far field's rho_0
+    noise : float, noise along the normals sigma (m)
+    k : int, neighbours (besides the point itself)
+    cap : float, largest move in units of sigma
+    min_cos : float, least cosine between the normals of neighbours that count
+    tree : the points' cKDTree when the caller has it
+
+    Returns
+    -------
+    (P, 3) float64
+    """
+    p = np.ascontiguousarray(np.asarray(points, dtype=np.float64))
+    n = np.ascontiguousarray(np.asarray(normals, dtype=np.float64))
+    if p.ndim != 2 or p.shape[1] != 3 or n.shape != p.shape:
+        raise FarFieldError(f"Expected hit points and normals of one shape (P, 3), found "
+                            f"{p.shape} and {n.shape}.")
+    for name, v in (("rho0", rho0), ("noise", noise), ("cap", cap)):
+        if not (v > 0 and math.isfinite(v)):
+            raise FarFieldError(f"Expected a positive finite {name}, found {v!r}.")
+    out = p.copy()
+    kk = int(min(max(k, 1) + 1, len(p)))
+    if kk < 2:
+        return out
+    tree = cKDTree(p) if tree is None else tree
+    for a in range(0, len(p), chunk):
+        d, i = tree.query(p[a:a + chunk], k=kk, workers=-1)
+        _project_loo(p, n, a, d, i, float(rho0), float(min_cos), float(cap) * float(noise),
+                     out)
+    return out
+
+
+@nb.njit(parallel=True, cache=True, nogil=True)
+def _project_loo(p, n, start, d, nbr, rho0, min_cos, max_move, out):
+    """Eq. point_projection_loo for the points ``start ... start + len(d)`` (their
+    ``k + 1`` nearest, the point itself skipped by index)."""
+    K, k = d.shape
+    for q in nb.prange(K):
+        g = start + q
+        ws = 0.0
+        c0 = 0.0
+        c1 = 0.0
+        c2 = 0.0
+        for j in range(k):
+            m = nbr[q, j]
+            if m == g:
+                continue
+            if n[g, 0] * n[m, 0] + n[g, 1] * n[m, 1] + n[g, 2] * n[m, 2] <= min_cos:
+                continue
+            w = math.exp(-(d[q, j] / rho0) ** 2)
+            ws += w
+            c0 += w * p[m, 0]
+            c1 += w * p[m, 1]
+            c2 += w * p[m, 2]
+        t = 0.0
+        if ws > 0:
+            t = ((p[g, 0] - c0 / ws) * n[g, 0] + (p[g, 1] - c1 / ws) * n[g, 1]
+                 + (p[g, 2] - c2 / ws) * n[g, 2])
+            if not abs(t) <= max_move:
+                t = 0.0
         for c in range(3):
             out[g, c] = p[g, c] - t * n[g, c]
 
@@ -855,9 +1165,11 @@ def variance_features(h, noise, r, spread2, disagreement2, v_gp):
 
 
 def calibrated_variance(h, noise, r, spread2, disagreement2, v_gp, coef=VARIANCE_COEF,
-                        disagreement_weight: float = 1.0):
+                        disagreement_weight: float = 1.0, split_half=None):
     """Predictive variance of the blended field (eq. calibrated_var):
-    ``h^2 exp(X t) + kappa d^2``, X from :func:`variance_features`.
+    ``h^2 exp(X t) + kappa d^2 [+ v_half]``, X from :func:`variance_features`,
+    ``v_half`` = ``split_half`` the far-field vote's split-half variance (eq.
+    split_half_var) at its theoretical weight 1 when given (``far.split_half``).
 
     The log-linear part (coefficients t from eq. variance_quantile_fit) raises the
     variance only as ``disagreement2 ** t3`` (t3 = 0.18), so where the GP
@@ -882,8 +1194,9 @@ def calibrated_variance(h, noise, r, spread2, disagreement2, v_gp, coef=VARIANCE
     (K,) float64, m^2
     """
     X = variance_features(h, noise, r, spread2, disagreement2, v_gp)
-    return h * h * np.exp(_features_dot(X, coef)) \
+    v = h * h * np.exp(_features_dot(X, coef)) \
         + np.asarray(disagreement_weight) * np.asarray(disagreement2, dtype=np.float64)
+    return v if split_half is None else v + np.asarray(split_half, dtype=np.float64)
 
 
 def fit_variance_quantile(features, log_err2, tau: float = 0.68):
@@ -1005,8 +1318,16 @@ class BlendedField:
                  disagreement_weight: float = 1.0, length_scale: float | None = None,
                  unseen_weight: float = 0.0, min_thickness: float = 2.0,
                  edge_gap: float = 1.0, unseen_predictive: str = "gaussian",
-                 blend: str = "growth", variance_coef=None):
+                 blend: str = "growth", variance_coef=None, split_half: bool = False,
+                 dof: float = 0.0):
         self.base, self.far, self.calibrated = base, far, bool(calibrated)
+        # eq. split_half_var added to the calibrated variance; the predictive's Student-t
+        # dof (eq. unseen_mixture_t; 0: Gaussian components)
+        self.split_half = bool(split_half)
+        if not (dof == 0 or (dof > 0 and math.isfinite(dof))):
+            raise FarFieldError(f"Expected a predictive dof nu > 0 (or 0: Gaussian), found "
+                                f"{dof!r}; set far.predictive_dof.")
+        self.dof = float(dof)
         if blend not in ("growth", "correlated"):
             raise FarFieldError(f"Expected blend 'growth' or 'correlated', found {blend!r}.")
         self.blend = blend
@@ -1049,7 +1370,8 @@ class BlendedField:
 
         out = self.base.predict(xyz, return_grad=return_grad) if base_out is None \
             else tuple(base_out)
-        c = self.far.components(xyz, return_grad, neighbours=neighbours)
+        half = self.split_half and self.calibrated and not mean_only
+        c = self.far.components(xyz, return_grad, neighbours=neighbours, split_half=half)
         grads = (out[2], c["grad"]) if return_grad else ()
         d2 = (out[0] - c["mean"]) ** 2
         h, sigma = self.far.rho0, self.far.noise
@@ -1077,16 +1399,19 @@ class BlendedField:
             # error of the mixed mean; the weight fades as exp(-r^2 / l^2)
             kappa = self.disagreement_weight * np.exp(-(c["r"] / self.length_scale) ** 2)
             var = calibrated_variance(h, sigma, c["r"], c["spread2"], d2, out[1], coef=coef,
-                                      disagreement_weight=kappa)
+                                      disagreement_weight=kappa,
+                                      split_half=c["half"] if half else None)
             if self.unseen_weight > 0:
                 wb = behind_width(res[0], self.min_thickness)
                 we = extent_width(res[0], c["r"], self.edge_gap)
                 if self.unseen_predictive == "mixture":
-                    dist = UnseenMixture(res[0], var, wb, we, self.unseen_weight)
+                    dist = UnseenMixture(res[0], var, wb, we, self.unseen_weight,
+                                         dof=self.dof)
                     var = dist.var
                 else:
                     var = var + unseen_variance(wb, we, self.unseen_weight)
             res = (res[0], var) + tuple(res[2:])
         if dist is None:
-            dist = UnseenMixture(res[0], res[1], reported_var=res[1])  # var: predict's
+            dist = UnseenMixture(res[0], res[1], reported_var=res[1],  # var: predict's
+                                 dof=self.dof if self.calibrated else 0.0)
         return res, dist

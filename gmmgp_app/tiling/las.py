@@ -12,7 +12,7 @@ from .geometry import TileSpec, TilingError, members, owners_summary, tile_owner
 from .store import TileStore
 from .auto import resolve_tiles
 from .tasks import largest_first, map_tiles_to_store, tile_points
-from .tiled_map import TiledMap
+from .tiled_map import TiledMap, check_stitched_grid
 
 __all__ = ["spill_las_to_tiles", "build_tiled_map_from_las", "stream_plan", "stream_tiles",
            "STREAM_CHUNK_POINTS"]
@@ -91,7 +91,8 @@ def stream_plan(paths, reader_kwargs: dict, no_stream: bool = False) -> tuple:
     return {"path": path, "offset": offset, "origins": hdr["origins"]}, None, None
 
 
-def stream_tiles(plan: dict, cfg, spec, method: str, work, executor, progress):
+def stream_tiles(plan: dict, cfg, spec, method: str, work, executor, progress,
+                 check_grid: bool = False):
     """:func:`build_tiled_map_from_las` of a :func:`stream_plan`, with laspy's and
     lazrs's errors on a file whose points are corrupt turned into a ScanReadError."""
     import laspy
@@ -108,7 +109,8 @@ def stream_tiles(plan: dict, cfg, spec, method: str, work, executor, progress):
     try:
         return build_tiled_map_from_las(plan["path"], cfg, spec, method, work_dir=work,
                                         executor=executor, chunk_size=STREAM_CHUNK_POINTS,
-                                        progress=progress, offset=plan["offset"])
+                                        progress=progress, offset=plan["offset"],
+                                        check_grid=check_grid)
     except errors as exc:
         raise ScanReadError(f"Cannot stream '{plan['path']}' as LAS/LAZ ({type(exc).__name__}:"
                             f" {exc}); the file is corrupt or truncated, export or download it "
@@ -179,7 +181,8 @@ def build_tiled_map_from_las(path, cfg: Optional[MappingConfig] = None,
                              work_dir, executor=None, chunk_size: int = 1_000_000,
                              progress: Optional[Callable[[int, int], None]] = None,
                              cache_tiles: int = 4, offset=None,
-                             tile_stats: Optional[list] = None) -> TiledMap:
+                             tile_stats: Optional[list] = None,
+                             check_grid: bool = False) -> TiledMap:
     """Stream a LAS/LAZ file into tiles and map them, with memory bounded by a tile.
 
     The file is read chunk by chunk into per-tile pieces on disk
@@ -195,7 +198,10 @@ def build_tiled_map_from_las(path, cfg: Optional[MappingConfig] = None,
     pieces' paths already assume it), so only file names and a few numbers cross
     between processes. ``tile_stats``: a list that receives one dict per tile
     (seconds and CPU seconds of reading, mapping and saving, the worker's process id;
-    :func:`~.tasks.map_tiles_to_store`).
+    :func:`~.tasks.map_tiles_to_store`). ``check_grid``: refuse, before any tile is
+    mapped, a stitched surface grid too large to extract
+    (:func:`~.tiled_map.check_stitched_grid`; a second pass over the pieces, one tile in
+    memory at a time).
 
     Returns
     -------
@@ -223,6 +229,9 @@ def build_tiled_map_from_las(path, cfg: Optional[MappingConfig] = None,
     cfg, auto = resolve_tiles(cfg, ((members(owners, t[0]), *tile_points(t[1], None))
                                     for t in tasks), spec, n)
     tasks = [t[:3] + ((cfg, auto) if auto else cfg,) + t[4:] for t in tasks]
+    if check_grid:
+        check_stitched_grid(cfg, spec, owners, ((t[0], tile_points(t[1], None)[0])
+                                                for t in tasks))
     store = TileStore(work_dir / "maps", [], cache=cache_tiles)
     skipped = map_tiles_to_store(executor, largest_first(tasks, sizes), store, progress,
                                  workers_write=True, stats=tile_stats)

@@ -292,10 +292,7 @@ class TiledMap:
 
     def _weighs(self, key, xyz) -> np.ndarray:
         """Where mapped tile ``key`` has a non-zero weight (its square or one it owns)."""
-        w = np.zeros(len(xyz))
-        for k in members(self.owners, key):
-            w += self.spec.weights(xyz[:, :2], k)[0]
-        return w > 0
+        return tile_weighs(self.spec, self.owners, key, xyz)
 
     def extract_surface(self, voxel_size: Optional[float] = None, max_std=None,
                         progress=None, reach: Optional[float] = None, seeds=None,
@@ -483,6 +480,44 @@ class TiledMap:
 
 
 
+def tile_weighs(spec: TileSpec, owners, key, xyz) -> np.ndarray:
+    """(N,) bool: where mapped tile ``key`` (with the small tiles it ``owners``) has a
+    non-zero blending weight at the points ``xyz``."""
+    w = np.zeros(len(xyz))
+    for k in members(owners, key):
+        w += spec.weights(np.asarray(xyz)[:, :2], k)[0]
+    return w > 0
+
+
+def check_stitched_grid(cfg: MappingConfig, spec: TileSpec, owners, tiles) -> None:
+    """Refuse, before any tile is mapped, a stitched surface grid too large to extract
+    at the tiles' shared voxel: the check the region-by-region mesh makes
+    (:func:`~.mesh.stream_tiled_surface`), on the seeds the tile maps will have.
+
+    ``tiles``: one ``(key, points)`` per mapped tile, ``points`` what it trains on (an
+    iterable, read once: a streamed build loads one tile at a time here). Each tile
+    seeks its surface from its own points (``pipeline.surface_seeds``); with smooth
+    blending the stitched surface keeps the seeds where the tile weighs, as
+    :meth:`TiledMap.stitched_seeds` does.
+
+    Raises
+    ------
+    GridTooLargeError
+        As :func:`stages.surface.check_grid_size`.
+    """
+    from ..pipeline import check_grid_size, surface_seeds
+
+    parts = []
+    for key, points in tiles:
+        seeds = surface_seeds(points, cfg)
+        parts.append(seeds[tile_weighs(spec, owners, key, seeds)]
+                     if spec.blend == "smooth" else seeds)
+    seeds = TiledMap._stitch_seeds(parts)
+    del parts
+    if len(seeds):
+        check_grid_size(seeds, cfg.surface.voxel_size)
+
+
 def build_tiled_map(scan: Scan, cfg: Optional[MappingConfig] = None,
                     spec: Optional[TileSpec] = None, method: str = "gmmgp", *,
                     executor=None, progress: Optional[Callable[[int, int], None]] = None,
@@ -512,8 +547,8 @@ def build_tiled_map(scan: Scan, cfg: Optional[MappingConfig] = None,
         without meshing, 1268 -> 1056 MB with). Default: every tile map in memory.
     check_grid : bool
         Refuse, before any tile is mapped, a stitched surface grid too large to extract
-        at the tiles' shared voxel (``gmmgp run --tile-size`` with a mesh; the same check
-        the region-by-region mesh makes, on the whole scan's seeds).
+        at the tiles' shared voxel (``gmmgp run --tile-size`` with a mesh; the check
+        the region-by-region mesh makes, :func:`check_stitched_grid`).
 
     Returns
     -------
@@ -540,9 +575,7 @@ def build_tiled_map(scan: Scan, cfg: Optional[MappingConfig] = None,
                               spec, len(scan))
     tasks = [t[:3] + ((cfg, auto) if auto else cfg,) + t[4:] for t in tasks]
     if check_grid:
-        from ..pipeline import check_grid_size, surface_seeds
-
-        check_grid_size(surface_seeds(scan, cfg), cfg.surface.voxel_size)
+        check_stitched_grid(cfg, spec, owners, ((t[0], t[1]) for t in tasks))
     if work_dir is None:
         maps, skipped = run_tiles(executor, tasks, progress)
     else:
