@@ -139,69 +139,75 @@ def run(args) -> int:
     # HGMM, GMR and GP fits (EarlyMesh; without its progress bars, which would
     # interleave with the stages' lines)
     early = EarlyMesh() if stop is None and not args.no_mesh else None
-    with open_executor(workers=args.workers or None, scheduler=args.scheduler,
-                       kind="processes" if args.processes else "dask") as executor:
-        bar = _TaskBar(console, "GP blocks")
-        # no bar to draw (-q): the GP blocks are fitted in one call instead of 50 (a
-        # parallel region each: their barriers cost ~0.2 CPU-s on the street); the
-        # tree handed over, not kept here: build_map frees it after the prepare stage
-        # and the scan: build_map lets it go once an early mesh starts
-        held = {"tree": tree, "scan": scan}
-        del tree, scan
-        smap = build_map(held.pop("scan"), cfg, method=args.method, observer=observer,
-                         stop_after=stop, executor=executor,
-                         progress=bar if console.enabled else None,
-                         tree=held.pop("tree"), resolved=resolved, early_mesh=early)
-        bar.close()
-    # the map keeps what it needs (seeds, GP points); the scan went with build_map (its
-    # k-d tree, ~50 MB on the 1.3M-point street, after the prepare stage)
-    del resolved
-    smap.summary["seconds"] = {"read": read_s, **smap.summary["seconds"]}
-    if smap.summary.get("auto") and not args.quiet:
-        from ..pipeline import format_auto
-
-        print(format_auto(smap.summary["auto"]))
-    if args.stage == "hgmm" and smap.hgmm is not None:
-        from ..pipeline import format_level_history
-
-        print(format_level_history(smap.hgmm))
     try:
-        out.mkdir(parents=True, exist_ok=True)
-        smap.summary["scan"] = {"paths": [str(Path(s).resolve()) for s in args.scan],
-                                "reader": reader_kwargs(args)}
-        written = [out / "map"]
-        if args.stage == "all" and not args.no_mesh:
-            # the map (as built: its summary has no surface yet) is written on another
-            # thread while the surface is meshed; waited for, and its error raised, here
-            saving = smap.save_in_background(out / "map")
-            try:
-                written += _write_meshes(smap, out, observer, console,
-                                         prior_mesh=args.prior_mesh, early=early)
-            except BaseException:
-                saving.exception()   # wait for the save; the meshing's error is reported
-                raise
-            saving.result()
-        else:
-            smap.save(out / "map")
-        if recorder is not None:
-            recorder.close()  # writes the recording's footer now, not at interpreter exit
-        # the values the map was built with; those chosen from the scan say why
-        from ..pipeline import auto_reasons
+        with open_executor(workers=args.workers or None, scheduler=args.scheduler,
+                           kind="processes" if args.processes else "dask") as executor:
+            bar = _TaskBar(console, "GP blocks")
+            # no bar to draw (-q): the GP blocks are fitted in one call instead of 50 (a
+            # parallel region each: their barriers cost ~0.2 CPU-s on the street); the
+            # tree handed over, not kept here: build_map frees it after the prepare stage
+            # and the scan: build_map lets it go once an early mesh starts
+            held = {"tree": tree, "scan": scan}
+            del tree, scan
+            smap = build_map(held.pop("scan"), cfg, method=args.method, observer=observer,
+                             stop_after=stop, executor=executor,
+                             progress=bar if console.enabled else None,
+                             tree=held.pop("tree"), resolved=resolved, early_mesh=early)
+            bar.close()
+        # the map keeps what it needs (seeds, GP points); the scan went with build_map (its
+        # k-d tree, ~50 MB on the 1.3M-point street, after the prepare stage)
+        del resolved
+        smap.summary["seconds"] = {"read": read_s, **smap.summary["seconds"]}
+        if smap.summary.get("auto") and not args.quiet:
+            from ..pipeline import format_auto
 
-        atomic_write_text(out / "config.toml",
-                          smap.config.to_toml(auto_reasons(smap.summary.get("auto"))))
-        smap.summary["seconds"]["total"] = time.perf_counter() - t0
-        atomic_write_text(out / "summary.json", json.dumps(jsonable(smap.summary), indent=2))
-        written += [out / "config.toml", out / "summary.json"]
-    except OSError as exc:  # e.g. a full disk: numpy/zipfile do not name the file
-        if exc.filename is None:
-            exc.filename = str(out)
-        raise
-    if args.rrd:
-        written.append(Path(args.rrd))
-    if not args.quiet:
-        print("wrote " + ", ".join(str(w) for w in written), file=sys.stderr)
-    return EXIT_OK
+            print(format_auto(smap.summary["auto"]))
+        if args.stage == "hgmm" and smap.hgmm is not None:
+            from ..pipeline import format_level_history
+
+            print(format_level_history(smap.hgmm))
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            smap.summary["scan"] = {"paths": [str(Path(s).resolve()) for s in args.scan],
+                                    "reader": reader_kwargs(args)}
+            written = [out / "map"]
+            if args.stage == "all" and not args.no_mesh:
+                # the map (as built: its summary has no surface yet) is written on another
+                # thread while the surface is meshed; waited for, and its error raised, here
+                saving = smap.save_in_background(out / "map")
+                try:
+                    written += _write_meshes(smap, out, observer, console,
+                                             prior_mesh=args.prior_mesh, early=early)
+                except BaseException:
+                    saving.exception()   # wait for the save; the meshing's error is reported
+                    raise
+                saving.result()
+            else:
+                smap.save(out / "map")
+            if recorder is not None:
+                recorder.close()  # writes the recording's footer now, not at interpreter exit
+            # the values the map was built with; those chosen from the scan say why
+            from ..pipeline import auto_reasons
+
+            atomic_write_text(out / "config.toml",
+                              smap.config.to_toml(auto_reasons(smap.summary.get("auto"))))
+            smap.summary["seconds"]["total"] = time.perf_counter() - t0
+            atomic_write_text(out / "summary.json", json.dumps(jsonable(smap.summary), indent=2))
+            written += [out / "config.toml", out / "summary.json"]
+        except OSError as exc:  # e.g. a full disk: numpy/zipfile do not name the file
+            if exc.filename is None:
+                exc.filename = str(out)
+            raise
+        if args.rrd:
+            written.append(Path(args.rrd))
+        if not args.quiet:
+            print("wrote " + ", ".join(str(w) for w in written), file=sys.stderr)
+        return EXIT_OK
+    finally:
+        # a mesh started and not taken (an error or Ctrl-C on the way): stop it and wait
+        # for its threads, or the exit would wait forever for its vertex pass's worker
+        if early is not None:
+            early.cancel()
 
 
 
