@@ -42,7 +42,8 @@ from .stages import octree as _octree
 from .stages import prepare as _prepare
 from .stages import surface as _surface
 from .stages import unseen as _unseen
-from .types import GaussianMixture, HGMMLevel, HierarchicalGMM, Scan, SurfaceMesh, as_up_axis
+from .types import (GaussianMixture, HGMMLevel, HierarchicalGMM, Scan, SurfaceMesh, TrainingSet,
+                    as_up_axis)
 
 if TYPE_CHECKING:
     from concurrent.futures import Future
@@ -502,6 +503,10 @@ class RunContext:
         Node fits kept by the caller between runs on the same rows (the desktop app
         re-fitting after a split-threshold change); the ``hgmm`` stage reuses and
         adds to it, with the same result as without it.
+    on_hits : callable(points, normals), optional
+        Given to :func:`stages.prepare.prepare` (the training hit points and normals as
+        soon as they exist): :func:`build_map` fits the far field on them there and
+        starts its :class:`EarlyMesh`.
     """
 
     cfg: MappingConfig
@@ -513,6 +518,7 @@ class RunContext:
     loggpis_lambda: Optional[float] = None
     auto_fields: tuple = ()
     hgmm_cache: Any = None
+    on_hits: Optional[Callable] = None
 
 
 @dataclass(frozen=True)
@@ -554,7 +560,8 @@ class Stage:
 def _prepare_stage(ctx, scan, tree=None):
     # the scan's k-d tree (build_map's, shared with the scale measurement) is used here
     # last: handed on as None, so that the run does not keep it while fitting
-    return {"data": _prepare.prepare(scan, ctx.cfg, tree=tree), "tree": None}
+    return {"data": _prepare.prepare(scan, ctx.cfg, tree=tree, on_hits=ctx.on_hits),
+            "tree": None}
 
 
 def _hgmm_stage(ctx, data):
@@ -673,7 +680,10 @@ def _loggpis_stage(ctx, data):
     return {"gp": field_, "gp_points": data.points}
 
 
-def _far_stage(ctx, data):
+def _far_stage(ctx, data, early_far=None):
+    # fitted already on these very hit points (build_map's early mesh, during prepare)
+    if early_far is not None and early_far[0] is data.points:
+        return {"far": early_far[1], "early_far": None}
     return {"far": far_field(data, ctx.cfg)}
 
 
@@ -834,7 +844,8 @@ STAGES = {s.name: s for s in (
           payload=lambda o, i: (o["gp"], {"points": i["gp_points"], "normals": i["gp_normals"]}),
           counts=_info_counts, when=lambda i, c: len(i["gp_points"]) > 0),
     Stage("loggpis", _loggpis_stage, ("data",), ("gp", "gp_points"), counts=_info_counts),
-    Stage("far", _far_stage, ("data",), ("far",), when=lambda i, c: c.cfg.far.enabled),
+    Stage("far", _far_stage, ("data",), ("far",), optional=("early_far",),
+          when=lambda i, c: c.cfg.far.enabled),
     Stage("map", _map_stage, ("scan",), ("smap",), reported=False,
           optional=("summary", "prior", "hgmm", "gp", "gp_points", "gp_normals", "far",
                     "seeds")),
@@ -922,7 +933,8 @@ def run_stages(names, state: dict, ctx: RunContext, *, observer=None,
 def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gmmgp",
               observer=None, *, stop_after: Optional[str] = None, executor=None,
               progress=None, loggpis_lambda: Optional[float] = None,
-              check_grid: bool = False, tree=None, resolved=None) -> SurfaceMap:
+              check_grid: bool = False, tree=None, resolved=None,
+              early_mesh: Optional["EarlyMesh"] = None) -> SurfaceMap:
     """Map a scan into a probabilistic signed distance field.
 
     Parameters
@@ -958,6 +970,11 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
         ``(cfg, record)``, what :func:`resolve_config` returned for this ``scan`` and
         ``cfg``, or :func:`check_surface_grid`'s ``(cfg, record, seeds)``, when the caller
         has it: not measured again (nor the surface seeds sought again).
+    early_mesh : EarlyMesh, optional
+        Started on the map's far field, seeds and configuration right after the far
+        field is fitted (then before the HGMM) when the mesh needs nothing else
+        (:func:`mesh_needs_far_only`; a whole recipe, not ``stop_after``); its
+        :meth:`EarlyMesh.finish` then takes the returned map and gives its mesh.
 
     Returns
     -------
@@ -990,8 +1007,185 @@ def build_map(scan: Scan, cfg: Optional[MappingConfig] = None, method: str = "gm
     observer.on_stage("scan", StagePayload(scan, 0.0))
     ctx = RunContext(cfg, method, executor=executor, progress=progress,
                      loggpis_lambda=loggpis_lambda, auto_fields=auto_fields(summary["auto"]))
-    state = run_stages(recipe + ("map",), state, ctx, observer=observer, summary=summary)
+    del scan        # the state's reference only (an early mesh lets it go: below)
+    on_stage = None
+    if early_mesh is not None and stop_after is None and "far" in recipe \
+            and "prepare" in recipe and method != "loggpis" and cfg.far.enabled \
+            and mesh_needs_far_only(cfg, True):
+        # the far field takes only the training hit points and their normals: fitted
+        # inside the prepare stage as soon as they exist (the far stage, right after
+        # prepare, then takes it), and the mesh starts on it while the virtual points,
+        # the HGMM, the GMR and the GPs are made
+        recipe = ("prepare", "far") + tuple(s for s in recipe if s not in ("prepare", "far"))
+        if "seeds" not in state or state["seeds"][0] != cfg.surface:
+            state["seeds"] = (cfg.surface, surface_seeds(state["scan"], cfg))
+
+        def on_hits(points, normals):
+            far = far_field(TrainingSet(np.zeros((0, 4)), np.zeros(0, np.int8), points,
+                                        normals, 0.0), cfg)
+            state["early_far"] = (points, far)
+            scan_ = state["scan"]
+            early_mesh.start(SurfaceMap(method, cfg, scan_.offset, None,
+                                        seed_points=state["seeds"][1], far=far,
+                                        up=scan_.up))
+            start = getattr(observer, "on_stage_start", None)
+            if start is not None:    # the console says the surface is under way
+                start("surface")
+
+        ctx = dataclasses.replace(ctx, on_hits=on_hits)
+
+        def on_stage(name, st):
+            if name == "far" and early_mesh.started:
+                # the rest takes the prepared data, and the map only the scan's frame
+                # (its seeds are sought, under a surface configuration that the GP's
+                # hyper-parameters leave alone): the scan's points are let go while the
+                # mesh and the fits run (-60 MB of peak memory on the 1.3M-point
+                # street when the caller let go of it too, as ``gmmgp run`` does)
+                scan_ = st["scan"]
+                st["scan"] = Scan(np.zeros((0, 3)), offset=scan_.offset, up=scan_.up)
+                del scan_
+    try:
+        state = run_stages(recipe + ("map",), state, ctx, observer=observer,
+                           summary=summary, on_stage=on_stage)
+    except BaseException:
+        if early_mesh is not None:
+            early_mesh.cancel()
+        raise
     return state["smap"]
+
+
+def mesh_needs_far_only(cfg: MappingConfig, far) -> bool:
+    """Whether :meth:`SurfaceMap.extract_surface`'s mesh, but for its vertices' variance,
+    is a function of the far field, the surface seeds and ``cfg.surface`` alone: the
+    lattice is the far field's mean (``surface.lattice_field`` "far", with a far field)
+    and the vertices stay on the lattice edges (``surface.project_steps`` 0). Then
+    :class:`EarlyMesh` can mesh while the prior and the GPs are fitted."""
+    s = cfg.surface
+    return (far is not None and getattr(s, "lattice_field", "map") == "far"
+            and int(s.project_steps) == 0)
+
+
+class EarlyMesh:
+    """:meth:`SurfaceMap.extract_surface` of a map on a thread of its own, started as
+    soon as the map's lattice field exists (``build_map(early_mesh=...)``, right after
+    the far field, which then comes before the HGMM: it takes only the prepared data),
+    while the calling thread fits the HGMM, the GMR and the GPs. The extraction is the
+    map's own (``overlap=True``), called on a :class:`SurfaceMap` holding the far field,
+    the seeds and the configuration; its vertex pass, which needs the whole map
+    (:meth:`SurfaceMap.predict`: the variance), waits in :meth:`finish` for the
+    complete map. The mesh is the one ``smap.extract_surface(overlap=True)`` gives
+    after ``build_map``, bit for bit (tests/test_pipeline.py); only the order of the
+    work changes. On 2 cores the fits' and the surface's serial parts (per-fit Python,
+    marching cubes) then run beside each other (docs/speed.md, session 13).
+
+    Not started (:attr:`started` False; mesh the map afterwards as usual) when the
+    mesh needs more than the far field (:func:`mesh_needs_far_only`), for a run that
+    stops early, or a method without a zero level set.
+    """
+
+    def __init__(self):
+        import threading
+
+        self._ready = threading.Event()
+        self._cancelled = False
+        self._thread = None
+        self._partial = self._map = self._mesh = self._error = None
+        self.seconds = 0.0          # the extraction's wall time on its thread
+
+    @property
+    def started(self) -> bool:
+        return self._thread is not None
+
+    def start(self, partial: SurfaceMap) -> None:
+        """Mesh ``partial`` (a map with its far field, seeds and configuration, no fits
+        yet) on a new daemon thread."""
+        import threading
+
+        if self._thread is not None:
+            raise PipelineError("EarlyMesh.start was called twice; use one EarlyMesh per map.")
+        self._partial = partial
+        # the vertex pass's field: the complete map's, once finish() hands it over; the
+        # lattice's and the progress bars' calls end the extraction once cancelled
+        partial.predict = self._predict
+        lattice = partial.lattice_mean
+        partial.lattice_mean = lambda xyz: self._check() or lattice(xyz)
+        self._thread = threading.Thread(target=self._extract, daemon=True,
+                                        name="gmmgp-mesh")
+        self._thread.start()
+
+    def _check(self) -> None:
+        if self._cancelled:
+            raise PipelineError("The map was not completed (an earlier stage failed or "
+                                "the run was interrupted); its mesh was abandoned.")
+
+    def _progress(self, total, desc):
+        return _CancelBar(self._check)
+
+    def _predict(self, xyz, **kw):
+        self._ready.wait()
+        if self._map is None or self._cancelled:
+            raise PipelineError("The map was not completed (an earlier stage failed); "
+                                "its mesh was abandoned.")
+        return self._map.predict(xyz, **kw)
+
+    def _extract(self) -> None:
+        t = time.perf_counter()
+        try:
+            self._mesh = self._partial.extract_surface(overlap=True, progress=self._progress)
+        except BaseException as exc:    # raised again on the calling thread by finish()
+            self._error = exc
+        finally:
+            self.seconds = time.perf_counter() - t
+
+    def finish(self, smap: SurfaceMap) -> SurfaceMesh:
+        """Hand the complete map (``build_map``'s, the one this mesh was started for) to
+        the vertex pass; wait for the mesh and return it, or raise the extraction's
+        error."""
+        p = self._partial
+        if p is None:
+            raise PipelineError("EarlyMesh.finish before start; mesh with "
+                                "smap.extract_surface() instead.")
+        if smap.far is not p.far or smap.seed_points is not p.seed_points \
+                or smap.config.surface != p.config.surface:
+            self.cancel()
+            raise PipelineError("EarlyMesh.finish was given another map than the one its "
+                                "mesh was started for; mesh with smap.extract_surface().")
+        self._map = smap
+        self._ready.set()
+        try:
+            self._thread.join()
+        except BaseException:       # Ctrl-C while waiting: stop the extraction first
+            self.cancel()
+            raise
+        self._partial = self._map = None
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
+        mesh, self._mesh = self._mesh, None
+        return mesh
+
+    def cancel(self) -> None:
+        """End a started extraction (the map it waits for will not come) and wait for its
+        thread: the extraction raises at its next lattice batch, marching-cubes block or
+        vertex batch, so the process does not exit (e.g. on Ctrl-C) while it runs."""
+        self._cancelled = True
+        self._ready.set()
+        if self._thread is not None:
+            self._thread.join()
+
+
+class _CancelBar:
+    """The progress bar :class:`EarlyMesh` gives its extraction: draws nothing; each
+    update calls ``check`` (which raises once the mesh is cancelled)."""
+
+    def __init__(self, check):
+        self.check = check
+
+    def update(self, n=1):
+        self.check()
+
+    def close(self):
+        pass
 
 
 def update_map(smap: SurfaceMap, all_points, all_origins, new_points,
@@ -1033,15 +1227,35 @@ def with_map_values(cfg: MappingConfig, map_cfg: MappingConfig) -> MappingConfig
     return cfg.replace(updates) if updates else cfg
 
 
-def resolve_config(cfg: MappingConfig, scan: Scan, *, tree=None) -> tuple:
+def resolve_config(cfg: MappingConfig, scan: Scan, *, tree=None, on_lengths=None) -> tuple:
     """``cfg`` with every ``"auto"`` field computed from ``scan`` (stages/autoscale.py),
     and the record of the chosen values and their reasons (empty when nothing was auto).
     ``tree``: the k-d tree of ``scan.points`` (:func:`scan_tree`) when the caller has it.
     A caller that needs the resolution before :func:`build_map` (``gmmgp run`` checks the
     surface grid first) passes it on with ``build_map(resolved=...)``: measured once
-    (~5 s on 1.3M points).
+    (~5 s on 1.3M points). ``on_lengths``: :func:`stages.autoscale.resolve_config`'s
+    (called with every length resolved, before the training subset's voxel is sought).
     """
-    return _resolve_config(cfg, scan, tree)
+    return _resolve_config(cfg, scan, tree, on_lengths)
+
+
+def first_kernel_calls() -> tuple:
+    """Callables that make numba's first dispatch in the process and load the first
+    kernels a map of a scan calls (the automatic voxel's and the surface seeds' hashed
+    passes, the normals' covariances), on tiny inputs of the run's argument types: what
+    the run would otherwise pay on the calling thread at their first call (~0.15 CPU-s
+    for numba's typing context, then a few ms per kernel's cache load). ``gmmgp run``
+    calls them while its reading thread is still reading (docs/speed.md, session 13)."""
+    from .stages import _distinct
+
+    pts = np.zeros((2, 3))
+    dist = np.zeros((1, 2))
+    idx = np.zeros((1, 2), np.int64)
+    return (lambda: _distinct._bounds(pts),
+            lambda: _distinct.voxel_count(pts, 1.0),
+            lambda: _distinct.cell_first(pts, 1.0),
+            lambda: _prepare._neighbourhood_covariances(pts, np.zeros(1, np.int64), dist,
+                                                        idx, 2))
 
 
 def scan_tree(scan: Scan, built=None):
@@ -1058,7 +1272,7 @@ def scan_tree(scan: Scan, built=None):
     return points_tree(pts) if built is None else built
 
 
-def _resolve_config(cfg: MappingConfig, scan: Scan, tree=None) -> tuple:
+def _resolve_config(cfg: MappingConfig, scan: Scan, tree=None, on_lengths=None) -> tuple:
     from .config import concrete
     from .stages.autoscale import AutoScaleError
     from .stages.autoscale import resolve_config as _resolve
@@ -1068,7 +1282,7 @@ def _resolve_config(cfg: MappingConfig, scan: Scan, tree=None) -> tuple:
     if len(pts) < MIN_POINTS or not np.isfinite(pts).all():
         return cfg, {}          # prepare raises the one-line error for such scans
     try:
-        return _resolve(cfg, pts, scan.origins, tree=tree)
+        return _resolve(cfg, pts, scan.origins, tree=tree, on_lengths=on_lengths)
     except AutoScaleError as exc:
         # too few or coincident points to measure: the urban values, and prepare
         # gives its own one-line error if the scan cannot be mapped at all
@@ -1143,9 +1357,28 @@ def check_surface_grid(scan: Scan, cfg: MappingConfig, *, tree=None) -> tuple:
     k-d tree of its points when the caller has it). Returns the resolution
     (:func:`resolve_config`'s ``(cfg, record)``) and the surface seeds the check was made
     with (:func:`surface_seeds`), ``(cfg, record, seeds)``, for ``build_map(resolved=...)``:
-    the map keeps those seeds instead of seeking them again (0.3 s on 1.3M points)."""
-    resolved = resolve_config(cfg, scan, tree=tree)
-    return (*resolved, _checked_seeds(scan, resolved[0]))
+    the map keeps those seeds instead of seeking them again (0.3 s on 1.3M points).
+
+    The seeds need only the surface's lengths: they are sought (and the grid checked) on
+    a thread while the training subset's voxel is (both hashed passes over the points,
+    which release the GIL), the same seeds as after it."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    early = {}
+    pool = ThreadPoolExecutor(1, thread_name_prefix="gmmgp-seeds")
+
+    def on_lengths(c):
+        early["surface"], early["job"] = c.surface, pool.submit(_checked_seeds, scan, c)
+
+    try:
+        resolved = resolve_config(cfg, scan, tree=tree, on_lengths=on_lengths)
+        if "job" in early and early["surface"] == resolved[0].surface:
+            seeds = early["job"].result()      # or its GridTooLargeError
+        else:
+            seeds = _checked_seeds(scan, resolved[0])
+    finally:
+        pool.shutdown(wait=True)
+    return (*resolved, seeds)
 
 
 def _checked_seeds(scan: Scan, cfg: MappingConfig) -> np.ndarray:

@@ -180,6 +180,13 @@ def test_run_reports_the_meshing_error_when_the_background_save_fails_too(tmp_pa
     assert code == 2, err
     assert "the meshing failed" in err and "the save failed" not in err, err
     assert not (out / "map").exists()
+    # the mesh started beside the fits (EarlyMesh) and never taken was stopped: no
+    # thread of it is left to wait for the map (the process's exit would wait forever)
+    import threading
+
+    left = [t.name for t in threading.enumerate()
+            if t.name.startswith(("gmmgp-mesh", "gmmgp-surface"))]
+    assert left == []
 
 
 def _console(argv, prelude="", cwd=None):

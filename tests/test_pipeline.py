@@ -1,6 +1,7 @@
 """build_map end to end on scenes with exact SDF: the GP must improve on its HGMM prior."""
 
 import copy
+import dataclasses
 import json
 
 import numpy as np
@@ -435,3 +436,164 @@ def test_select_neighbours_selects_on_the_neighbourhoods_mean_residual(sphere):
                       RunContext(cfg8.replace({"gp.select_rule": "both"})))
     np.testing.assert_array_equal(both["gp_points"], pts[want & (np.abs(m) > 0.002)])
     assert len(both["gp_points"]) < min(want.sum(), (np.abs(m) > 0.002).sum())
+
+
+# ---------------------------------------------------------------- early mesh (session 13)
+
+
+def test_early_mesh_is_the_maps_mesh_bit_for_bit(sphere):
+    """build_map(early_mesh=...) meshes on a thread from the far field on, beside the
+    fits: the same map (the far field, fitted inside prepare on the hit points and their
+    normals before the virtual points, takes nothing else) and the same mesh as
+    extract_surface after build_map; the stages' order puts far first."""
+    from gmmgp_app.pipeline import EarlyMesh
+
+    scan, _ = sphere
+    cfg = gm.MappingConfig()
+    seen, started = [], []
+
+    class Recorder:
+        def on_stage_start(self, name):
+            started.append((name, list(seen)))
+
+        def on_stage(self, name, payload):
+            seen.append(name)
+
+    early = EarlyMesh()
+    smap = gm.build_map(scan, cfg, early_mesh=early, observer=Recorder())
+    assert early.started and seen == ["scan", "prepare", "far", "hgmm", "gmr", "gp"]
+    # the mesh started while the prepare stage ran (after it began, before it ended)
+    assert ("surface", ["scan"]) in started and started[0] == ("prepare", ["scan"])
+    mesh = early.finish(smap)
+    ref = gm.build_map(scan, cfg)
+    a, b = ref.to_arrays(), smap.to_arrays()
+    assert a.keys() == b.keys()
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    want = ref.extract_surface(overlap=True)
+    assert len(mesh.faces) > 1000
+    for k in ("vertices", "faces", "vertex_variance"):
+        np.testing.assert_array_equal(getattr(mesh, k), getattr(want, k), err_msg=k)
+    with pytest.raises(gm.pipeline.PipelineError, match="finish before start"):
+        EarlyMesh().finish(smap)
+
+
+def test_early_mesh_starts_only_where_the_mesh_needs_the_far_field_alone(sphere):
+    """No early start when the lattice is the map's mean, with projection steps, without
+    a far field, or for a run that stops early; finish refuses another map."""
+    from gmmgp_app.pipeline import EarlyMesh
+
+    scan, _ = sphere
+    base = gm.MappingConfig().replace("hgmm.max_levels", 3)
+    for cfg, stop in ((base.replace("surface.lattice_field", "map"), None),
+                      (base.replace("surface.project_steps", 1), None),
+                      (base.replace("far.enabled", False), None), (base, "gmr")):
+        early = EarlyMesh()
+        gm.build_map(scan, cfg, early_mesh=early, stop_after=stop)
+        assert not early.started
+    early = EarlyMesh()
+    smap = gm.build_map(scan, base, early_mesh=early)
+    other = gm.build_map(scan, base)
+    with pytest.raises(gm.pipeline.PipelineError, match="another map"):
+        early.finish(other)
+
+
+def test_early_mesh_ends_when_the_fits_fail(sphere, monkeypatch):
+    """A stage failing after the mesh started: build_map raises that error once the
+    mesh's thread has ended (cancelled at its next lattice batch, marching-cubes block
+    or vertex batch), so a process exiting on the error (or Ctrl-C) does not exit
+    while the extraction runs."""
+    import gmmgp_app.pipeline as P
+
+    scan, _ = sphere
+
+    def failing_gp(ctx, gp_points, gp_normals, prior):
+        raise ValueError("the GP failed")
+
+    monkeypatch.setitem(P.STAGES, "gp", dataclasses.replace(P.STAGES["gp"], fn=failing_gp))
+    early = P.EarlyMesh()
+    with pytest.raises(ValueError, match="the GP failed"):
+        gm.build_map(scan, gm.MappingConfig().replace("hgmm.max_levels", 3),
+                     early_mesh=early)
+    assert early.started and not early._thread.is_alive()
+    assert isinstance(early._error, P.PipelineError)
+
+
+def test_first_kernel_calls_load_the_runs_signatures():
+    """The warm-up calls (made while the scan is read) use the argument types the run's
+    own calls use: afterwards the run's calls add no signature (no compilation)."""
+    from gmmgp_app.pipeline import first_kernel_calls
+    from gmmgp_app.stages import _distinct, prepare as prep
+
+    for call in first_kernel_calls():
+        call()
+    kernels = (_distinct._bounds, _distinct._voxel_first, _distinct._cell_first,
+               prep._neighbourhood_covariances)
+    before = [set(k.signatures) for k in kernels]
+    assert all(len(s) >= 1 for s in before)
+    pts = np.random.default_rng(0).random((500, 3))
+    _distinct.voxel_count(pts, 0.1)
+    _distinct.voxel_first(pts, 0.1, np.random.default_rng(1).permutation(500))
+    _distinct.cell_first(pts, 0.1)
+    prep.estimate_normals(pts, 0.2, 10, query=np.arange(0, 500, 3, dtype=np.int64))
+    assert [set(k.signatures) for k in kernels] == before
+
+
+def test_check_surface_grid_seeks_the_seeds_beside_the_voxel_search(sphere, monkeypatch):
+    """check_surface_grid seeks the seeds on a thread while the training voxel is sought:
+    the same configuration, record and seeds as resolving first and seeking after, and
+    an impossible grid is still refused (from the seeds' thread)."""
+    from gmmgp_app.pipeline import check_surface_grid, resolve_config, surface_seeds
+    from gmmgp_app.stages import autoscale, surface
+
+    scan, _ = sphere
+    cfg = gm.MappingConfig()
+    calls = []
+    real = autoscale.resolve_config
+
+    def spy(*a, **k):
+        calls.append(k.get("on_lengths") is not None)
+        return real(*a, **k)
+
+    monkeypatch.setattr(autoscale, "resolve_config", spy)
+    got_cfg, got_rec, seeds = check_surface_grid(scan, cfg)
+    want_cfg, want_rec = resolve_config(cfg, scan)
+    assert calls == [True, False]
+    assert got_cfg == want_cfg and got_rec == want_rec
+    np.testing.assert_array_equal(seeds, surface_seeds(scan, want_cfg))
+    monkeypatch.setattr(surface, "MAX_GRID_NODES", 10)
+    with pytest.raises(surface.GridTooLargeError, match="use a larger voxel size"):
+        check_surface_grid(scan, cfg)
+
+
+def test_early_mesh_lets_the_scan_go_during_the_fits(sphere, monkeypatch):
+    """With an early mesh, build_map keeps only the scan's frame once the far field is
+    fitted: a scan handed over (no caller reference) is freed before the GP is fitted,
+    and the map keeps its offset and up axis."""
+    import gc
+    import weakref
+
+    import gmmgp_app.pipeline as P
+    from gmmgp_app.types import Scan
+
+    src, _ = sphere
+    scan = Scan(src.points.copy(), origins=src.origins, offset=np.array([1.0, 2.0, 3.0]))
+    ref = weakref.ref(scan.points)
+    alive = []
+    real = P.STAGES["gp"].fn
+
+    def gp_stage(ctx, **kw):
+        gc.collect()
+        alive.append(ref() is not None)
+        return real(ctx, **kw)
+
+    monkeypatch.setitem(P.STAGES, "gp", dataclasses.replace(P.STAGES["gp"], fn=gp_stage))
+    held = [scan]
+    del scan
+    early = P.EarlyMesh()
+    smap = gm.build_map(held.pop(), gm.MappingConfig().replace("hgmm.max_levels", 3),
+                        early_mesh=early)
+    early.finish(smap)
+    assert alive == [False]
+    np.testing.assert_array_equal(smap.offset, [1.0, 2.0, 3.0])
+    assert len(smap.seed_points) > 100

@@ -115,7 +115,11 @@ def run(args) -> int:
     else:   # the read's own seconds (it may have begun before t0, during the imports)
         from ..pipeline import scan_tree
 
-        scan, read_s, tree = reading.result()
+        from ..pipeline import first_kernel_calls
+
+        # while the read (and its k-d tree) is still going, numba's first dispatch and
+        # the first kernels' cache loads, which the run pays on this thread anyway
+        scan, read_s, tree = reading.result(meanwhile=first_kernel_calls())
         tree = scan_tree(scan, tree)    # the thread's tree, for a scan that gets one
     stop = None if args.stage == "all" else args.stage
     resolved = None
@@ -129,68 +133,81 @@ def run(args) -> int:
     if spec is not None:
         return _run_tiled(args, cfg, spec, scan, out, console, t0, read_s, fallback=fallback)
     from ..distributed import open_executor
+    from ..pipeline import EarlyMesh
 
-    with open_executor(workers=args.workers or None, scheduler=args.scheduler,
-                       kind="processes" if args.processes else "dask") as executor:
-        bar = _TaskBar(console, "GP blocks")
-        # no bar to draw (-q): the GP blocks are fitted in one call instead of 50 (a
-        # parallel region each: their barriers cost ~0.2 CPU-s on the street); the
-        # tree handed over, not kept here: build_map frees it after the prepare stage
-        held = [tree]
-        del tree
-        smap = build_map(scan, cfg, method=args.method, observer=observer, stop_after=stop,
-                         executor=executor, progress=bar if console.enabled else None,
-                         tree=held.pop(), resolved=resolved)
-        bar.close()
-    # the map keeps what it needs (seeds, GP points): free the scan (its k-d tree, ~50
-    # MB on the 1.3M-point street, went after the prepare stage) before meshing
-    del scan, resolved
-    smap.summary["seconds"] = {"read": read_s, **smap.summary["seconds"]}
-    if smap.summary.get("auto") and not args.quiet:
-        from ..pipeline import format_auto
-
-        print(format_auto(smap.summary["auto"]))
-    if args.stage == "hgmm" and smap.hgmm is not None:
-        from ..pipeline import format_level_history
-
-        print(format_level_history(smap.hgmm))
+    # the map's mesh starts on its own thread once the far field is fitted, beside the
+    # HGMM, GMR and GP fits (EarlyMesh; without its progress bars, which would
+    # interleave with the stages' lines)
+    early = EarlyMesh() if stop is None and not args.no_mesh else None
     try:
-        out.mkdir(parents=True, exist_ok=True)
-        smap.summary["scan"] = {"paths": [str(Path(s).resolve()) for s in args.scan],
-                                "reader": reader_kwargs(args)}
-        written = [out / "map"]
-        if args.stage == "all" and not args.no_mesh:
-            # the map (as built: its summary has no surface yet) is written on another
-            # thread while the surface is meshed; waited for, and its error raised, here
-            saving = smap.save_in_background(out / "map")
-            try:
-                written += _write_meshes(smap, out, observer, console,
-                                         prior_mesh=args.prior_mesh)
-            except BaseException:
-                saving.exception()   # wait for the save; the meshing's error is reported
-                raise
-            saving.result()
-        else:
-            smap.save(out / "map")
-        if recorder is not None:
-            recorder.close()  # writes the recording's footer now, not at interpreter exit
-        # the values the map was built with; those chosen from the scan say why
-        from ..pipeline import auto_reasons
+        with open_executor(workers=args.workers or None, scheduler=args.scheduler,
+                           kind="processes" if args.processes else "dask") as executor:
+            bar = _TaskBar(console, "GP blocks")
+            # no bar to draw (-q): the GP blocks are fitted in one call instead of 50 (a
+            # parallel region each: their barriers cost ~0.2 CPU-s on the street); the
+            # tree handed over, not kept here: build_map frees it after the prepare stage
+            # and the scan: build_map lets it go once an early mesh starts
+            held = {"tree": tree, "scan": scan}
+            del tree, scan
+            smap = build_map(held.pop("scan"), cfg, method=args.method, observer=observer,
+                             stop_after=stop, executor=executor,
+                             progress=bar if console.enabled else None,
+                             tree=held.pop("tree"), resolved=resolved, early_mesh=early)
+            bar.close()
+        # the map keeps what it needs (seeds, GP points); the scan went with build_map (its
+        # k-d tree, ~50 MB on the 1.3M-point street, after the prepare stage)
+        del resolved
+        smap.summary["seconds"] = {"read": read_s, **smap.summary["seconds"]}
+        if smap.summary.get("auto") and not args.quiet:
+            from ..pipeline import format_auto
 
-        atomic_write_text(out / "config.toml",
-                          smap.config.to_toml(auto_reasons(smap.summary.get("auto"))))
-        smap.summary["seconds"]["total"] = time.perf_counter() - t0
-        atomic_write_text(out / "summary.json", json.dumps(jsonable(smap.summary), indent=2))
-        written += [out / "config.toml", out / "summary.json"]
-    except OSError as exc:  # e.g. a full disk: numpy/zipfile do not name the file
-        if exc.filename is None:
-            exc.filename = str(out)
-        raise
-    if args.rrd:
-        written.append(Path(args.rrd))
-    if not args.quiet:
-        print("wrote " + ", ".join(str(w) for w in written), file=sys.stderr)
-    return EXIT_OK
+            print(format_auto(smap.summary["auto"]))
+        if args.stage == "hgmm" and smap.hgmm is not None:
+            from ..pipeline import format_level_history
+
+            print(format_level_history(smap.hgmm))
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            smap.summary["scan"] = {"paths": [str(Path(s).resolve()) for s in args.scan],
+                                    "reader": reader_kwargs(args)}
+            written = [out / "map"]
+            if args.stage == "all" and not args.no_mesh:
+                # the map (as built: its summary has no surface yet) is written on another
+                # thread while the surface is meshed; waited for, and its error raised, here
+                saving = smap.save_in_background(out / "map")
+                try:
+                    written += _write_meshes(smap, out, observer, console,
+                                             prior_mesh=args.prior_mesh, early=early)
+                except BaseException:
+                    saving.exception()   # wait for the save; the meshing's error is reported
+                    raise
+                saving.result()
+            else:
+                smap.save(out / "map")
+            if recorder is not None:
+                recorder.close()  # writes the recording's footer now, not at interpreter exit
+            # the values the map was built with; those chosen from the scan say why
+            from ..pipeline import auto_reasons
+
+            atomic_write_text(out / "config.toml",
+                              smap.config.to_toml(auto_reasons(smap.summary.get("auto"))))
+            smap.summary["seconds"]["total"] = time.perf_counter() - t0
+            atomic_write_text(out / "summary.json", json.dumps(jsonable(smap.summary), indent=2))
+            written += [out / "config.toml", out / "summary.json"]
+        except OSError as exc:  # e.g. a full disk: numpy/zipfile do not name the file
+            if exc.filename is None:
+                exc.filename = str(out)
+            raise
+        if args.rrd:
+            written.append(Path(args.rrd))
+        if not args.quiet:
+            print("wrote " + ", ".join(str(w) for w in written), file=sys.stderr)
+        return EXIT_OK
+    finally:
+        # a mesh started and not taken (an error or Ctrl-C on the way): stop it and wait
+        # for its threads, or the exit would wait forever for its vertex pass's worker
+        if early is not None:
+            early.cancel()
 
 
 
@@ -350,19 +367,28 @@ def _run_tiled(args, cfg, spec, scan, out: Path, console, t0: float, read_s: flo
 
 
 
-def _write_meshes(smap, out: Path, observer, console, prior_mesh: bool = False) -> list:
+def _write_meshes(smap, out: Path, observer, console, prior_mesh: bool = False,
+                  early=None) -> list:
     """Marching-cubes surface of the map, and with ``prior_mesh`` also of its HGMM prior
-    (GMR alone; always for ``--method hgmm``, whose map is the prior)."""
+    (GMR alone; always for ``--method hgmm``, whose map is the prior). ``early``: the
+    :class:`~gmmgp_app.pipeline.EarlyMesh` given to ``build_map``; when it started, the
+    map's mesh is its (``seconds["surface"]`` is then its thread's wall time, most of it
+    beside the fits, and ``seconds["surface_wait"]`` the wait for it after them)."""
     from ..pipeline import StagePayload, std_colour_max, write_mesh_ply
 
     t0 = time.perf_counter()
     meshes = {}
-    if smap.method != "hgmm" and smap.signed:  # loggpis: no zero level set to mesh
+    if early is not None and early.started:
+        meshes[smap.method] = early.finish(smap)
+        smap.summary["seconds"]["surface_wait"] = time.perf_counter() - t0
+    elif smap.method != "hgmm" and smap.signed:  # loggpis: no zero level set to mesh
         # one mesh per process: the vertex pass beside marching cubes (same mesh)
         meshes[smap.method] = smap.extract_surface(progress=console.progress, overlap=True)
     if smap.hgmm is not None and (prior_mesh or smap.method == "hgmm"):
         meshes["hgmm"] = smap.prior_surface(progress=console.progress)
     seconds = time.perf_counter() - t0
+    if early is not None and early.started:
+        seconds += early.seconds - smap.summary["seconds"]["surface_wait"]
     smap.summary["seconds"]["surface"] = seconds
     smap.summary["counts"]["surface"] = {k: {"vertices": len(m.vertices), "faces": len(m.faces)}
                                          for k, m in meshes.items()}
@@ -411,7 +437,13 @@ class BackgroundRead:
         except Exception:       # e.g. memory: scan_tree builds it again, or says why not
             self._tree = None
 
-    def result(self) -> tuple:
+    def result(self, meanwhile=()) -> tuple:
+        """``meanwhile``: callables run on the calling thread, one after the other, while
+        the read is still going (those left when it ends are not run)."""
+        for call in meanwhile:
+            if not self._thread.is_alive():
+                break
+            call()
         self._thread.join()
         if self._error is not None:
             error, self._error = self._error, None

@@ -301,7 +301,7 @@ def inconsistent_virtual(virtual_xyz: np.ndarray, hit_tree: cKDTree, s: float,
 
 def prepare(scan: Scan, cfg: MappingConfig, *,
             rng: Optional[np.random.Generator] = None,
-            tree: Optional[cKDTree] = None) -> TrainingSet:
+            tree: Optional[cKDTree] = None, on_hits=None) -> TrainingSet:
     """4D training rows ``(x, y, z, d)`` from a scan (paper Sec. III-B, V-B).
 
     Parameters
@@ -317,6 +317,11 @@ def prepare(scan: Scan, cfg: MappingConfig, *,
     tree : cKDTree of ``scan.points``, optional
         Built here if not given (the pipeline builds one for the scale measurement
         and this stage).
+    on_hits : callable(points, normals), optional
+        Called with the training hit points and their oriented normals (the returned
+        set's ``points`` and ``normals``, the same arrays) as soon as they exist, before
+        the virtual points are made and checked (``gmmgp run`` fits the far field and
+        starts the mesh on them meanwhile: pipeline.EarlyMesh).
 
     Returns
     -------
@@ -382,6 +387,8 @@ def prepare(scan: Scan, cfg: MappingConfig, *,
     hits = pts[keep]
     normals, method = orient_normals(hits, normals[valid],
                                      None if scan.origins is None else scan.origins[keep])
+    if on_hits is not None:
+        on_hits(hits, normals)
     s = p.virtual_spacing
     rows = virtual_points(hits, normals, s)
     H = len(hits)
