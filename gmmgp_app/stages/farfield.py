@@ -434,6 +434,52 @@ class FarField:
                                workers=-1)[0]
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _robust_plane_vote(x, d, nbr, q, points, normals, rho0, growth, robust_scale,
+                       robust_iterations, w, u, a):
+    """Eqs. imls and rimls at query ``q`` (the plane vote of :func:`_imls` and
+    :func:`_imls_mean`, one code for both): fills ``w`` with the kernel weights (relative
+    to the nearest neighbour), ``u`` with the final robust weights and ``a`` with the
+    neighbours' plane distances; returns the (robust) mean, the kernel width ``rho`` and
+    the kernel weights' sum."""
+    k = w.shape[0]
+    r = d[q, 0]
+    rho = max(rho0, growth * r)
+    rho2 = rho * rho
+    r2 = r * r
+    wsum = 0.0
+    wa = 0.0
+    for j in range(k):
+        wj = math.exp(-(d[q, j] * d[q, j] - r2) / rho2)
+        p = nbr[q, j]
+        aj = ((x[q, 0] - points[p, 0]) * normals[p, 0]
+              + (x[q, 1] - points[p, 1]) * normals[p, 1]) \
+            + (x[q, 2] - points[p, 2]) * normals[p, 2]
+        w[j] = wj
+        u[j] = wj
+        a[j] = aj
+        wsum += wj
+        wa += wj * aj
+    m = wa / wsum
+    if robust_scale > 0:
+        # eq. rimls: w_j exp(-((a_j - f) / (c_r rho))^2), f re-estimated each pass
+        s_r2 = (robust_scale * rho) ** 2
+        for _ in range(robust_iterations):
+            usum = 0.0
+            ua = 0.0
+            for j in range(k):
+                u[j] = w[j] * math.exp(-(a[j] - m) ** 2 / s_r2)
+                usum += u[j]
+                ua += u[j] * a[j]
+            if usum > 0:
+                m = ua / usum
+            else:  # every neighbour far off the estimate: keep the kernel weights
+                for j in range(k):
+                    u[j] = w[j]
+                break
+    return m, rho, wsum
+
+
 @nb.njit(parallel=True, cache=True, nogil=True)
 def _imls(x, d, nbr, points, normals, rho0, growth, noise, spread_weight, beta, robust_scale,
           robust_iterations, with_grad, sphere, split_half=False):
@@ -462,43 +508,12 @@ def _imls(x, d, nbr, points, normals, rho0, growth, noise, spread_weight, beta, 
     n_eff = np.empty(K)
     grad = np.zeros((K, 3)) if with_grad else np.zeros((0, 3))
     for q in nb.prange(K):
-        r = d[q, 0]
-        rho = max(rho0, growth * r)
-        rho2 = rho * rho
-        r2 = r * r
         w = np.empty(k)
         u = np.empty(k)
         a = np.empty(k)
-        wsum = 0.0
-        wa = 0.0
-        for j in range(k):
-            wj = math.exp(-(d[q, j] * d[q, j] - r2) / rho2)
-            p = nbr[q, j]
-            aj = ((x[q, 0] - points[p, 0]) * normals[p, 0]
-                  + (x[q, 1] - points[p, 1]) * normals[p, 1]) \
-                + (x[q, 2] - points[p, 2]) * normals[p, 2]
-            w[j] = wj
-            u[j] = wj
-            a[j] = aj
-            wsum += wj
-            wa += wj * aj
-        m = wa / wsum
-        if robust_scale > 0:
-            # eq. rimls: w_j exp(-((a_j - f) / (c_r rho))^2), f re-estimated each pass
-            s_r2 = (robust_scale * rho) ** 2
-            for _ in range(robust_iterations):
-                usum = 0.0
-                ua = 0.0
-                for j in range(k):
-                    u[j] = w[j] * math.exp(-(a[j] - m) ** 2 / s_r2)
-                    usum += u[j]
-                    ua += u[j] * a[j]
-                if usum > 0:
-                    m = ua / usum
-                else:  # every neighbour far off the estimate: keep the kernel weights
-                    for j in range(k):
-                        u[j] = w[j]
-                    break
+        m, rho, wsum = _robust_plane_vote(x, d, nbr, q, points, normals, rho0, growth,
+                                          robust_scale, robust_iterations, w, u, a)
+        r = d[q, 0]
         usum = 0.0
         u2sum = 0.0
         s2 = 0.0
@@ -703,39 +718,8 @@ def _imls_mean(x, d, nbr, points, normals, rho0, growth, robust_scale, robust_it
         u = np.empty(k)
         a = np.empty(k)
         for q in range(c * _MEAN_CHUNK, min(K, (c + 1) * _MEAN_CHUNK)):
-            r = d[q, 0]
-            rho = max(rho0, growth * r)
-            rho2 = rho * rho
-            r2 = r * r
-            wsum = 0.0
-            wa = 0.0
-            for j in range(k):
-                wj = math.exp(-(d[q, j] * d[q, j] - r2) / rho2)
-                p = nbr[q, j]
-                aj = ((x[q, 0] - points[p, 0]) * normals[p, 0]
-                      + (x[q, 1] - points[p, 1]) * normals[p, 1]) \
-                    + (x[q, 2] - points[p, 2]) * normals[p, 2]
-                w[j] = wj
-                u[j] = wj
-                a[j] = aj
-                wsum += wj
-                wa += wj * aj
-            m = wa / wsum
-            if robust_scale > 0:
-                s_r2 = (robust_scale * rho) ** 2
-                for _ in range(robust_iterations):
-                    usum = 0.0
-                    ua = 0.0
-                    for j in range(k):
-                        u[j] = w[j] * math.exp(-(a[j] - m) ** 2 / s_r2)
-                        usum += u[j]
-                        ua += u[j] * a[j]
-                    if usum > 0:
-                        m = ua / usum
-                    else:
-                        for j in range(k):
-                            u[j] = w[j]
-                        break
+            m, rho, wsum = _robust_plane_vote(x, d, nbr, q, points, normals, rho0, growth,
+                                              robust_scale, robust_iterations, w, u, a)
             delta = 0.0
             if sphere:
                 dq, sq, vq, ssq, ok = _sphere_vote(x[q], nbr[q], points, normals, u, w, a, k)
