@@ -1065,12 +1065,12 @@ def test_bounds_in_one_pass_are_numpys():
     # the compiled per-column bounds equal numpy's min(0) / max(0); a non-finite
     # coordinate is flagged (numpy's bounds are then NaN or infinite: the seeds' grid
     # is not built, as before)
-    from gmmgp_app.stages.knn import _int_bounds3
+    from gmmgp_app.stages._distinct import _bounds
     from gmmgp_app.stages.surface import SeedReach, _finite_bounds, _int_bounds
 
     rng = np.random.default_rng(4)
     c = rng.integers(-10 ** 12, 10 ** 12, (5001, 3))
-    for lo, hi in (_int_bounds(c), _int_bounds3(c)):
+    for lo, hi in (_int_bounds(c), _bounds(c)):          # _bounds: the k-NN's groups
         np.testing.assert_array_equal(lo, c.min(0))
         np.testing.assert_array_equal(hi, c.max(0))
     p = rng.normal(size=(5001, 3))
