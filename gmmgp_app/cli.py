@@ -74,11 +74,27 @@ def _run_command(args) -> int:
         print(f"gmmgp {args.command}: error: {_one_line(exc)}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except Exception as exc:  # a bug, not bad input: still one line, with a hint
+        if _from_interrupt(exc):
+            print("gmmgp: interrupted; nothing half-written was left behind.", file=sys.stderr)
+            return EXIT_INTERRUPTED
         if args.debug:
             raise
         print(f"gmmgp {args.command}: internal error: {type(exc).__name__}: {_one_line(exc)} "
               "(rerun with --debug for the traceback and report it)", file=sys.stderr)
         return 1
+
+
+def _from_interrupt(exc: BaseException) -> bool:
+    """Whether ``exc`` is a Ctrl-C in disguise: a KeyboardInterrupt that arrived while a
+    compiled (numba) call was returning, which CPython reports as ``SystemError: ...
+    returned a result with an exception set`` with the interrupt as its cause."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
 
 
 def console_main() -> None:

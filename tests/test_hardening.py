@@ -977,6 +977,38 @@ def test_interrupted_run_leaves_no_half_written_outputs(sig, tmp_path, medium):
     assert {"/world/scan", "/world/hgmm/leaves"} <= ents, ents
 
 
+def test_interrupt_inside_a_compiled_call_is_an_interrupt(tmp_path, capsys, monkeypatch, box):
+    """Ctrl-C landing while a numba call returns reaches Python as ``SystemError: ...
+    returned a result with an exception set`` caused by the KeyboardInterrupt (seen once
+    in the SIGINT test above, the mesh's thread running beside the GMR): exit 130 and
+    the interrupted line, not an internal error; nothing half-written."""
+    import gmmgp_app.pipeline as pipeline
+
+    real = pipeline.build_map
+
+    def interrupted(*a, **k):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as ki:
+            raise SystemError("CPUDispatcher(<function _lookup_cells>) returned a result "
+                              "with an exception set") from ki
+
+    monkeypatch.setattr(pipeline, "build_map", interrupted)
+    out = tmp_path / "out"
+    rc, _, err = _cli(capsys, "run", box["npz"], "--out", out, "-q")
+    assert rc == 130
+    assert err.strip() == "gmmgp: interrupted; nothing half-written was left behind."
+    assert_no_partial_outputs(out)
+    # a SystemError of its own is still an internal error
+    def broken(*a, **k):
+        raise SystemError("a bug")
+
+    monkeypatch.setattr(pipeline, "build_map", broken)
+    rc, _, err = _cli(capsys, "run", box["npz"], "--out", out, "-q")
+    assert rc == 1 and "internal error: SystemError: a bug" in err
+    assert real is not None
+
+
 def test_interrupt_while_saving_the_map_leaves_no_map(tmp_path, capsys, monkeypatch, box):
     """Ctrl-C inside the map save (simulated in the array writer, after its first array
     file): exit 130, no map/ and no temporary folder."""
