@@ -66,8 +66,7 @@ def _run_command(args) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_OK
     except KeyboardInterrupt:
-        print("gmmgp: interrupted; nothing half-written was left behind.", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return _interrupted()
     except (ValueError, OSError, NotImplementedError, KeyError, MemoryError) as exc:
         if args.debug:
             raise
@@ -75,13 +74,18 @@ def _run_command(args) -> int:
         return EXIT_BAD_INPUT
     except Exception as exc:  # a bug, not bad input: still one line, with a hint
         if _from_interrupt(exc):
-            print("gmmgp: interrupted; nothing half-written was left behind.", file=sys.stderr)
-            return EXIT_INTERRUPTED
+            return _interrupted()
         if args.debug:
             raise
         print(f"gmmgp {args.command}: internal error: {type(exc).__name__}: {_one_line(exc)} "
               "(rerun with --debug for the traceback and report it)", file=sys.stderr)
         return 1
+
+
+def _interrupted() -> int:
+    """The one line and exit code of a run the user interrupted (Ctrl-C)."""
+    print("gmmgp: interrupted; nothing half-written was left behind.", file=sys.stderr)
+    return EXIT_INTERRUPTED
 
 
 def _from_interrupt(exc: BaseException) -> bool:
